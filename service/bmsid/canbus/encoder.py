@@ -1,0 +1,163 @@
+"""Estimates -> bmsid's output frames (per-cell parameters multiplexed by cell index, pack summary).
+
+Classic CAN: three 8-byte frames per cell (``CellR``, ``CellTau``, ``CellState``); CAN FD: one
+48-byte ``CellParamsFD`` frame per cell. Values outside a signal's range are clamped and their
+bits set in the cell's ``Saturated`` mask (``dbcgen.SATURATION_BITS``); NaN is sent as the signal's
+not-available value. Ids are 29-bit by default, keeping bmsid out of the 11-bit space most BMSs
+use; ``extended_id=False`` selects the ``*_11bit`` twins.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import can
+import cantools
+import numpy as np
+
+from bmsid.canbus.codec import decode_raw, encode_saturating
+from bmsid.canbus.dbcgen import SATURATION_BITS
+from bmsid.canbus.mapping import DEFAULT_DBC_PATH, load_dbc
+from bmsid.errors import UserError
+from bmsid.estimate.types import Estimates
+
+#: DBC signal name -> key of :meth:`ParameterEncoder.decode` (SI units in the key).
+DECODED_NAMES: dict[str, str] = {
+    "CellIndex": "cell",
+    "R0": "R0_ohm",
+    "R1": "R1_ohm",
+    "R2": "R2_ohm",
+    "Tau1": "tau1_s",
+    "Tau2": "tau2_s",
+    "C1": "C1_F",
+    "C2": "C2_F",
+    "Lambda": "lambda",
+    "H": "h",
+    "SOC": "soc",
+    "VError": "v_error_V",
+    "Quality": "quality",
+    "Saturated": "saturated_mask",
+    "R0Min": "R0_min_ohm",
+    "R0Mean": "R0_mean_ohm",
+    "R0Max": "R0_max_ohm",
+    "WeakestCell": "weakest_cell",
+    "Health": "health",
+}
+
+_CELL_VALUES: dict[str, Callable[[Estimates, int], float]] = {
+    "R0": lambda e, i: float(e.R0_ohm[i]),
+    "R1": lambda e, i: float(e.R1_ohm[i]),
+    "R2": lambda e, i: float(e.R2_ohm[i]),
+    "Tau1": lambda e, i: float(e.tau1_s[i]),
+    "Tau2": lambda e, i: float(e.tau2_s[i]),
+    "C1": lambda e, i: float(e.C1_F[i]),
+    "C2": lambda e, i: float(e.C2_F[i]),
+    "Lambda": lambda e, i: float(e.lambda_[i]),
+    "H": lambda e, i: float(e.h[i]),
+    "SOC": lambda e, i: float(e.soc[i]),
+    "VError": lambda e, i: float(e.v_meas_V[i] - e.v_model_V[i]),
+}
+
+CLASSIC_PAGES = ("CellR", "CellTau", "CellState")
+FD_PAGE = "CellParamsFD"
+PACK = "PackSummary"
+MAX_QUALITY_CLASSIC = 7
+MAX_HEALTH = 15
+
+
+class ParameterEncoder:
+    """Build bmsid's output frames from :class:`Estimates` and decode them back."""
+
+    def __init__(
+        self, dbc_path: str | Path | None = None, *, extended_id: bool = True, fd: bool = False
+    ) -> None:
+        path = Path(dbc_path) if dbc_path is not None else DEFAULT_DBC_PATH
+        db = load_dbc(str(path))
+        suffix = "" if extended_id else "_11bit"
+        try:
+            self._pages = [
+                db.get_message_by_name(f"BMSID_{p}{suffix}")
+                for p in ((FD_PAGE,) if fd else CLASSIC_PAGES)
+            ]
+            self._pack = db.get_message_by_name(f"BMSID_{PACK}{suffix}")
+        except KeyError as exc:
+            raise UserError(f"output DBC {path} lacks message {exc}") from None
+        self.extended_id = extended_id
+        self.fd = fd
+        self._by_key = {
+            (int(m.frame_id), bool(m.is_extended_frame)): m
+            for m in db.messages
+            if m.name.startswith("BMSID_") and m.senders == ["BMSID"]
+        }
+
+    def _frame(self, msg: cantools.database.can.Message, data: bytes, t_s: float) -> can.Message:
+        return can.Message(
+            timestamp=t_s,
+            arbitration_id=int(msg.frame_id),
+            is_extended_id=bool(msg.is_extended_frame),
+            is_fd=bool(msg.is_fd),
+            data=data,
+        )
+
+    def cell_frames(self, est: Estimates, cells: Sequence[int]) -> list[can.Message]:
+        """Per-cell parameter frames for ``cells`` (indices into ``est``), muxed by cell index."""
+        frames: list[can.Message] = []
+        for i in cells:
+            if not 0 <= i < est.n_cells:
+                raise ValueError(f"cell {i} not in estimates of {est.n_cells} cells")
+            values = {name: get(est, i) for name, get in _CELL_VALUES.items()}
+            mask = 0
+            encoded: list[tuple[cantools.database.can.Message, dict[str, float]]] = []
+            for page in self._pages:
+                names = {s.name for s in page.signals}
+                page_values = {k: v for k, v in values.items() if k in names}
+                page_values["CellIndex"] = float(i)
+                _, saturated = encode_saturating(page, page_values)
+                for s in saturated:
+                    mask |= 1 << SATURATION_BITS[s]
+                encoded.append((page, page_values))
+            quality = float(min(max(int(est.quality[i]), 0), MAX_QUALITY_CLASSIC))
+            for page, page_values in encoded:
+                if "Saturated" in {s.name for s in page.signals}:
+                    page_values["Saturated"] = float(mask)
+                    page_values["Quality"] = quality
+                data, _ = encode_saturating(page, page_values)
+                frames.append(self._frame(page, data, est.t_s))
+        return frames
+
+    def pack_frame(self, est: Estimates, health: int = 0) -> can.Message:
+        """Pack summary: min/mean/max R0 (ohm) over cells with a finite R0, weakest cell = the
+        largest R0, ``health`` code (0..15, clamped)."""
+        r0 = np.asarray(est.R0_ohm, dtype=np.float64)
+        finite = np.isfinite(r0)
+        values: dict[str, float] = {"Health": float(min(max(health, 0), MAX_HEALTH))}
+        if finite.any():
+            rf = r0[finite]
+            values |= {
+                "R0Min": float(rf.min()),
+                "R0Mean": float(rf.mean()),
+                "R0Max": float(rf.max()),
+                "WeakestCell": float(np.flatnonzero(finite)[int(np.argmax(rf))]),
+            }
+        else:
+            values |= dict.fromkeys(("R0Min", "R0Mean", "R0Max", "WeakestCell"), math.nan)
+        _, saturated = encode_saturating(self._pack, values)
+        values["Saturated"] = 1.0 if saturated else 0.0
+        data, _ = encode_saturating(self._pack, values)
+        return self._frame(self._pack, data, est.t_s)
+
+    def decode(self, msg: can.Message) -> dict[str, float] | None:
+        """Decode one of bmsid's output frames (keys in :data:`DECODED_NAMES`, NaN = not
+        available); None for any other or malformed frame."""
+        if msg.is_error_frame or msg.is_remote_frame:
+            return None
+        m = self._by_key.get((msg.arbitration_id, bool(msg.is_extended_id)))
+        if m is None or len(msg.data) != m.length:
+            return None
+        try:
+            phys = decode_raw(m, bytes(msg.data))
+        except Exception:  # malformed frame (unknown mux value): not ours to decode
+            return None
+        return {DECODED_NAMES.get(k, k): v for k, v in phys.items()}

@@ -1,0 +1,352 @@
+"""CAN frames -> one :class:`~bmsid.samples.Sample` per tick.
+
+Frames of one tick arrive at different times; these rules turn them into samples (the daemon
+and ``bmsid identify`` on a candump log both go through :class:`FrameToSamples`):
+
+1. **Current** is held from its latest valid frame.
+2. **Cycle.** The first cell-voltage value after a tick opens a cycle. The cycle is *complete*, and
+   a sample is emitted at once, when every cell ``0 .. n_cells-1`` has a value.
+3. A cycle is *closed half-complete* when (a) a value arrives for a cell that already has one in
+   the open cycle (the BMS has started its next cycle), (b) the sample counter changes (when the
+   mapping names one; the counter frame closes the open cycle before its current is taken), (c) the
+   cycle is older than ``staleness_s`` when a later frame arrives or :meth:`FrameToSamples.expire`
+   is called, or (d) :meth:`FrameToSamples.flush` is called at the end of a log.
+   A half-complete cycle is emitted with NaN for the missing cells and the flag ``incomplete``.
+4. A sample is only emitted with a current no older than ``staleness_s`` at the sample time;
+   otherwise the cycle is dropped and counted as ``stale_current`` (there is no NaN convention
+   for the current, and guessing one would corrupt the estimate).
+5. ``t_s`` is the (monotonic-guarded) timestamp of the last cell frame of the cycle. Wall-clock
+   steps backwards are absorbed into an offset (counted as ``time_backwards``).
+6. Temperatures are held per sensor; NaN when never received or older than ``staleness_s``.
+
+Bad frames never raise and never reach a sample; each kind is counted in
+:attr:`FrameToSamples.counters` and logged at a rate that thins out (1st, 10th, 100th, ...):
+error frames, remote frames, unknown identifiers, wrong DLC, multiplexer index outside the DBC or
+outside ``n_cells``, values outside the signal's DBC range (that cell becomes NaN, flag
+``out_of_range``), and any other decode error.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import can
+import cantools
+import numpy as np
+
+from bmsid.canbus.mapping import BusMapping, ListedGroup, MultiplexedGroup
+from bmsid.errors import UserError
+from bmsid.samples import Sample
+
+log = logging.getLogger(__name__)
+
+COUNTER_NAMES = (
+    "frames",
+    "decoded",
+    "unknown_id",
+    "wrong_dlc",
+    "mux_out_of_range",
+    "error_frames",
+    "remote_frames",
+    "out_of_range",
+    "decode_error",
+    "samples",
+    "incomplete_cycles",
+    "stale_current",
+    "time_backwards",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class _Slot:
+    """One mapped signal: its item index (or offset within a mux group) and SI conversion."""
+
+    signal: str
+    index: int
+    scale: float
+    offset: float
+    lo: float
+    hi: float
+
+
+@dataclass(slots=True)
+class _Plan:
+    """What to do with one arbitration id."""
+
+    message: cantools.database.can.Message
+    length: int
+    counter: str | None = None
+    current: _Slot | None = None
+    cells: list[_Slot] = field(default_factory=list)
+    cell_mux: str | None = None  # multiplexer signal when ``cells`` are offsets in a group
+    temps: list[_Slot] = field(default_factory=list)
+    temp_mux: str | None = None
+
+
+def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float]:
+    eps = abs(float(sig.scale)) * 1e-6
+    lo = -math.inf if sig.minimum is None else float(sig.minimum) - eps
+    hi = math.inf if sig.maximum is None else float(sig.maximum) + eps
+    return lo, hi
+
+
+class FrameToSamples:
+    """Decode frames with cantools and assemble samples (rules in the module docstring)."""
+
+    def __init__(self, mapping: BusMapping, n_cells: int, staleness_s: float = 2.0) -> None:
+        if n_cells < 1 or n_cells > mapping.max_cells():
+            raise UserError(
+                f"n_cells={n_cells}: mapping {mapping.name!r} addresses 1..{mapping.max_cells()}"
+            )
+        if not staleness_s > 0:
+            raise UserError(f"staleness_s must be > 0, got {staleness_s}")
+        self.mapping = mapping
+        self.n_cells = n_cells
+        self.n_temps = mapping.max_temperatures()
+        self.staleness_s = float(staleness_s)
+        self.counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
+        self._plans = self._build_plans(mapping)
+        # held current and temperatures
+        self._current_A = math.nan
+        self._current_t = -math.inf
+        self._temps = [math.nan] * self.n_temps
+        self._temps_t = [-math.inf] * self.n_temps
+        self._counter: int | None = None
+        # the open cycle
+        self._v = [math.nan] * n_cells
+        self._seen = bytearray(n_cells)
+        self._n_seen = 0
+        self._t_first = 0.0
+        self._t_last = 0.0
+        self._cycle_counter: int | None = None
+        self._flags: set[str] = set()
+        # monotonic guard
+        self._t_offset = 0.0
+        self._t_prev = -math.inf
+
+    # --- construction -------------------------------------------------------------------------
+
+    def _build_plans(self, mapping: BusMapping) -> dict[tuple[int, bool], _Plan]:
+        db = mapping.database()
+        plans: dict[tuple[int, bool], _Plan] = {}
+
+        def plan_for(name: str) -> _Plan:
+            msg = db.get_message_by_name(name)
+            key = (int(msg.frame_id), bool(msg.is_extended_frame))
+            if key not in plans:
+                plans[key] = _Plan(message=msg, length=int(msg.length))
+            return plans[key]
+
+        def slot(msg_name: str, sig_name: str, index: int, scale: float, offset: float) -> _Slot:
+            sig = db.get_message_by_name(msg_name).get_signal_by_name(sig_name)
+            lo, hi = _bounds(sig)
+            return _Slot(sig_name, index, scale, offset, lo, hi)
+
+        cur = mapping.current
+        sign = 1.0 if cur.positive == "discharge" else -1.0
+        plan_for(cur.message).current = slot(
+            cur.message, cur.signal, 0, sign * cur.scale, sign * cur.offset
+        )
+        if mapping.counter is not None:
+            plan_for(mapping.counter.message).counter = mapping.counter.signal
+
+        def add_group(group: MultiplexedGroup | ListedGroup, kind: str) -> None:
+            if isinstance(group, ListedGroup):
+                for i, ref in enumerate(group.signals):
+                    p = plan_for(ref.message)
+                    getattr(p, kind).append(slot(ref.message, ref.signal, i, ref.scale, ref.offset))
+                return
+            p = plan_for(group.message)
+            setattr(p, "cell_mux" if kind == "cells" else "temp_mux", group.multiplexer)
+            for k, name in enumerate(group.signals):
+                getattr(p, kind).append(slot(group.message, name, k, group.scale, group.offset))
+
+        add_group(mapping.cells, "cells")
+        if mapping.temperatures is not None:
+            add_group(mapping.temperatures, "temps")
+        return plans
+
+    # --- bookkeeping --------------------------------------------------------------------------
+
+    def _note(self, kind: str, detail: str, level: int = logging.WARNING) -> None:
+        n = self.counters.get(kind, 0) + 1
+        self.counters[kind] = n
+        if n == 10 ** (len(str(n)) - 1):  # 1, 10, 100, ...: logs thin out under a flood
+            log.log(level, "%s: %s (%d so far)", kind, detail, n)
+
+    def _time(self, timestamp: float) -> float:
+        t = float(timestamp) + self._t_offset
+        if t < self._t_prev:
+            self._note("time_backwards", f"timestamp stepped back by {self._t_prev - t:.6f} s")
+            self._t_offset += self._t_prev - t
+            t = self._t_prev
+        self._t_prev = t
+        return t
+
+    # --- public API ---------------------------------------------------------------------------
+
+    def feed(self, msg: can.Message) -> list[Sample]:
+        """Take one frame; return the samples it completes (usually none or one). Never raises."""
+        self.counters["frames"] += 1
+        if msg.is_error_frame:
+            self._note("error_frames", f"error frame id=0x{msg.arbitration_id:X}")
+            return []
+        if msg.is_remote_frame:
+            self._note("remote_frames", f"remote frame id=0x{msg.arbitration_id:X}")
+            return []
+        plan = self._plans.get((msg.arbitration_id, bool(msg.is_extended_id)))
+        if plan is None:
+            self._note("unknown_id", f"id=0x{msg.arbitration_id:X}", logging.INFO)
+            return []
+        data = bytes(msg.data)
+        if len(data) != plan.length:
+            self._note(
+                "wrong_dlc",
+                f"{plan.message.name}: {len(data)} bytes instead of {plan.length}",
+            )
+            return []
+        try:
+            values = plan.message.decode(data, decode_choices=False)
+        except Exception as exc:  # cantools/bitstruct raise several types; none may escape
+            kind = "mux_out_of_range" if "multiplexer" in str(exc) else "decode_error"
+            self._note(kind, f"{plan.message.name}: {exc}"[:200])
+            return []
+        if not isinstance(values, dict):  # container messages are not mapped
+            self._note("decode_error", f"{plan.message.name}: not a plain message")
+            return []
+        self.counters["decoded"] += 1
+        return self._apply(plan, values, self._time(msg.timestamp))
+
+    def expire(self, now_s: float) -> list[Sample]:
+        """Close the open cycle if it is older than ``staleness_s`` at ``now_s`` (frame clock)."""
+        out: list[Sample] = []
+        if self._n_seen and now_s + self._t_offset - self._t_first > self.staleness_s:
+            self._close(out)
+        return out
+
+    def flush(self) -> list[Sample]:
+        """End of input: emit the open cycle half-complete (rule 3d), if there is one."""
+        out: list[Sample] = []
+        if self._n_seen:
+            self._close(out)
+        return out
+
+    # --- assembly -----------------------------------------------------------------------------
+
+    def _value(self, values: Mapping[str, object], s: _Slot, what: str) -> float:
+        raw = values.get(s.signal)
+        v = float(raw) if isinstance(raw, int | float) else math.nan
+        if not (s.lo <= v <= s.hi):  # also catches NaN
+            self._note("out_of_range", f"{what} signal {s.signal}={raw!r}")
+            return math.nan
+        return s.scale * v + s.offset
+
+    def _apply(self, plan: _Plan, values: Mapping[str, object], t: float) -> list[Sample]:
+        out: list[Sample] = []
+        if self._n_seen and t - self._t_first > self.staleness_s:
+            self._close(out)
+        if plan.counter is not None:
+            c = values.get(plan.counter)
+            if isinstance(c, int | float):
+                if self._counter is not None and int(c) != self._counter and self._n_seen:
+                    self._close(out)
+                self._counter = int(c)
+        if plan.current is not None:
+            i = self._value(values, plan.current, "current")
+            if not math.isnan(i):
+                self._current_A, self._current_t = i, t
+        if plan.temps:
+            self._take_temps(plan, values, t)
+        if plan.cells:
+            self._take_cells(plan, values, t, out)
+        return out
+
+    def _group_base(
+        self, plan: _Plan, values: Mapping[str, object], mux: str, stride: int, limit: int
+    ) -> int:
+        """First item index of the multiplexed group in ``values``; -1 when beyond ``limit``."""
+        g = values.get(mux)
+        base = int(g) * stride if isinstance(g, int | float) else limit
+        if base >= limit:
+            self._note("mux_out_of_range", f"{plan.message.name}: {mux}={g} beyond {limit} items")
+            return -1
+        return base
+
+    def _take_temps(self, plan: _Plan, values: Mapping[str, object], t: float) -> None:
+        base = 0
+        if plan.temp_mux is not None:
+            base = self._group_base(plan, values, plan.temp_mux, len(plan.temps), self.n_temps)
+            if base < 0:
+                return
+        for s in plan.temps:
+            j = base + s.index
+            if j < self.n_temps:
+                v = self._value(values, s, "temperature")
+                self._temps[j], self._temps_t[j] = v, t
+
+    def _take_cells(
+        self, plan: _Plan, values: Mapping[str, object], t: float, out: list[Sample]
+    ) -> None:
+        base = 0
+        if plan.cell_mux is not None:
+            base = self._group_base(plan, values, plan.cell_mux, len(plan.cells), self.n_cells)
+            if base < 0:
+                return
+        n = self.n_cells
+        idx = [base + s.index for s in plan.cells]
+        if self._n_seen and any(j < n and self._seen[j] for j in idx):
+            self._close(out)  # rule 3a: the next cycle has begun
+        if not self._n_seen:
+            self._t_first = t
+            self._cycle_counter = self._counter
+        for s, j in zip(plan.cells, idx, strict=True):
+            if j >= n:
+                continue  # padding of the last group beyond n_cells
+            v = self._value(values, s, "cell voltage")
+            if math.isnan(v):
+                self._flags.add("out_of_range")
+            self._v[j] = v
+            self._seen[j] = 1
+            self._n_seen += 1
+        self._t_last = t
+        if self._n_seen == n:
+            self._close(out)
+
+    def _close(self, out: list[Sample]) -> None:
+        t = self._t_last
+        if self._n_seen < self.n_cells:
+            self._flags.add("incomplete")
+            self._note(
+                "incomplete_cycles",
+                f"cycle at t={t:.3f} s closed with {self._n_seen}/{self.n_cells} cells",
+            )
+        if t - self._current_t > self.staleness_s:
+            self._note("stale_current", f"no current within {self.staleness_s} s of t={t:.3f} s")
+        else:
+            temps = None
+            if self.n_temps:
+                temps = np.array(
+                    [
+                        v if t - tt <= self.staleness_s else math.nan
+                        for v, tt in zip(self._temps, self._temps_t, strict=True)
+                    ],
+                    dtype=np.float64,
+                )
+            out.append(
+                Sample(
+                    t_s=t,
+                    current_A=self._current_A,
+                    cell_voltages_V=np.array(self._v, dtype=np.float64),
+                    temperatures_C=temps,
+                    counter=self._cycle_counter,
+                    flags=frozenset(self._flags),
+                )
+            )
+            self.counters["samples"] += 1
+        self._v = [math.nan] * self.n_cells
+        self._seen = bytearray(self.n_cells)
+        self._n_seen = 0
+        self._flags = set()

@@ -1,0 +1,332 @@
+"""candump logs in and out, and battery-tester data -> frames (``bmsid make-log``).
+
+Two candump text formats are read, chosen per line:
+
+- the log file format of ``candump -l`` / ``-L``: ``(1600000000.123456) can0 123#1122`` (read by
+  python-can's ``CanutilsLogReader``; error frames of every class are kept as error frames);
+- the console format of ``candump``: ``  can0  123   [2]  11 22``, optionally preceded by a
+  ``-ta``/``-tz`` timestamp ``(1600000000.123456)`` or a ``-tA`` date; ``remote request``,
+  ``ERRORFRAME`` and ``-a`` ASCII columns are understood. Without timestamps every frame gets
+  ``timestamp=0.0``. ``-td`` (delta) timestamps are not supported.
+
+Malformed lines are skipped, counted and logged (thinning out: 1st, 10th, 100th, ...).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import math
+import re
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import can
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.canbus.codec import encode_saturating
+from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.mapping import BusMapping, ListedGroup, MultiplexedGroup
+from bmsid.errors import UserError
+from bmsid.samples import Sample
+
+log = logging.getLogger(__name__)
+
+CAN_ERR_FLAG = 0x20000000
+_HEX = "[0-9A-Fa-f]"
+_LOGFILE_RE = re.compile(
+    rf"^\(\d+\.\d+\)\s+\S+\s+(?P<id>{_HEX}{{3}}|{_HEX}{{8}})#"
+    rf"(?:R\d*|#{_HEX}(?:{_HEX}{{2}}){{0,64}}|(?:{_HEX}{{2}}){{0,8}})(?:\s+[RTrt])?$"
+)
+_CONSOLE_RE = re.compile(
+    r"^(?:\((?P<ts>[0-9]{4}-[0-9]{2}-[0-9]{2} [0-9:.]+|[0-9]+\.[0-9]+)\)\s+)?"
+    rf"(?P<chan>\S+)\s+(?P<id>{_HEX}{{3}}|{_HEX}{{8}})\s+\[(?P<dlc>\d{{1,2}})\]"
+    r"(?P<rest>.*)$"
+)
+_CONSOLE_BYTES_RE = re.compile(rf"^\s*((?:{_HEX}{{2}}\s*)*)(?:'.*')?\s*(ERRORFRAME.*)?$")
+
+
+class _SkipCounter:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.n = 0
+
+    def skip(self, lineno: int, why: str) -> None:
+        self.n += 1
+        if self.n == 10 ** (len(str(self.n)) - 1):
+            log.warning(
+                "%s:%d: skipped (%s); %d lines skipped so far", self.path, lineno, why, self.n
+            )
+
+
+def _parse_console(line: str) -> can.Message | None:
+    m = _CONSOLE_RE.match(line.strip())
+    if m is None:
+        return None
+    ident = m["id"]
+    can_id = int(ident, 16)
+    ts_text = m["ts"]
+    timestamp = 0.0
+    if ts_text:
+        if "-" in ts_text:
+            timestamp = dt.datetime.fromisoformat(ts_text).timestamp()
+        else:
+            timestamp = float(ts_text)
+    dlc = int(m["dlc"])
+    rest = m["rest"]
+    if "remote request" in rest:
+        return can.Message(
+            timestamp=timestamp,
+            arbitration_id=can_id & 0x1FFFFFFF,
+            is_extended_id=len(ident) == 8,
+            is_remote_frame=True,
+            dlc=dlc,
+            channel=m["chan"],
+        )
+    b = _CONSOLE_BYTES_RE.match(rest)
+    if b is None:
+        return None
+    data = bytes.fromhex(b[1].replace(" ", ""))
+    if len(data) != dlc or dlc > 64:
+        return None
+    if (len(ident) == 8 and can_id & CAN_ERR_FLAG) or b[2]:
+        return can.Message(
+            timestamp=timestamp,
+            is_error_frame=True,
+            arbitration_id=can_id & 0x1FFFFFFF,
+            data=data[:8],
+            channel=m["chan"],
+        )
+    # candump prints FD lengths as two digits ("[08]", "[12]") and classic ones as one ("[8]")
+    is_fd = len(m["dlc"]) == 2
+    if dlc > 8 and not is_fd:
+        return None
+    return can.Message(
+        timestamp=timestamp,
+        arbitration_id=can_id,
+        is_extended_id=len(ident) == 8,
+        is_fd=is_fd,
+        data=data,
+        channel=m["chan"],
+    )
+
+
+def _logfile_lines(lines: Iterable[tuple[int, str]], skipped: _SkipCounter) -> Iterator[str]:
+    for lineno, line in lines:
+        m = _LOGFILE_RE.match(line)
+        if m is None:
+            skipped.skip(lineno, "not a candump log line")
+            continue
+        ident = m["id"]
+        if len(ident) == 8 and int(ident, 16) & CAN_ERR_FLAG:
+            # python-can only recognises the bus-error class; keep every class an error frame
+            ts, chan = line.split()[:2]
+            yield f"{ts} {chan} {CAN_ERR_FLAG | 0x80:08X}#"
+        else:
+            yield line
+
+
+def read_log(path: str | Path) -> Iterator[can.Message]:
+    """Frames of a candump log (``-l``/``-L`` file or console output), in file order."""
+    p = Path(path)
+    try:
+        fh = p.open(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise UserError(f"cannot read CAN log {p}: {exc.strerror}") from None
+    skipped = _SkipCounter(p)
+    with fh:
+        pending: list[tuple[int, str]] = []
+        for lineno, raw in enumerate(fh, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            if "#" in line and line.startswith("("):
+                pending.append((lineno, line))
+                if len(pending) >= 1024:
+                    yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+                    pending = []
+                continue
+            if pending:
+                yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+                pending = []
+            msg = None
+            try:
+                msg = _parse_console(line)
+            except ValueError:
+                msg = None
+            if msg is None:
+                skipped.skip(lineno, "not a candump line")
+                continue
+            yield msg
+        if pending:
+            yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+    if skipped.n:
+        log.warning("%s: %d malformed lines skipped in total", p, skipped.n)
+
+
+def write_log(path: str | Path, messages: Iterable[can.Message], channel: str = "can0") -> None:
+    """Write ``candump -l`` format (readable by ``canplayer`` and :func:`read_log`)."""
+    writer = can.CanutilsLogWriter(str(path), channel=channel)
+    try:
+        for msg in messages:
+            msg.channel = channel
+            writer.on_message_received(msg)
+    finally:
+        writer.stop()
+
+
+# --- tester data -> frames ---------------------------------------------------------------------
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def _resample(
+    t_s: FloatArray, current_A: FloatArray, v: FloatArray, temps: FloatArray | None, rate_hz: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    grid = np.arange(t_s[0], t_s[-1] + 1e-9, 1.0 / rate_hz)
+    cur = np.interp(grid, t_s, current_A)
+    vv = np.column_stack([np.interp(grid, t_s, v[:, j]) for j in range(v.shape[1])])
+    tt = None if temps is None else np.interp(grid, t_s, temps)
+    return grid, cur, vv, tt
+
+
+def csv_to_messages(
+    t_s: npt.ArrayLike,
+    current_A: npt.ArrayLike,
+    cell_voltages_V: npt.ArrayLike,
+    mapping: BusMapping,
+    rate_hz: float | None = None,
+    *,
+    temperature_C: npt.ArrayLike | None = None,
+    t0_s: float = 0.0,
+) -> Iterator[can.Message]:
+    """Frames of one tick per row (or per ``1/rate_hz`` s, linearly interpolated) in ``mapping``.
+
+    Order within a tick: the current/counter frame, the temperatures, then the cell frames; all
+    frames of a tick carry the tick's time ``t0_s + t``. Values outside a signal's range are
+    clamped (logged once with a count); NaN is sent as the signal's not-available value.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    cur = np.asarray(current_A, dtype=np.float64)
+    v = np.asarray(cell_voltages_V, dtype=np.float64)
+    if v.ndim == 1:
+        v = v[:, None]
+    temps = None if temperature_C is None else np.asarray(temperature_C, dtype=np.float64)
+    if not (t.shape[0] == cur.shape[0] == v.shape[0]) or t.shape[0] == 0:
+        raise UserError("t_s, current_A and cell_voltages_V need the same, non-zero length")
+    if v.shape[1] > mapping.max_cells():
+        raise UserError(
+            f"{v.shape[1]} cells; mapping {mapping.name!r} carries {mapping.max_cells()}"
+        )
+    if rate_hz is not None:
+        if not rate_hz > 0:
+            raise UserError(f"--rate-hz must be > 0, got {rate_hz}")
+        t, cur, v, temps = _resample(t, cur, v, temps, rate_hz)
+    db = mapping.database()
+    cm = mapping.current
+    sign = 1.0 if cm.positive == "discharge" else -1.0
+    counter_modulo = 0
+    if mapping.counter is not None:
+        sig = db.get_message_by_name(mapping.counter.message).get_signal_by_name(
+            mapping.counter.signal
+        )
+        counter_modulo = 1 << int(sig.length)
+    cell_frames = _group_frames(mapping.cells, v.shape[1])
+    temp_frames: list[_FrameLayout] = []
+    if temps is not None and mapping.temperatures is not None:
+        temps = temps[:, None]
+        temp_frames = _group_frames(mapping.temperatures, 1)
+    n_saturated = 0
+    for k in range(t.shape[0]):
+        ts = t0_s + float(t[k])
+        head: dict[str, dict[str, float]] = {
+            cm.message: {cm.signal: (sign * cur[k] - cm.offset) / cm.scale}
+        }
+        if mapping.counter is not None:
+            head.setdefault(mapping.counter.message, {})[mapping.counter.signal] = float(
+                k % counter_modulo
+            )
+        frames = list(head.items())
+        if temps is not None:  # before the cells: the last cell frame completes the tick
+            frames += [(f.message, f.values(temps[k])) for f in temp_frames]
+        frames += [(f.message, f.values(v[k])) for f in cell_frames]
+        for msg_name, vals in frames:
+            message = db.get_message_by_name(msg_name)
+            data, sat = encode_saturating(message, vals)
+            if sat and n_saturated == 0:
+                log.warning("t=%.3f s: %s saturated at the DBC range", ts, ", ".join(sat))
+            n_saturated += len(sat)
+            yield can.Message(
+                timestamp=ts,
+                arbitration_id=int(message.frame_id),
+                is_extended_id=bool(message.is_extended_frame),
+                is_fd=bool(message.is_fd),
+                data=data,
+            )
+    if n_saturated:
+        log.warning("%d values saturated at their DBC range in total", n_saturated)
+
+
+class _FrameLayout:
+    """One frame of a value group: which item goes into which signal (decoded units)."""
+
+    def __init__(
+        self, message: str, slots: list[tuple[str, int, float, float]], mux: tuple[str, int] | None
+    ) -> None:
+        self.message = message
+        self.slots = slots  # (signal, item index, scale, offset)
+        self.mux = mux
+
+    def values(self, items: FloatArray) -> dict[str, float]:
+        out = {sig: (float(items[i]) - offset) / scale for sig, i, scale, offset in self.slots}
+        if self.mux is not None:
+            out[self.mux[0]] = float(self.mux[1])
+        return out
+
+
+def _group_frames(group: MultiplexedGroup | ListedGroup, n: int) -> list[_FrameLayout]:
+    if isinstance(group, ListedGroup):
+        by_msg: dict[str, list[tuple[str, int, float, float]]] = {}
+        for i, ref in enumerate(group.signals[:n]):
+            by_msg.setdefault(ref.message, []).append((ref.signal, i, ref.scale, ref.offset))
+        return [_FrameLayout(msg, slots, None) for msg, slots in by_msg.items()]
+    stride = len(group.signals)
+    return [
+        _FrameLayout(
+            group.message,
+            [
+                (sig, g * stride + k, group.scale, group.offset)
+                for k, sig in enumerate(group.signals)
+                if g * stride + k < n
+            ],
+            (group.multiplexer, g),
+        )
+        for g in range(math.ceil(n / stride))
+    ]
+
+
+def samples_from_log(
+    path: str | Path, mapping: BusMapping, n_cells: int, staleness_s: float = 2.0
+) -> list[Sample]:
+    """Samples of a candump log, through :class:`FrameToSamples` exactly as the daemon does."""
+    f2s = FrameToSamples(mapping, n_cells, staleness_s=staleness_s)
+    out: list[Sample] = []
+    any_time = False
+    for msg in read_log(path):
+        any_time = any_time or msg.timestamp != 0.0
+        out.extend(f2s.feed(msg))
+    out.extend(f2s.flush())
+    if not out:
+        raise UserError(
+            f"{path}: no samples decoded with mapping {mapping.name!r} "
+            f"(counters: {_nonzero(f2s.counters)})"
+        )
+    if not any_time:
+        raise UserError(f"{path}: the log has no timestamps; record with candump -l or -ta")
+    log.info("%s: %s", path, _nonzero(f2s.counters))
+    return out
+
+
+def _nonzero(counters: dict[str, int]) -> str:
+    return ", ".join(f"{k}={v}" for k, v in counters.items() if v)

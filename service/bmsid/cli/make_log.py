@@ -1,0 +1,64 @@
+"""``bmsid make-log INPUT.csv --out FILE.log``: a battery tester's CSV as a candump log.
+
+The log replays with ``canplayer -I FILE.log vcan0=can0`` and reads back through
+``bmsid identify`` with the same mapping.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+from typing import Any
+
+from bmsid.canbus.logs import csv_to_messages, write_log
+from bmsid.canbus.mapping import default_mapping, load_mapping
+from bmsid.errors import UserError
+
+
+def load_csv(path: Path) -> Any:
+    """The tester CSV as ``TesterData`` (``bmsid.offline.csvio``, imported when needed)."""
+    try:
+        csvio = importlib.import_module("bmsid.offline.csvio")
+    except ModuleNotFoundError as exc:
+        raise UserError("the CSV reader (bmsid.offline.csvio) is not installed") from exc
+    return csvio.read_tester_csv(path)
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "make-log",
+        help="turn a battery tester's CSV into a candump log",
+        description=__doc__,
+    )
+    p.add_argument("input", type=Path, help="CSV: t_s,current_A,voltage_V or v_cell_01,...")
+    p.add_argument("--out", type=Path, required=True, help="candump -l log to write")
+    p.add_argument("--mapping", type=Path, help="bus mapping TOML (default: bmsid's own DBC)")
+    p.add_argument(
+        "--rate-hz", type=float, help="resample to this tick rate (default: one tick per row)"
+    )
+    p.add_argument("--channel", default="can0", help="interface name written into the log")
+    p.add_argument(
+        "--t0", type=float, default=0.0, help="timestamp of t_s = 0 in the log, s (default 0)"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    mapping = load_mapping(args.mapping) if args.mapping else default_mapping()
+    data = load_csv(args.input)
+    messages = csv_to_messages(
+        data.t_s,
+        data.current_A,
+        data.cell_voltages_V,
+        mapping,
+        rate_hz=args.rate_hz,
+        temperature_C=data.temperature_C,
+        t0_s=args.t0,
+    )
+    try:
+        write_log(args.out, messages, channel=args.channel)
+    except OSError as exc:
+        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    print(f"wrote {args.out}")
+    return 0

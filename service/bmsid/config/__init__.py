@@ -1,0 +1,1 @@
+"""Validated configuration models (pydantic): the cell description and, later, daemon settings."""

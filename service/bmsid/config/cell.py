@@ -1,0 +1,177 @@
+"""The cell configuration: everything bmsid must know about a cell type before identifying it.
+
+One pydantic model, stored as TOML or JSON (``load_cell_config`` / ``save_cell_config``), written by
+``bmsid fit-ocv`` and read by ``bmsid identify`` and the daemon.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal, Self
+
+import tomli_w
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Coeffs = Annotated[list[float], Field(min_length=6, max_length=6)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class OcvCurve(_Strict):
+    """OCV(z) of the paper's Eq. 4 per branch, in volts, with z the SOC as a fraction in (0, 1).
+
+    ``U(z) = a0 + a1 z + a2 z^2 + a3/z + a4 ln z + a5 ln(1-z)``. ``mean`` is the curve the model
+    uses (Eq. 9); ``charge`` and ``discharge`` are kept for reporting and for M(z). ``soc_min`` and
+    ``soc_max`` bound the range where the fit is valid: z is clamped there (Eq. 4 is singular at 0
+    and 1).
+    """
+
+    mean: Coeffs
+    charge: Coeffs | None = None
+    discharge: Coeffs | None = None
+    soc_min: float = Field(0.01, gt=0.0, lt=0.5)
+    soc_max: float = Field(0.99, gt=0.5, lt=1.0)
+
+
+class HysteresisTable(_Strict):
+    """Hysteresis half-gap M(z) in volts as a piecewise-linear table (Eq. 10 / Eq. 32 form).
+
+    ``soc`` must be increasing; outside it the end values hold. ``gamma`` is Plett's dimensionless
+    hysteresis rate: h relaxes by a factor e for every 1/gamma of SOC moved (Eq. 5), i.e. the
+    paper's decay factor kappa = eta * gamma / Q with Q in ampere-seconds (Eq. 6).
+    """
+
+    soc: list[float] = Field(default_factory=lambda: [0.0, 1.0], min_length=1)
+    M_V: list[float] = Field(default_factory=lambda: [0.0, 0.0], min_length=1)
+    gamma: float = Field(30.0, ge=0.0, le=10_000.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if len(self.soc) != len(self.M_V):
+            raise ValueError("hysteresis.soc and hysteresis.M_V must have the same length")
+        if any(b <= a for a, b in zip(self.soc, self.soc[1:], strict=False)):
+            raise ValueError("hysteresis.soc must be strictly increasing")
+        if any(m < 0 or m > 0.5 for m in self.M_V):
+            raise ValueError("hysteresis.M_V must lie in [0, 0.5] V")
+        return self
+
+
+class Range(_Strict):
+    """A closed interval [lo, hi] in the unit its field names."""
+
+    lo: float
+    hi: float
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if not (math.isfinite(self.lo) and math.isfinite(self.hi)) or self.hi <= self.lo:
+            raise ValueError(f"range needs finite lo < hi, got [{self.lo}, {self.hi}]")
+        return self
+
+
+class ParameterBounds(_Strict):
+    """Physical bounds for the identified parameters. Estimates never leave them.
+
+    Defaults are wide enough for 18650 cells (tens of mOhm) and large prismatic cells (~1 mOhm,
+    time constants of thousands of seconds).
+    """
+
+    R0_ohm: Range = Range(lo=1e-5, hi=0.5)
+    R1_ohm: Range = Range(lo=1e-6, hi=0.5)
+    R2_ohm: Range = Range(lo=1e-6, hi=0.5)
+    tau1_s: Range = Range(lo=0.5, hi=200.0)
+    tau2_s: Range = Range(lo=20.0, hi=8000.0)
+    M_scale: Range = Range(lo=0.0, hi=3.0)
+    ocv_offset_V: Range = Range(lo=-0.15, hi=0.15)
+
+    @model_validator(mode="after")
+    def _positive(self) -> Self:
+        for name in ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s"):
+            if getattr(self, name).lo <= 0:
+                raise ValueError(f"bounds.{name}.lo must be > 0")
+        return self
+
+
+class InitialParameters(_Strict):
+    """Starting values before anything is identified (ohm, s)."""
+
+    R0_ohm: float = Field(gt=0)
+    R1_ohm: float = Field(gt=0)
+    tau1_s: float = Field(gt=0)
+    R2_ohm: float = Field(gt=0)
+    tau2_s: float = Field(gt=0)
+
+
+class SocInit(_Strict):
+    """How the initial SOC is chosen.
+
+    ``ocv_at_rest``: invert the OCV at the first voltage when |current| <= ``rest_current_C`` x
+    capacity (falls back to ``soc0`` or 0.5 when the cell is not at rest). ``fixed``: use ``soc0``.
+    """
+
+    policy: Literal["ocv_at_rest", "fixed"] = "ocv_at_rest"
+    soc0: float | None = Field(None, ge=0.0, le=1.0)
+    rest_current_C: float = Field(0.01, ge=0.0)
+
+
+class CellConfig(_Strict):
+    """Everything bmsid needs to know about a cell type (units in the field names)."""
+
+    name: str = "cell"
+    chemistry: str = "unknown"
+    capacity_Ah: float = Field(gt=0.0, le=10_000.0)
+    coulombic_efficiency: float = Field(1.0, gt=0.5, le=1.0)
+    ocv: OcvCurve
+    hysteresis: HysteresisTable = HysteresisTable()
+    bounds: ParameterBounds = ParameterBounds()
+    initial: InitialParameters | None = None
+    soc_init: SocInit = SocInit()
+
+    def initial_parameters(self) -> InitialParameters:
+        """Configured starting values, or a capacity-scaled guess (R0 ~ 0.1 ohm Ah / Q)."""
+        if self.initial is not None:
+            return self.initial
+        r0 = min(max(0.1 / self.capacity_Ah, self.bounds.R0_ohm.lo), self.bounds.R0_ohm.hi)
+        return InitialParameters(
+            R0_ohm=r0, R1_ohm=0.5 * r0, tau1_s=10.0, R2_ohm=0.5 * r0, tau2_s=300.0
+        )
+
+
+def load_cell_config(path: str | Path) -> CellConfig:
+    """Read a cell config from ``.toml`` or ``.json`` (pydantic validation errors propagate)."""
+    p = Path(path)
+    text = p.read_text(encoding="utf-8")
+    data = tomllib.loads(text) if p.suffix.lower() == ".toml" else json.loads(text)
+    return CellConfig.model_validate(data)
+
+
+def save_cell_config(cfg: CellConfig, path: str | Path) -> None:
+    """Write a cell config as TOML (``.toml``) or JSON (anything else)."""
+    p = Path(path)
+    data = cfg.model_dump(mode="json", exclude_none=True)
+    if p.suffix.lower() == ".toml":
+        p.write_text(tomli_w.dumps(data), encoding="utf-8")
+    else:
+        p.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+
+
+#: The paper's cell (Table 1 OCV, 70 Ah ternary) with the test parameters of the issue tracker.
+PAPER_OCV_MEAN = [4.041, -1.107, 1.348, -0.002527, 0.1998, 0.02058]
+
+
+def paper_cell(M_V: float = 0.015, gamma: float = 30.0) -> CellConfig:
+    """The 70 Ah cell of the paper: Table 1 OCV, constant hysteresis half-gap ``M_V``."""
+    return CellConfig(
+        name="paper-70Ah-NMC",
+        chemistry="NMC",
+        capacity_Ah=70.0,
+        coulombic_efficiency=1.0,
+        ocv=OcvCurve(mean=PAPER_OCV_MEAN, soc_min=0.02, soc_max=0.98),
+        hysteresis=HysteresisTable(soc=[0.0, 1.0], M_V=[M_V, M_V], gamma=gamma),
+        initial=InitialParameters(R0_ohm=2e-3, R1_ohm=1e-3, tau1_s=10.0, R2_ohm=1e-3, tau2_s=300.0),
+    )

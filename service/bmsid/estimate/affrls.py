@@ -1,0 +1,62 @@
+"""Recursive least squares with an adaptive forgetting factor (AFFRLS, Eq. 16-21), batched.
+
+Pure functions over N independent problems at once (one per cell): theta (N, n), P (N, n, n),
+phi (N, n). Parameters live in normalised coordinates (theta_n = theta / scale) so that one
+covariance bound and one initial covariance fit resistances in mOhm and offsets in V alike.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def adaptive_lambda(
+    e_V: FloatArray,
+    e_base_V: FloatArray,
+    lambda_min: FloatArray | float,
+    lambda_max: FloatArray | float,
+    base: float,
+) -> FloatArray:
+    """Eq. 21: eps = round((e / e_base)^2, 2); lambda = lmin + (lmax - lmin) base^eps.
+
+    Large surprises push lambda to ``lambda_min`` (forget fast), small ones to ``lambda_max``.
+    """
+    eps = np.round((e_V / e_base_V) ** 2, 2)
+    eps = np.minimum(eps, 1.0e3)  # base^1000 underflows to 0 cleanly; avoids inf exponents
+    return np.asarray(lambda_min + (lambda_max - lambda_min) * base**eps, dtype=np.float64)
+
+
+def rls_update(
+    theta: FloatArray,
+    P: FloatArray,
+    phi: FloatArray,
+    e: FloatArray,
+    lam: FloatArray,
+    active: BoolArray,
+    trace_max: float,
+) -> tuple[FloatArray, FloatArray]:
+    """One AFFRLS step (Eq. 18-20) for the rows where ``active``; ``e`` is the a-priori error.
+
+    Joseph-free form with explicit symmetrisation; trace(P) is capped at ``trace_max`` by scaling
+    (bounded-trace safeguard). Inactive rows are returned unchanged.
+    """
+    Pphi = np.einsum("nij,nj->ni", P, phi)
+    denom = lam + np.einsum("ni,ni->n", phi, Pphi)
+    K = Pphi / denom[:, None]
+    theta_new = theta + K * e[:, None]
+    P_new = (P - K[:, :, None] * Pphi[:, None, :]) / lam[:, None, None]
+    P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+    tr = np.trace(P_new, axis1=1, axis2=2)
+    shrink = np.where(tr > trace_max, trace_max / np.maximum(tr, 1e-300), 1.0)
+    P_new = P_new * shrink[:, None, None]
+    act = active[:, None]
+    return np.where(act, theta_new, theta), np.where(act[:, :, None], P_new, P)
+
+
+def reset_covariance(n_rows: int, n_params: int, p0: float) -> FloatArray:
+    """P = p0 I for every row (the reset policy after a gap or a configuration change)."""
+    return np.repeat(np.eye(n_params)[None, :, :] * p0, n_rows, axis=0)

@@ -1,0 +1,108 @@
+"""Every tuning constant of the estimators: named, defaulted, justified, overridable.
+
+Rates are given per second (``lambda_*`` are the per-second forgetting factors; the per-tick value
+is ``lambda ** dt``), so the same tuning works from 0.01 s to 10 s sample periods.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Variant = Literal["non-hy-affrls", "hy-affrls", "hy-affrls-lpso"]
+VARIANTS_T: tuple[Variant, ...] = ("non-hy-affrls", "hy-affrls", "hy-affrls-lpso")
+
+
+class EstimatorTuning(BaseModel):
+    """Tuning of AFFRLS (Eq. 16-21), LPSO (Eq. 24-30) and their fusion."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # --- identification rate -------------------------------------------------------------
+    id_period_s: float = Field(1.0, gt=0.0, le=10.0)
+    """Samples are averaged into bins of this length before identification. 1 s resolves the
+    fast branch of most cells (tau1 >= a few s) and keeps the slow pole (minutes) within reach
+    of a 5-parameter model; CAN rates of 10-100 Hz add only noise averaging."""
+    gap_s: float = Field(30.0, gt=0.0)
+    """A jump in time longer than this is a gap: the states are propagated at zero current and
+    the regression history restarts (we cannot know what the current was)."""
+
+    # --- AFFRLS, Eq. 21 -----------------------------------------------------------------
+    lambda_min: float = Field(0.98, gt=0.5, lt=1.0)
+    """Per-second floor of the forgetting factor: a memory of ~50 s after a surprise, short
+    enough to re-converge after a parameter jump, long enough to average 1 mV noise."""
+    lambda_max: float = Field(0.999, gt=0.5, le=1.0)
+    """Per-second ceiling: ~1000 s memory in steady operation. Eq. 21 as printed goes to 1,
+    which freezes the estimate (no tracking of ageing or temperature): we stop just below."""
+    forgetting_base: float = Field(0.5, gt=0.0, lt=1.0)
+    """The base (the paper's h) of lambda = lmin + (lmax - lmin) base^eps, eps = (e/e_base)^2."""
+    e_base_sigmas: float = Field(3.0, gt=0.0)
+    """e_base = this many running RMS innovations: a 3-sigma surprise halves lambda's margin."""
+    e_floor_V: float = Field(0.5e-3, gt=0.0)
+    """Lower bound of e_base and of the innovation scale, V (ADC resolution order)."""
+    innovation_scale_s: float = Field(300.0, gt=0.0)
+    """Time constant of the running innovation RMS, s."""
+    innovation_clip_sigmas: float = Field(6.0, gt=1.0)
+    """Innovations beyond this many RMS are clipped before the update (spikes, glitches)."""
+    p0: float = Field(1.0e4, gt=0.0)
+    """Initial covariance in normalised units (parameters scaled by their start values)."""
+    trace_max: float = Field(1.0e5, gt=0.0)
+    """Bound on trace(P) in normalised units: stops wind-up under poor excitation."""
+    rest_current_C: float = Field(0.01, ge=0.0)
+    """Below this |I| (in C-rate) with no current change, forgetting is switched off (lambda = 1):
+    a resting cell carries no new information about R0 and P must not grow."""
+    excitation_C: float = Field(0.02, ge=0.0)
+    """RMS current variation (C-rate) over ``excitation_window_s`` below which an estimate is
+    flagged poorly excited."""
+    excitation_window_s: float = Field(300.0, gt=0.0)
+
+    # --- fusion ------------------------------------------------------------------------
+    identify_ocv_offset: bool = False
+    """Refit an OCV offset (V) with each swarm window: absorbs OCV-curve error, temperature and
+    coulomb-counting drift on real cells, at the price of a less certain slow branch (R2, tau2):
+    under a steady mean current the two are nearly collinear. Off by default; turn it on for
+    cells whose OCV curve is uncertain (rest-point tables, far from the OCV test temperature)."""
+    ocv_offset_prior_V: float = Field(0.01, gt=0.0)
+    """Prior std of the OCV offset, V. Under a steady mean current the offset and the slow
+    branch (R2 x2) are nearly collinear; this prior decides that direction, the data the rest."""
+    identify_hysteresis_scale: bool = True
+    """Identify a scale on the configured M(z) table (Eq. 32) instead of trusting it."""
+
+    # --- LPSO, Eq. 24-30 ---------------------------------------------------------------
+    window_s: float = Field(1800.0, gt=0.0)
+    """Sliding window the swarm fits, s: 30 min holds several DST/bus cycles and 3 slow tau."""
+    min_window_s: float = Field(300.0, gt=0.0)
+    """First swarm once this much excited data is buffered."""
+    swarm_period_s: float = Field(600.0, gt=0.0)
+    """A swarm starts every this many seconds per cell (cells of a bank are staggered)."""
+    n_particles: int = Field(12, ge=4, le=200)
+    n_iter: int = Field(10, ge=2, le=500)
+    n_iter_first: int = Field(20, ge=2, le=1000)
+    """Iterations of the first (cold) swarm; later swarms start from the previous optimum."""
+    iterations_per_update: int = Field(1, ge=1)
+    """Swarm iterations per ``update`` call: the real-time budget (one iteration costs about
+    ``n_particles`` window fits, ~1 ms for 12 particles x 1800 samples)."""
+    c1: float = Field(1.5, gt=0.0)
+    c2: float = Field(1.5, gt=0.0)
+    w_max: float = Field(0.9, gt=0.0)
+    w_min: float = Field(0.4, gt=0.0)
+    inertia_shape: float = Field(0.5, gt=0.0)
+    """n in Eq. 29: w = (w_max - w_min) exp(-(iter / (n iter_max))^2) + w_min."""
+    velocity_max_frac: float = Field(0.25, gt=0.0, le=1.0)
+    """Velocity clamp as a fraction of each (log-)bound width."""
+    init_spread_log: float = Field(0.7, gt=0.0)
+    """Std of ln(tau) around the previous optimum for warm-started particles."""
+    tau_ratio_min: float = Field(2.0, ge=1.0)
+    """tau2 >= this x tau1: two branches that are really two."""
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if self.lambda_min > self.lambda_max:
+            raise ValueError("lambda_min must be <= lambda_max")
+        if self.w_min > self.w_max:
+            raise ValueError("w_min must be <= w_max")
+        if self.min_window_s > self.window_s:
+            raise ValueError("min_window_s must be <= window_s")
+        return self

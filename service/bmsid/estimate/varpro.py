@@ -1,0 +1,126 @@
+"""Windowed fit of the full hysteresis model with the time constants fixed (variable projection).
+
+With tau1, tau2 (and the hysteresis rate) fixed, the terminal voltage of Eq. 9 is linear in
+R0, R1, R2, the hysteresis scale and an OCV offset:
+
+    y_k = V_k - OCV(z_k) = -R0 i_k - R1 x1_k - R2 x2_k + s M(z_k) h_k + off + c1 a1^k + c2 a2^k
+
+where x_j is the current through the unit-gain ZOH filter of branch j (U_j = R_j x_j) and the
+last two columns carry the unknown branch voltages at the window start. So the LPSO searches only
+ln(tau1), ln(tau2), and every fitness evaluation is one small linear least-squares problem. This
+is far better conditioned than mapping ARX coefficients back through Eq. 22.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.signal import lfilter
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Order of the linear parameters everywhere in the fusion: R0, R1, R2 (ohm), hysteresis scale, V.
+LINEAR_NAMES = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
+
+
+@dataclass(frozen=True)
+class Window:
+    """Buffered identification ticks of one cell (uniform period ``dt_s``)."""
+
+    current_A: FloatArray  # (W,)
+    y_V: FloatArray  # (W,) V - OCV(z)
+    hm_V: FloatArray  # (W,) h M(z)
+    dt_s: float
+    use_hysteresis: bool
+    use_offset: bool
+
+
+@dataclass(frozen=True)
+class LinearFit:
+    """Per candidate (P,): linear parameters (P, 5), weighted RMSE (V), branch states at the last
+    tick (P, 2, unit-gain, initial conditions included), normalised covariance (P, 5, 5)."""
+
+    theta: FloatArray
+    rmse_V: FloatArray
+    x_last: FloatArray
+    cov: FloatArray
+
+
+def unit_filter(current_A: FloatArray, a: float) -> FloatArray:
+    """x_k = a x_(k-1) + (1 - a) i_(k-1), x_0 = 0 (exact ZOH branch state per ohm)."""
+    return np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], current_A), dtype=np.float64)
+
+
+def fit_linear(
+    w: Window,
+    tau1_s: FloatArray,
+    tau2_s: FloatArray,
+    scale: FloatArray,
+    weights: FloatArray | None = None,
+    offset_prior: float = 0.0,
+    with_cov: bool = False,
+) -> LinearFit:
+    """Solve the linear sub-problem for every (tau1, tau2) candidate at once.
+
+    ``scale`` (5,) normalises the linear parameters (typical magnitudes) so the returned
+    covariance is in the same normalised units the AFFRLS uses. ``offset_prior`` is a ridge
+    (normalised units, i.e. noise variance / prior variance of offset/scale) that pulls the OCV
+    offset to 0 along the direction the data cannot resolve (offset vs R2 x2 under a steady mean
+    current). The covariance is only computed when ``with_cov``.
+    """
+    n_w = w.current_A.shape[0]
+    p = tau1_s.shape[0]
+    k = np.arange(n_w, dtype=np.float64)
+    a1 = np.exp(-w.dt_s / tau1_s)
+    a2 = np.exp(-w.dt_s / tau2_s)
+    active = np.array([True, True, True, w.use_hysteresis, w.use_offset, True, True])
+    s_full = np.concatenate([scale, [1.0, 1.0]])[active]
+    n_a = int(active.sum())
+    A = np.empty((p, n_w, n_a))
+    A[:, :, 0] = -w.current_A * s_full[0]
+    for j in range(p):
+        A[j, :, 1] = unit_filter(w.current_A, float(a1[j])) * -s_full[1]
+        A[j, :, 2] = unit_filter(w.current_A, float(a2[j])) * -s_full[2]
+    col = 3
+    if w.use_hysteresis:
+        A[:, :, col] = w.hm_V * s_full[col]
+        col += 1
+    if w.use_offset:
+        A[:, :, col] = s_full[col]
+        col += 1
+    A[:, :, col] = np.exp(np.log(a1)[:, None] * k)
+    A[:, :, col + 1] = np.exp(np.log(a2)[:, None] * k)
+    wts = np.ones(n_w) if weights is None else weights
+    Aw = A * wts[None, :, None]
+    G = np.swapaxes(Aw, 1, 2) @ A
+    b = np.swapaxes(Aw, 1, 2) @ w.y_V
+    if w.use_offset and offset_prior > 0:
+        j_off = 3 + int(w.use_hysteresis)
+        G[:, j_off, j_off] += offset_prior
+    d = np.sqrt(np.maximum(np.diagonal(G, axis1=1, axis2=2), 1e-300))
+    Gs = G / (d[:, :, None] * d[:, None, :]) + 1e-10 * np.eye(n_a)
+    th_s = np.linalg.solve(Gs, (b / d)[..., None])[..., 0]
+    th_n = th_s / d
+    yy = float(w.y_V @ (w.y_V * wts))
+    sse = yy - 2.0 * np.einsum("pk,pk->p", th_n, b) + np.einsum("pk,pkl,pl->p", th_n, G, th_n)
+    rmse = np.sqrt(np.maximum(sse, 0.0) / max(float(wts.sum()), 1e-300))
+    theta_full = np.zeros((p, 7))
+    theta_full[:, active] = th_n * s_full
+    theta = theta_full[:, :5]
+    cov5 = np.zeros((p, 5, 5))
+    if with_cov:
+        with np.errstate(all="ignore"):  # degenerate windows: caller checks finiteness
+            cov_n = np.linalg.inv(Gs) / (d[:, :, None] * d[:, None, :])
+        cov_full = np.zeros((p, 7, 7))
+        idx = np.flatnonzero(active)
+        cov_full[:, idx[:, None], idx[None, :]] = cov_n
+        cov5 = cov_full[:, :5, :5]
+    # Branch states at the last tick, with the window-start voltages U_j0 = -c_j folded in.
+    x_last = np.stack([A[:, -1, 1] / -s_full[1], A[:, -1, 2] / -s_full[2]], axis=1)
+    decay_last = np.stack([a1, a2], axis=1) ** (n_w - 1)
+    r = theta[:, 1:3]
+    ic = np.where(r > 0, -theta_full[:, 5:7] / np.where(r > 0, r, 1.0), 0.0)
+    x_last = x_last + ic * decay_last
+    return LinearFit(theta=theta, rmse_V=rmse, x_last=x_last, cov=cov5)

@@ -1,0 +1,1 @@
+"""The battery model (pure numpy): OCV curve, hysteresis, exact ZOH simulator, bilinear ARX map."""

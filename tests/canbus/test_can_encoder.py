@@ -1,0 +1,145 @@
+"""Parameter frames: round trip within resolution, saturation flags, NaN as not available."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bmsid.canbus.dbcgen import SATURATION_BITS
+from bmsid.canbus.encoder import ParameterEncoder
+from bmsid.estimate.types import Estimates
+
+
+def estimates(n: int = 3, **over: float) -> Estimates:
+    def arr(v: float) -> np.ndarray:
+        return np.full(n, v, dtype=np.float64)
+
+    base = dict(
+        R0_ohm=1.2e-3,
+        R1_ohm=0.4e-3,
+        R2_ohm=0.8e-3,
+        tau1_s=12.0,
+        tau2_s=2400.0,
+        M_V=0.01,
+        ocv_offset_V=0.0,
+        lambda_=0.995,
+        h=-0.7,
+        soc=0.63,
+        v_model_V=3.30,
+        v_meas_V=3.3021,
+        arx_error_V=0.0,
+    )
+    base.update(over)
+    fields = {k: arr(v) for k, v in base.items()}
+    fields["C1_F"] = fields["tau1_s"] / fields["R1_ohm"]
+    fields["C2_F"] = fields["tau2_s"] / fields["R2_ohm"]
+    return Estimates(t_s=5.0, current_A=1.0, quality=np.full(n, 1, dtype=np.int64), **fields)
+
+
+EXPECT = {
+    "R0_ohm": 1.2e-3,
+    "R1_ohm": 0.4e-3,
+    "R2_ohm": 0.8e-3,
+    "tau1_s": 12.0,
+    "tau2_s": 2400.0,
+    "lambda": 0.995,
+    "h": -0.7,
+    "soc": 0.63,
+    "v_error_V": 0.0021,
+    "quality": 1.0,
+}
+
+
+def _merged(enc: ParameterEncoder, est: Estimates, cell: int) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for f in enc.cell_frames(est, [cell]):
+        d = enc.decode(f)
+        assert d is not None and d["cell"] == cell
+        out |= d
+    return out
+
+
+@pytest.mark.parametrize(
+    ("ext", "fd", "n_frames"), [(True, False, 3), (False, False, 3), (True, True, 1)]
+)
+def test_cell_frames_round_trip(ext: bool, fd: bool, n_frames: int) -> None:
+    enc = ParameterEncoder(extended_id=ext, fd=fd)
+    est = estimates()
+    frames = enc.cell_frames(est, [0, 2])
+    assert len(frames) == 2 * n_frames
+    assert all(f.is_extended_id == ext and f.is_fd == fd for f in frames)
+    got = _merged(enc, est, 2)
+    for k, v in EXPECT.items():
+        assert got[k] == pytest.approx(v, rel=2e-3, abs=1e-4), k
+    assert got["saturated_mask"] == 0
+
+
+def test_out_of_range_saturates_and_flags() -> None:
+    enc = ParameterEncoder()
+    got = _merged(enc, estimates(R0_ohm=2.0, tau2_s=1e6, h=-3.0), 0)
+    assert got["R0_ohm"] == pytest.approx(0.524284)
+    assert got["tau2_s"] == pytest.approx(13107.1)
+    assert got["h"] == pytest.approx(-1.0235)
+    mask = int(got["saturated_mask"])
+    assert mask == (1 << SATURATION_BITS["R0"]) | (1 << SATURATION_BITS["Tau2"]) | (
+        1 << SATURATION_BITS["H"]
+    )
+
+
+def test_nan_is_sent_as_not_available() -> None:
+    enc = ParameterEncoder()
+    got = _merged(enc, estimates(R1_ohm=math.nan), 1)
+    assert math.isnan(got["R1_ohm"]) and got["saturated_mask"] == 0
+
+
+def test_pack_frame() -> None:
+    enc = ParameterEncoder()
+    est = estimates(4)
+    r0 = np.array([1e-3, 3e-3, np.nan, 2e-3])
+    est = Estimates(**{**{f: getattr(est, f) for f in est.__dataclass_fields__}, "R0_ohm": r0})
+    d = enc.decode(enc.pack_frame(est, health=2))
+    assert d is not None
+    assert d["R0_min_ohm"] == pytest.approx(1e-3) and d["R0_max_ohm"] == pytest.approx(3e-3)
+    assert d["R0_mean_ohm"] == pytest.approx(2e-3) and d["weakest_cell"] == 1 and d["health"] == 2
+
+
+def test_decode_rejects_foreign_and_malformed_frames() -> None:
+    import can
+
+    enc = ParameterEncoder()
+    assert (
+        enc.decode(can.Message(arbitration_id=0x100, is_extended_id=False, data=bytes(8))) is None
+    )
+    f = enc.cell_frames(estimates(), [0])[0]
+    f.data = f.data[:5]
+    assert enc.decode(f) is None
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    r0=st.floats(1e-5, 0.5),
+    tau1=st.floats(0.5, 200.0),
+    tau2=st.floats(20.0, 8000.0),
+    lam=st.floats(0.9, 1.0),
+    h=st.floats(-1.0, 1.0),
+    soc=st.floats(0.0, 1.0),
+    fd=st.booleans(),
+)
+def test_round_trip_within_resolution(
+    *, r0: float, tau1: float, tau2: float, lam: float, h: float, soc: float, fd: bool
+) -> None:
+    enc = ParameterEncoder(fd=fd)
+    got = _merged(
+        enc, estimates(1, R0_ohm=r0, tau1_s=tau1, tau2_s=tau2, lambda_=lam, h=h, soc=soc), 0
+    )
+    assert abs(got["R0_ohm"] - r0) <= (1e-7 if fd else 2e-6) / 2 + 1e-12
+    assert abs(got["tau1_s"] - tau1) <= (1e-4 if fd else 1e-3) / 2 + 1e-9
+    assert abs(got["tau2_s"] - tau2) <= (1e-4 if fd else 0.05) / 2 + 1e-9
+    assert abs(got["lambda"] - lam) <= (1e-9 if fd else 2e-5) / 2 + 1e-12
+    assert abs(got["h"] - h) <= (5e-5 if fd else 5e-4) / 2 + 1e-12
+    assert abs(got["soc"] - soc) <= (2e-5 if fd else 2.5e-4) / 2 + 1e-12
+    assert got["saturated_mask"] == 0

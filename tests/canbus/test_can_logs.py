@@ -1,0 +1,115 @@
+"""candump logs: both text formats in, -l format out, and a log reproduces its CSV."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from can_helpers import frames, synthetic
+
+from bmsid.canbus.logs import read_log, samples_from_log, write_log
+from bmsid.canbus.mapping import default_mapping, load_mapping
+from bmsid.errors import UserError
+
+REPO = Path(__file__).resolve().parents[2]
+
+LOGFILE = """\
+(1700000000.000100) vcan0 100#E80300000500
+(1700000000.000200) vcan0 18FF5101#0102030405060708 R
+(1700000000.000300) vcan0 123#R
+(1700000000.000400) vcan0 20000004#0004000000000000
+(1700000000.000500) vcan0 310##1AABBCCDDEEFF00112233
+this line is garbage
+(1700000000.000600) vcan0 12#00
+"""
+
+CONSOLE = """\
+  vcan0  100   [6]  E8 03 00 00 05 00
+ (1700000000.000200)  vcan0  18FF5101   [8]  01 02 03 04 05 06 07 08   '........'
+  vcan0  123   [0]  remote request
+  vcan0  20000004   [8]  00 04 00 00 00 00 00 00   ERRORFRAME
+  vcan0  310  [12]  AA BB CC DD EE FF 00 11 22 33 44 55
+  vcan0  100   [3]  E8 03
+"""
+
+
+def _check(msgs: list) -> None:
+    assert msgs[0].arbitration_id == 0x100 and not msgs[0].is_extended_id
+    assert bytes(msgs[0].data) == bytes.fromhex("E80300000500")
+    assert msgs[1].arbitration_id == 0x18FF5101 and msgs[1].is_extended_id
+    assert msgs[2].is_remote_frame and msgs[2].arbitration_id == 0x123
+    assert msgs[3].is_error_frame
+    assert msgs[4].is_fd and len(msgs[4].data) in (10, 12)
+
+
+def test_read_candump_logfile(tmp_path: Path) -> None:
+    p = tmp_path / "a.log"
+    p.write_text(LOGFILE)
+    msgs = list(read_log(p))
+    assert len(msgs) == 5  # garbage and the 2-digit id are skipped
+    _check(msgs)
+    assert msgs[0].timestamp == pytest.approx(1700000000.0001)
+
+
+def test_read_candump_console(tmp_path: Path) -> None:
+    p = tmp_path / "a.txt"
+    p.write_text(CONSOLE)
+    msgs = list(read_log(p))
+    assert len(msgs) == 5  # the last line says [3] but carries 2 bytes
+    _check(msgs)
+    assert msgs[0].timestamp == 0.0 and msgs[1].timestamp == pytest.approx(1700000000.0002)
+
+
+def test_missing_log_is_a_user_error(tmp_path: Path) -> None:
+    with pytest.raises(UserError):
+        list(read_log(tmp_path / "nope.log"))
+
+
+def test_write_then_read_is_identity(tmp_path: Path) -> None:
+    msgs = frames(default_mapping(), n=5)
+    write_log(tmp_path / "x.log", msgs, channel="vcan0")
+    back = list(read_log(tmp_path / "x.log"))
+    assert [(m.arbitration_id, m.is_extended_id, bytes(m.data), m.timestamp) for m in back] == [
+        (m.arbitration_id, m.is_extended_id, bytes(m.data), pytest.approx(m.timestamp))
+        for m in msgs
+    ]
+
+
+@pytest.mark.parametrize("mapping_file", ["bmsid_mapping.toml", "example_bms_mapping.toml"])
+def test_samples_from_log_reproduce_the_csv(tmp_path: Path, mapping_file: str) -> None:
+    mapping = load_mapping(REPO / "dbc" / mapping_file)
+    t, i, v = synthetic(200, 6)
+    write_log(tmp_path / "x.log", frames(mapping, n=200, n_cells=6))
+    samples = samples_from_log(tmp_path / "x.log", mapping, 6)
+    assert len(samples) == 200
+    np.testing.assert_allclose([s.current_A for s in samples], i, atol=0.05)
+    np.testing.assert_allclose(np.array([s.cell_voltages_V for s in samples]), v, atol=5e-4)
+    np.testing.assert_allclose([s.t_s for s in samples], t + 1000.0)
+
+
+def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:
+    p = tmp_path / "a.txt"
+    p.write_text(
+        "  can0  100   [8]  E8 03 00 00 05 00 00 00\n  can0  110   [8]  00 00 00 00 00 00 00 00\n"
+    )
+    mapping = default_mapping()
+    with pytest.raises(UserError):
+        samples_from_log(p, mapping, 4)
+
+
+REAL = Path("/work/shared/data/real/a123_lfp_25C/a123_25C_DYN50.csv.gz")
+
+
+@pytest.mark.skipif(not REAL.exists(), reason="shared real data not present")
+def test_real_a123_profile_survives_the_log(tmp_path: Path) -> None:
+    from bmsid.canbus.logs import csv_to_messages
+
+    data = np.loadtxt(REAL, delimiter=",", skiprows=1, max_rows=3000)
+    t, i, v = data[:, 0], data[:, 1], data[:, 2]
+    write_log(tmp_path / "r.log", csv_to_messages(t, i, v, default_mapping(), t0_s=1.7e9))
+    samples = samples_from_log(tmp_path / "r.log", default_mapping(), 1)
+    assert len(samples) == len(t)
+    np.testing.assert_allclose([s.current_A for s in samples], i, atol=5e-4 + 1e-9)
+    np.testing.assert_allclose([s.cell_voltages_V[0] for s in samples], v, atol=5e-4 + 1e-9)
+    np.testing.assert_allclose([s.t_s - 1.7e9 for s in samples], t, atol=2e-6)

@@ -1,0 +1,72 @@
+"""The issue's acceptance case on known-truth synthetic data (module docstring of bmsid.synthetic)."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.tuning import Variant
+from bmsid.metrics import voltage_metrics
+from bmsid.synthetic import SyntheticRun, paper_dst_case
+
+Arr = npt.NDArray[np.float64]
+
+
+@cache
+def _case(ramp: float) -> SyntheticRun:
+    return paper_dst_case(r0_ramp=ramp)
+
+
+@cache
+def _run(variant: Variant, ramp: float = 0.0) -> dict[str, Arr]:
+    run = _case(ramp)
+    bank = EstimatorBank(run.cell, 1, variant, soc0=0.98)
+    keys = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "v_model_V", "v_meas_V", "lambda_")
+    out: dict[str, list[float]] = {k: [] for k in keys}
+    for k in range(run.t_s.shape[0]):
+        est = bank.update(run.t_s[k], run.current_A[k], run.voltages_V[k])
+        assert est is not None  # 1 s data at a 1 s identification period: a tick per sample
+        for key in keys:
+            out[key].append(float(getattr(est, key)[0]))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _after_10pct(x: Arr) -> Arr:
+    return x[x.shape[0] // 10 :]
+
+
+def test_fusion_meets_the_accuracy_targets() -> None:
+    r = _run("hy-affrls-lpso")
+    t = _case(0.0).truth
+    r0 = _after_10pct(r["R0_ohm"])
+    rsum = _after_10pct(r["R0_ohm"] + r["R1_ohm"] + r["R2_ohm"])
+    tau1 = _after_10pct(r["tau1_s"])
+    assert np.max(np.abs(r0 / t["R0_ohm"] - 1)) <= 0.03
+    assert np.max(np.abs(rsum / (t["R0_ohm"] + t["R1_ohm"] + t["R2_ohm"]) - 1)) <= 0.10
+    assert np.max(np.abs(tau1 / t["tau1_s"] - 1)) <= 0.25
+    m = voltage_metrics(_after_10pct(r["v_meas_V"]), _after_10pct(r["v_model_V"]))
+    assert m.rmse_V <= 3e-3
+
+
+def test_non_hysteresis_affrls_is_measurably_worse_on_hysteretic_data() -> None:
+    fused = _run("hy-affrls-lpso")
+    plain = _run("non-hy-affrls")
+    m_f = voltage_metrics(_after_10pct(fused["v_meas_V"]), _after_10pct(fused["v_model_V"]))
+    m_p = voltage_metrics(_after_10pct(plain["v_meas_V"]), _after_10pct(plain["v_model_V"]))
+    assert m_p.rmse_V > 2.0 * m_f.rmse_V
+    assert m_p.max_abs_error_V > m_f.max_abs_error_V
+
+
+def test_fusion_tracks_a_30_percent_r0_ramp() -> None:
+    r = _run("hy-affrls-lpso", ramp=0.3)
+    truth = _case(0.3).R0_true_ohm[:, 0]
+    err = np.abs(_after_10pct(r["R0_ohm"]) / _after_10pct(truth) - 1)
+    assert np.max(err) <= 0.05
+
+
+def test_forgetting_factor_stays_in_its_interval() -> None:
+    lam = _run("hy-affrls-lpso")["lambda_"]
+    assert np.all((lam >= 0.98) & (lam <= 1.0))

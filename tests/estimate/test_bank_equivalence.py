@@ -1,0 +1,36 @@
+"""A 96-cell bank equals 96 single-cell estimators (one vectorised call per sample)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.tuning import EstimatorTuning, Variant
+from bmsid.synthetic import paper_dst_case
+
+N_CELLS = 96
+TUNING = EstimatorTuning(window_s=300.0, min_window_s=120.0, swarm_period_s=150.0, n_iter=4,
+                         n_iter_first=6, n_particles=6)  # fmt: skip
+
+
+@pytest.mark.parametrize("variant", ["hy-affrls-lpso", "non-hy-affrls"])
+def test_bank_of_96_equals_96_single_estimators(variant: Variant) -> None:
+    spread = np.random.default_rng(7).uniform(0.7, 1.5, N_CELLS)
+    run = paper_dst_case(500, r0_spread=spread)
+    bank = EstimatorBank(run.cell, N_CELLS, variant, TUNING, soc0=0.98)
+    singles = [
+        EstimatorBank(run.cell, 1, variant, TUNING, soc0=0.98, cell_ids=[c], n_stagger=N_CELLS)
+        for c in range(N_CELLS)
+    ]
+    for k in range(run.t_s.shape[0]):
+        eb = bank.update(run.t_s[k], run.current_A[k], run.voltages_V[k])
+        assert eb is not None
+        for c, single in enumerate(singles):
+            es = single.update(run.t_s[k], run.current_A[k], run.voltages_V[k, c : c + 1])
+            assert es is not None
+            for name in ("R0_ohm", "R1_ohm", "tau1_s", "R2_ohm", "tau2_s", "v_model_V", "soc"):
+                np.testing.assert_allclose(
+                    getattr(eb, name)[c], getattr(es, name)[0], rtol=1e-9, err_msg=name
+                )
+    assert bank.counters["swarms"] > 0 or variant != "hy-affrls-lpso"
