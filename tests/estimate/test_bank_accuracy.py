@@ -6,10 +6,15 @@ from functools import cache
 
 import numpy as np
 import numpy.typing as npt
+import pytest
 
+from bmsid.config.cell import paper_cell
 from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.tuning import Variant
 from bmsid.metrics import voltage_metrics
+from bmsid.model.ocv import OcvModel
+from bmsid.model.simulator import simulate
+from bmsid.profiles import dst_current
 from bmsid.synthetic import SyntheticRun, paper_dst_case
 
 Arr = npt.NDArray[np.float64]
@@ -70,3 +75,25 @@ def test_fusion_tracks_a_30_percent_r0_ramp() -> None:
 def test_forgetting_factor_stays_in_its_interval() -> None:
     lam = _run("hy-affrls-lpso")["lambda_"]
     assert np.all((lam >= 0.98) & (lam <= 1.0))
+
+
+@pytest.mark.parametrize(("dt_s", "duration_s"), [(0.01, 1300.0), (10.0, 9000.0)])
+def test_sample_periods_from_10_ms_to_10_s_identify_the_same_cell(
+    dt_s: float, duration_s: float
+) -> None:
+    """100 Hz data are averaged to 1 s ticks; 10 s data are identified at their own rate."""
+    cell = paper_cell(M_V=0.015, gamma=30.0)
+    t = np.arange(0.0, duration_s, dt_s)
+    i = dst_current(t, 140.0)
+    sim = simulate(t, i, OcvModel.from_cell(cell), capacity_Ah=70.0, R0_ohm=1.2e-3,
+                   R1_ohm=0.8e-3, tau1_s=32.0, R2_ohm=1.0e-3, tau2_s=600.0, gamma=30.0,
+                   soc0=0.98)  # fmt: skip
+    v = sim.v_V[0] + np.random.default_rng(0).normal(0.0, 1e-3, t.size)
+    bank = EstimatorBank(cell, 1, "hy-affrls-lpso", soc0=0.98)
+    last = None
+    for k in range(t.size):
+        est = bank.update(t[k], i[k], v[k : k + 1])
+        last = est or last
+    assert last is not None and bank.counters["swarms"] >= 2
+    assert abs(last.R0_ohm[0] / 1.2e-3 - 1) < 0.03
+    assert abs(last.tau1_s[0] / 32.0 - 1) < 0.25

@@ -41,7 +41,7 @@ segment = st.tuples(
 )
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=25, deadline=None)
 @given(
     st.lists(segment, min_size=1, max_size=8),
     st.sampled_from(VARIANTS_T),

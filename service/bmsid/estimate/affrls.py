@@ -44,15 +44,17 @@ def rls_update(
     Joseph-free form with explicit symmetrisation; trace(P) is capped at ``trace_max`` by scaling
     (bounded-trace safeguard). Inactive rows are returned unchanged.
     """
-    Pphi = np.einsum("nij,nj->ni", P, phi)
-    denom = lam + np.einsum("ni,ni->n", phi, Pphi)
+    Pphi = (P @ phi[:, :, None])[:, :, 0]
+    denom = lam + (phi * Pphi).sum(axis=1)
     K = Pphi / denom[:, None]
     theta_new = theta + K * e[:, None]
     P_new = (P - K[:, :, None] * Pphi[:, None, :]) / lam[:, None, None]
-    P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
-    tr = np.trace(P_new, axis1=1, axis2=2)
-    shrink = np.where(tr > trace_max, trace_max / np.maximum(tr, 1e-300), 1.0)
-    P_new = P_new * shrink[:, None, None]
+    P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
+    tr = np.einsum("nii->n", P_new)
+    if tr.max() > trace_max:
+        P_new *= np.minimum(trace_max / tr, 1.0)[:, None, None]
+    if active.all():
+        return theta_new, P_new
     act = active[:, None]
     return np.where(act, theta_new, theta), np.where(act[:, :, None], P_new, P)
 

@@ -195,6 +195,11 @@ class EstimatorBank:
             np.array([ini.R0_ohm, ini.R1_ohm, ini.R2_ohm, 1.0, 0.0]) / self._scale, (n, 1)
         )
         self.P = self._fusion_covariance(reset_covariance(n, 5, tun.p0))
+        self._phi = np.ones((n, 5))  # regressor of the fusion, refilled every tick
+        self._arx_bounds = (
+            np.array([[b.R0_ohm.lo], [b.R1_ohm.lo], [b.R2_ohm.lo], [b.tau1_s.lo], [b.tau2_s.lo]]),
+            np.array([[b.R0_ohm.hi], [b.R1_ohm.hi], [b.R2_ohm.hi], [b.tau1_s.hi], [b.tau2_s.hi]]),
+        )
         # ARX (bilinear) state, used by the non-fusion variants.
         self._arx_scale = np.array([1.0, 1.0, ini.R0_ohm, ini.R0_ohm, ini.R0_ohm])
         self.theta_arx = np.zeros((n, 5))
@@ -215,6 +220,7 @@ class EstimatorBank:
         self._bin_vn = np.zeros(n, dtype=np.int64)
         self._i_mean = 0.0
         self._i_var = 0.0
+        self._dt_nom = 0.0  # running nominal tick period, s (ticks are id_period_s or slower)
         # Swarm scheduling.
         size = int(np.ceil(tun.window_s / tun.id_period_s)) + 1
         self._buf = _Buffer(size=size, n_cells=n)
@@ -238,24 +244,27 @@ class EstimatorBank:
             self.counters["nan_current"] += 1
             current_A = self._i_raw
         bad_v = ~np.isfinite(v)
-        if bad_v.any():
-            self.counters["nan_voltage"] += int(bad_v.sum())
+        n_bad = int(bad_v.sum())
+        v_raw = v
+        if n_bad:
+            self.counters["nan_voltage"] += n_bad
+            v = np.where(bad_v, 0.0, v)  # summed into the bin, excluded by the count
         if self._t_raw is None:
-            self._start(t_s, current_A, v)
-            return self._tick(t_s, current_A, v, ~bad_v, 0.0)
+            self._start(t_s, current_A, v_raw)
+            return self._tick(t_s, current_A, v_raw, ~bad_v, 0.0)
         dt = t_s - self._t_raw
         if dt <= 0:
             self.counters["non_increasing_time"] += 1
             return None
         if dt > self.tuning.gap_s:
-            return self._gap(t_s, current_A, v, ~bad_v)
+            return self._gap(t_s, current_A, v_raw, ~bad_v)
         eff = self._eta if self._i_raw < 0 else 1.0
         self.z = self.z - eff * self._i_raw * dt / self._Q_As
         self._t_raw = t_s
         self._i_raw = current_A
         self._bin_i += current_A
         self._bin_n += 1
-        self._bin_v += np.where(bad_v, 0.0, v)
+        self._bin_v += v
         self._bin_vn += ~bad_v
         if t_s - self._t_tick < self.tuning.id_period_s - 0.5 * dt:
             return None
@@ -317,6 +326,8 @@ class EstimatorBank:
         tun = self.tuning
         self.counters["ticks"] += 1
         ip = self._i_tick
+        if 0 < dt <= tun.gap_s:
+            self._dt_nom = dt if self._dt_nom == 0.0 else self._dt_nom + 0.05 * (dt - self._dt_nom)
         if dt > 0:
             a1 = np.exp(-dt / self.tau1)
             a2 = np.exp(-dt / self.tau2)
@@ -324,7 +335,7 @@ class EstimatorBank:
             self.x2 = a2 * self.x2 + (1.0 - a2) * ip
             kap = self._kappa * (self._eta if ip < 0 else 1.0)
             self.h = hysteresis_step(self.h, ip, dt, kap)
-        zc = np.clip(self.z, self.ocv.soc_min, self.ocv.soc_max)
+        zc = np.minimum(np.maximum(self.z, self.ocv.soc_min), self.ocv.soc_max)
         ocv_v = self.ocv.ocv(zc)
         mtab = self.ocv.hysteresis_M(zc)
         hm = self.h * mtab
@@ -353,7 +364,8 @@ class EstimatorBank:
         """Innovation scale, forgetting factor (Eq. 21) and spike clipping; returns clipped e."""
         tun = self.tuning
         sig = np.maximum(self.sig_e, tun.e_floor_V)
-        e_c = np.clip(e, -tun.innovation_clip_sigmas * sig, tun.innovation_clip_sigmas * sig)
+        lim = tun.innovation_clip_sigmas * sig
+        e_c = np.minimum(np.maximum(e, -lim), lim)
         g = 1.0 - np.exp(-max(dt, 1e-9) / tun.innovation_scale_s)
         self.sig_e = np.where(ok, np.sqrt(self.sig_e**2 + g * (e_c**2 - self.sig_e**2)), self.sig_e)
         e_base = np.maximum(tun.e_base_sigmas * sig, tun.e_floor_V)
@@ -377,14 +389,17 @@ class EstimatorBank:
     ) -> FloatArray:
         tun = self.tuning
         use_h = 1.0 if tun.identify_hysteresis_scale else 0.0
-        phi = np.stack([np.full(self.n, -i), -self.x1, -self.x2, hm, np.ones(self.n)], axis=1)
-        th = self.theta * self._scale
-        v_model = ocv_v + np.einsum("nk,nk->n", phi, th)
+        phi = self._phi
+        phi[:, 0] = -i
+        phi[:, 1] = -self.x1
+        phi[:, 2] = -self.x2
+        phi[:, 3] = hm
+        v_model = ocv_v + (phi * (self.theta * self._scale)).sum(axis=1)
         e = v - v_model
         self.arx_err = np.where(ok, e, 0.0)
         e_c = self._adapt(e, lam_lo, lam_hi, quiet, ok, dt)
         # The OCV offset is not tracked per tick (see _fusion_covariance): column zeroed.
-        phi_n = phi * self._scale * np.array([1.0, 1.0, 1.0, use_h, 0.0])
+        phi_n = phi * (self._scale * np.array([1.0, 1.0, 1.0, use_h, 0.0]))
         theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, ok, tun.trace_max)
         self.theta = self._clamp_linear(theta)
         self._buf.push(i, v - ocv_v, hm, ok)
@@ -407,7 +422,7 @@ class EstimatorBank:
 
     def _clamp_linear(self, theta_n: FloatArray) -> FloatArray:
         th = theta_n * self._scale
-        cl = np.clip(th, self._lin_lo, self._lin_hi)
+        cl = np.minimum(np.maximum(th, self._lin_lo), self._lin_hi)
         if not self.tuning.identify_hysteresis_scale:
             cl[:, 3] = 1.0
         if not self.tuning.identify_ocv_offset:
@@ -424,15 +439,20 @@ class EstimatorBank:
 
     def _run_swarms(self, t: float) -> None:
         tun = self.tuning
-        buf = self._buf
-        span = buf.count * tun.id_period_s
-        due = (t >= self._next_swarm) & np.array([s is None for s in self._swarms])
-        for cj in np.flatnonzero(due):
+        span = self._buf.count * self._tick_period()
+        due = (
+            np.flatnonzero((t >= self._next_swarm) & np.array([s is None for s in self._swarms]))
+            if t >= self._next_swarm.min()
+            else ()
+        )
+        for cj in due:
             self._next_swarm[cj] += tun.swarm_period_s * max(
                 1.0, np.ceil((t - self._next_swarm[cj]) / tun.swarm_period_s)
             )
             if span >= tun.min_window_s and self._excited():
                 self._start_swarm(int(cj))
+        if self._n_running() == 0:
+            return
         for c, cs in enumerate(self._swarms):
             if cs is None:
                 continue
@@ -443,17 +463,25 @@ class EstimatorBank:
                     self._swarms[c] = None
                     break
 
+    def _tick_period(self) -> float:
+        """Nominal time between identification ticks, s."""
+        return max(self._dt_nom, self.tuning.id_period_s)
+
+    def _n_running(self) -> int:
+        return sum(s is not None for s in self._swarms)
+
     def _excited(self) -> bool:
         return bool(np.sqrt(self._i_var) >= self.tuning.excitation_C * self.cell.capacity_Ah)
 
     def _window(self, c: int) -> tuple[Window, FloatArray]:
         buf, tun = self._buf, self.tuning
-        idx = buf.order()
+        dt = self._tick_period()
+        idx = buf.order()[-(int(tun.window_s / dt) + 1) :]
         w = Window(
             current_A=buf.current_A[idx].copy(),
             y_V=np.where(buf.valid[c, idx], buf.y_V[c, idx], 0.0),
             hm_V=buf.hm_V[c, idx].copy(),
-            dt_s=tun.id_period_s,
+            dt_s=dt,
             use_hysteresis=tun.identify_hysteresis_scale,
             use_offset=tun.identify_ocv_offset,
         )
@@ -513,7 +541,7 @@ class EstimatorBank:
             return
         window, valid = self._window(c)  # data up to now, not just the snapshot
         n_w = window.current_A.shape[0]
-        age = (n_w - 1 - np.arange(n_w)) * tun.id_period_s
+        age = (n_w - 1 - np.arange(n_w)) * window.dt_s
         weights = valid * tun.lambda_max**age
         fit = fit_linear(
             window, taus[:1], taus[1:], self._scale, weights, self._offset_prior(c), with_cov=True
@@ -585,25 +613,21 @@ class EstimatorBank:
         return v_model
 
     def _accept_arx(self, ok: BoolArray) -> None:
-        b = self.cell.bounds
         p, status = theta_to_params(self.theta_arx * self._arx_scale, self.T_arx)
         good = ok & (status == MapStatus.OK)
-        inside = (
-            (p.R0_ohm >= b.R0_ohm.lo) & (p.R0_ohm <= b.R0_ohm.hi)
-            & (p.R1_ohm >= b.R1_ohm.lo) & (p.R1_ohm <= b.R1_ohm.hi)
-            & (p.R2_ohm >= b.R2_ohm.lo) & (p.R2_ohm <= b.R2_ohm.hi)
-            & (p.tau1_s >= b.tau1_s.lo) & (p.tau1_s <= b.tau1_s.hi)
-            & (p.tau2_s >= b.tau2_s.lo) & (p.tau2_s <= b.tau2_s.hi)
-        )  # fmt: skip
+        raw = np.stack([p.R0_ohm, p.R1_ohm, p.R2_ohm, p.tau1_s, p.tau2_s])
+        lo, hi = self._arx_bounds
+        clipped = np.minimum(np.maximum(raw, lo), hi)
+        inside = np.all(clipped == raw, axis=0)
         # Physically valid but outside the bounds: clamp and flag; invalid (complex poles,
         # negative R, unstable): hold the last accepted parameters and count the rejection.
         self.counters["arx_rejected"] += int((ok & ~good).sum())
         self._clamped |= good & ~inside
-        self.R0 = np.where(good, np.clip(p.R0_ohm, b.R0_ohm.lo, b.R0_ohm.hi), self.R0)
-        self.R1 = np.where(good, np.clip(p.R1_ohm, b.R1_ohm.lo, b.R1_ohm.hi), self.R1)
-        self.R2 = np.where(good, np.clip(p.R2_ohm, b.R2_ohm.lo, b.R2_ohm.hi), self.R2)
-        self.tau1 = np.where(good, np.clip(p.tau1_s, b.tau1_s.lo, b.tau1_s.hi), self.tau1)
-        self.tau2 = np.where(good, np.clip(p.tau2_s, b.tau2_s.lo, b.tau2_s.hi), self.tau2)
+        self.R0 = np.where(good, clipped[0], self.R0)
+        self.R1 = np.where(good, clipped[1], self.R1)
+        self.R2 = np.where(good, clipped[2], self.R2)
+        self.tau1 = np.where(good, clipped[3], self.tau1)
+        self.tau2 = np.where(good, clipped[4], self.tau2)
         self.arx_ok |= good
 
     # -- output ------------------------------------------------------------------
@@ -647,7 +671,7 @@ class EstimatorBank:
     )  # fmt: skip
     _SCALARS = (
         "T_arx", "_hist_n", "_t_raw", "_i_raw", "_t_tick", "_i_tick", "_bin_i", "_bin_n",
-        "_i_mean", "_i_var", "_t_segment", "soc_init_method",
+        "_i_mean", "_i_var", "_t_segment", "soc_init_method", "_dt_nom",
     )  # fmt: skip
 
     def state_dict(self) -> dict[str, Any]:

@@ -85,16 +85,12 @@ def theta_to_params(theta: FloatArray, T_s: float) -> tuple[CircuitParams, IntAr
 
 
 def _theta_to_params(th: FloatArray, T_s: float) -> tuple[CircuitParams, IntArray]:
-    shape = th.shape[:-1]
-    status = np.zeros(shape, dtype=np.int64)
     finite = np.all(np.isfinite(th), axis=-1)
     th = np.where(finite[..., None], th, 0.0)
-    status[~finite] = MapStatus.NOT_FINITE
     t1, t2, t3, t4, t5 = (th[..., j] for j in range(5))
     dm = 1.0 - t1 - t2
     dp = 1.0 + t1 - t2
-    unstable = (dm <= 0) | (dp <= 0)
-    status[(status == 0) & unstable] = MapStatus.UNSTABLE
+    stable = (dm > 0) & (dp > 0)
     dm_s = np.where(dm > 0, dm, 1.0)
     dp_s = np.where(dp > 0, dp, 1.0)
     T = T_s
@@ -104,28 +100,33 @@ def _theta_to_params(th: FloatArray, T_s: float) -> tuple[CircuitParams, IntArra
     m4 = (-t3 - t4 - t5) / dm_s
     m5 = (t5 - t3) * T / dm_s
     disc = m3 * m3 - 4.0 * m2
-    status[(status == 0) & (disc <= 0)] = MapStatus.COMPLEX_POLES
     root = np.sqrt(np.where(disc > 0, disc, 0.0))
     tau_f = 0.5 * (m3 - root)
     tau_s = 0.5 * (m3 + root)
-    status[(status == 0) & ((tau_f <= 0) | (tau_s <= 0))] = MapStatus.NONPOSITIVE_TAU
     gap = np.where(tau_s - tau_f > 0, tau_s - tau_f, 1.0)
     r_slow = (tau_s * (m4 - m1) + m1 * m3 - m5) / gap
     r_fast = m4 - m1 - r_slow
-    ok_r = (m1 > 0) & (r_fast > 0) & (r_slow > 0)
-    status[(status == 0) & ~ok_r] = MapStatus.NONPOSITIVE_R
     fin = np.isfinite(m1) & np.isfinite(r_fast) & np.isfinite(r_slow) & np.isfinite(tau_s)
-    status[(status == 0) & ~fin] = MapStatus.NOT_FINITE
-    good = status == MapStatus.OK
-    z = np.zeros(shape)
+    # The first failing check names the status (np.select takes the first true condition).
+    status = np.select(
+        [~finite, ~stable, disc <= 0, (tau_f <= 0) | (tau_s <= 0),
+         (m1 <= 0) | (r_fast <= 0) | (r_slow <= 0), ~fin],
+        [_NOT_FINITE, _UNSTABLE, _COMPLEX, _NONPOS_TAU, _NONPOS_R, _NOT_FINITE],
+        _OK,
+    ).astype(np.int64)  # fmt: skip
+    good = status == _OK
     out = CircuitParams(
-        R0_ohm=np.where(good, m1, z),
-        R1_ohm=np.where(good, r_fast, z),
-        tau1_s=np.where(good, tau_f, z),
-        R2_ohm=np.where(good, r_slow, z),
-        tau2_s=np.where(good, tau_s, z),
+        R0_ohm=np.where(good, m1, 0.0),
+        R1_ohm=np.where(good, r_fast, 0.0),
+        tau1_s=np.where(good, tau_f, 0.0),
+        R2_ohm=np.where(good, r_slow, 0.0),
+        tau2_s=np.where(good, tau_s, 0.0),
     )
     return out, status
+
+
+# Plain ints for the vectorised path (IntEnum item assignment into arrays is slow).
+_OK, _NOT_FINITE, _UNSTABLE, _COMPLEX, _NONPOS_TAU, _NONPOS_R = (int(m) for m in MapStatus)
 
 
 def denominator_condition(theta: FloatArray) -> FloatArray:

@@ -68,7 +68,7 @@ class OcvModel:
 
     def ocv(self, z: FloatArray) -> FloatArray:
         """Mean-branch OCV in volts (Eq. 4) at SOC ``z`` (clamped)."""
-        zc = np.clip(np.asarray(z, dtype=np.float64), self.soc_min, self.soc_max)
+        zc = np.minimum(np.maximum(np.asarray(z, dtype=np.float64), self.soc_min), self.soc_max)
         c = self.coeffs
         return np.asarray(
             c[0] + zc * (c[1] + c[2] * zc) + c[3] / zc + c[4] * np.log(zc) + c[5] * np.log1p(-zc),

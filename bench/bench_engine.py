@@ -1,0 +1,69 @@
+"""Engine benchmarks (issue: identification engine). Prints a Markdown table.
+
+    python bench/bench_engine.py            # full (about a minute on one core)
+    python bench/bench_engine.py --quick    # smaller runs, for a smoke check
+
+Measures: single-cell ``hy-affrls`` samples/s; ``hy-affrls-lpso`` wall time over the 8250-sample
+DST run (the paper: ~20 s in MATLAB); a 96-cell bank's cell-samples/s without the swarm; the
+worst and the 99.9th-percentile single ``update`` call of a 96-cell bank with the swarm active.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.tuning import Variant
+from bmsid.synthetic import SyntheticRun, paper_dst_case
+
+
+def _run_single(run: SyntheticRun, variant: Variant) -> float:
+    bank = EstimatorBank(run.cell, 1, variant, soc0=0.98)
+    t0 = time.perf_counter()
+    for k in range(run.t_s.shape[0]):
+        bank.update(run.t_s[k], run.current_A[k], run.voltages_V[k])
+    return time.perf_counter() - t0
+
+
+def _run_bank(run: SyntheticRun, variant: Variant) -> tuple[float, np.ndarray]:
+    n_cells = run.voltages_V.shape[1]
+    bank = EstimatorBank(run.cell, n_cells, variant, soc0=0.98)
+    calls = np.zeros(run.t_s.shape[0])
+    t0 = time.perf_counter()
+    for k in range(run.t_s.shape[0]):
+        c0 = time.perf_counter()
+        bank.update(run.t_s[k], run.current_A[k], run.voltages_V[k])
+        calls[k] = time.perf_counter() - c0
+    return time.perf_counter() - t0, calls
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    n_single = 2000 if args.quick else 8250
+    n_bank = 700 if args.quick else 2400
+    single = paper_dst_case(n_single)
+    spread = np.random.default_rng(0).uniform(0.8, 1.3, 96)
+    pack = paper_dst_case(n_bank, r0_spread=spread)
+    rows: list[tuple[str, str]] = []
+    dt = _run_single(single, "hy-affrls")
+    rows.append(("single cell `hy-affrls`", f"{n_single / dt:,.0f} samples/s"))
+    dt = _run_single(single, "hy-affrls-lpso")
+    rows.append((f"single cell `hy-affrls-lpso`, {n_single}-sample DST", f"{dt:.2f} s"))
+    dt, _ = _run_bank(pack, "hy-affrls")
+    rows.append(("96-cell bank `hy-affrls` (no swarm)", f"{96 * n_bank / dt:,.0f} cell-samples/s"))
+    dt, calls = _run_bank(pack, "hy-affrls-lpso")
+    rows.append(("96-cell bank `hy-affrls-lpso`", f"{96 * n_bank / dt:,.0f} cell-samples/s"))
+    rows.append(("  worst single `update` call (swarms active)", f"{calls.max() * 1e3:.1f} ms"))
+    rows.append(("  99.9th percentile `update` call", f"{np.quantile(calls, 0.999) * 1e3:.1f} ms"))
+    print("| benchmark | result |\n|---|---|")
+    for name, val in rows:
+        print(f"| {name} | {val} |")
+
+
+if __name__ == "__main__":
+    main()
