@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -63,7 +65,7 @@ def test_swarm_finds_the_minimum_inside_the_bounds_reproducibly() -> None:
 def test_inertia_schedule_decreases_from_w_max_to_w_min() -> None:
     p = lpso.SwarmParams(w_max=0.9, w_min=0.4, shape=0.5)
     w = [lpso.inertia(k, 20, p) for k in range(21)]
-    assert w[0] == 0.9 and all(a >= b for a, b in zip(w, w[1:], strict=False))
+    assert w[0] == 0.9 and all(a >= b for a, b in itertools.pairwise(w))
     assert abs(w[-1] - 0.4) < 0.01
 
 

@@ -1,4 +1,4 @@
-"""The issue's acceptance case on known-truth synthetic data (module docstring of bmsid.synthetic)."""
+"""The issue's acceptance case on known-truth synthetic data (see bmsid.synthetic)."""
 
 from __future__ import annotations
 
