@@ -35,8 +35,7 @@ def _write(path: Path, cols: dict[str, FloatArray], fmt: dict[str, str]) -> int:
     with gzip.GzipFile(path, "wb", mtime=0) as gz:  # mtime=0: byte-identical reruns
         gz.write((",".join(names) + "\n").encode())
         lines = (
-            ",".join(format(cols[c][k], fmt.get(c, ".6g")) for c in names) + "\n"
-            for k in range(n)
+            ",".join(format(cols[c][k], fmt.get(c, ".6g")) for c in names) + "\n" for k in range(n)
         )
         gz.write("".join(lines).encode())
     return n

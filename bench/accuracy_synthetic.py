@@ -1,0 +1,66 @@
+"""Accuracy on the known-truth reference case (the README's engine table).
+
+    python bench/accuracy_synthetic.py
+
+Runs each variant over ``bmsid.synthetic.paper_dst_case`` and scores it after the first 10 % of
+samples against the truth; also the +30 % R0 ramp for the fusion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.tuning import VARIANTS_T, EstimatorTuning, Variant
+from bmsid.metrics import voltage_metrics
+from bmsid.synthetic import SyntheticRun, paper_dst_case
+
+
+def score(run: SyntheticRun, variant: Variant, tuning: EstimatorTuning) -> dict[str, float]:
+    bank = EstimatorBank(run.cell, 1, variant, tuning, soc0=0.98)
+    keys = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "v_model_V", "v_meas_V")
+    out: dict[str, list[float]] = {k: [] for k in keys}
+    for k in range(run.t_s.shape[0]):
+        est = bank.update(run.t_s[k], run.current_A[k], run.voltages_V[k])
+        if est is not None:
+            for key in keys:
+                out[key].append(float(getattr(est, key)[0]))
+    a = {k: np.asarray(v)[len(v) // 10 :] for k, v in out.items()}
+    r0_true = run.R0_true_ohm[run.t_s.shape[0] // 10 :, 0]
+    t = run.truth
+    rsum_true = r0_true + t["R1_ohm"] + t["R2_ohm"]
+    m = voltage_metrics(a["v_meas_V"], a["v_model_V"])
+    return {
+        "rmse_mV": m.rmse_V * 1e3,
+        "max_err_mV": m.max_abs_error_V * 1e3,
+        "r0_pct": 100 * float(np.max(np.abs(a["R0_ohm"] / r0_true - 1))),
+        "rsum_pct": 100
+        * float(np.max(np.abs((a["R0_ohm"] + a["R1_ohm"] + a["R2_ohm"]) / rsum_true - 1))),
+        "tau1_pct": 100 * float(np.max(np.abs(a["tau1_s"] / t["tau1_s"] - 1))),
+    }
+
+
+def main() -> None:
+    base = paper_dst_case()
+    rows: list[tuple[str, dict[str, float]]] = []
+    for variant in VARIANTS_T:
+        rows.append((f"`{variant}`", score(base, variant, EstimatorTuning())))
+    rows.append((
+        "`hy-affrls-lpso`, OCV offset identified",
+        score(base, "hy-affrls-lpso", EstimatorTuning(identify_ocv_offset=True)),
+    ))  # fmt: skip
+    rows.append((
+        "`hy-affrls-lpso`, R0 ramping +30 %",
+        score(paper_dst_case(r0_ramp=0.3), "hy-affrls-lpso", EstimatorTuning()),
+    ))  # fmt: skip
+    print("| variant | RMSE | max error | max R0 error | max R0+R1+R2 error | max tau1 error |")
+    print("|---|---|---|---|---|---|")
+    for name, s in rows:
+        print(
+            f"| {name} | {s['rmse_mV']:.2f} mV | {s['max_err_mV']:.1f} mV | {s['r0_pct']:.1f} % "
+            f"| {s['rsum_pct']:.1f} % | {s['tau1_pct']:.1f} % |"
+        )
+
+
+if __name__ == "__main__":
+    main()
