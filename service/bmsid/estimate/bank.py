@@ -19,7 +19,7 @@ Variants (the paper's three):
                  window buffer (last window_s) |        ^ new taus, theta, P, x1, x2
                                                v        |
            +--------------------------------------------+------------------------+
-           | every swarm_period_s per cell (amortised: iterations_per_update     |
+           | every swarm_period_s per cell (amortised: fits_per_update particle  |
            | swarm iterations per tick, cells staggered across the period)       |
            |   LPSO (Eq. 24-30) over ln tau1, ln tau2, seeded at the taus in use; |
            |   fitness = window RMSE of the full hysteresis model with the linear |
@@ -32,8 +32,9 @@ Variants (the paper's three):
   LPSO owns the poles, where recursive ARX identification is ill-conditioned (it divides by
   1 - th1 - th2 ~ 5e-5: the "filter saturation" of the paper); AFFRLS owns the parameters the
   voltage is linear in and tracks them every tick. Worst-case cost of one ``update``: the tick
-  (~50 us for 1 cell) plus ``iterations_per_update`` swarm iterations of each cell whose swarm is
-  running (one iteration ~ n_particles window fits, about 1 ms at 12 x 1800 samples).
+  (a few hundred microseconds of numpy call overhead, nearly independent of the cell count) plus
+  ``fits_per_update`` window fits (one particle each, ~0.3-1 ms at 1800 samples) for every cell
+  whose swarm is running; cells are staggered across ``swarm_period_s`` so few run at once.
 
 Time handling: samples are averaged into ``id_period_s`` bins (SOC is coulomb-counted at the raw
 rate); a time step longer than ``gap_s`` is a gap (zero current assumed, histories restart);
@@ -71,6 +72,8 @@ class _CellSwarm:
     window: Window
     weights: FloatArray
     rng: np.random.Generator
+    fitness: FloatArray  # of the current positions, filled a few particles per tick
+    done_fits: int = 0
 
 
 @dataclass
@@ -220,6 +223,7 @@ class EstimatorBank:
         self._bin_vn = np.zeros(n, dtype=np.int64)
         self._i_mean = 0.0
         self._i_var = 0.0
+        self._lam_exp = 1.0  # 1 / (forgetting time step): reports lambda per second
         self._dt_nom = 0.0  # running nominal tick period, s (ticks are id_period_s or slower)
         # Swarm scheduling.
         size = int(np.ceil(tun.window_s / tun.id_period_s)) + 1
@@ -347,8 +351,11 @@ class EstimatorBank:
         quiet = abs(i) < tun.rest_current_C * self.cell.capacity_Ah and abs(i - ip) < (
             tun.rest_current_C * self.cell.capacity_Ah
         )
-        lam_lo = tun.lambda_min ** max(dt, 1e-9)
-        lam_hi = tun.lambda_max ** max(dt, 1e-9)
+        # Forgetting is per second of *data*: a gap carries none, so it forgets no more than a tick.
+        dt_f = min(dt, self._tick_period()) if dt > 0 else tun.id_period_s
+        self._lam_exp = 1.0 / dt_f
+        lam_lo = tun.lambda_min**dt_f
+        lam_hi = tun.lambda_max**dt_f
         self._clamped[:] = False
         if self.variant == "hy-affrls-lpso":
             v_model = self._tick_fusion(t, i, v_safe, ok, ocv_v, hm, lam_lo, lam_hi, quiet, dt)
@@ -456,12 +463,10 @@ class EstimatorBank:
         for c, cs in enumerate(self._swarms):
             if cs is None:
                 continue
-            for _ in range(tun.iterations_per_update):
-                cs.swarm = self._swarm_iteration(c, cs)
-                if cs.swarm.done:
-                    self._apply_swarm(c, cs)
-                    self._swarms[c] = None
-                    break
+            self._swarm_fits(c, cs, tun.fits_per_update)
+            if cs.swarm.done:
+                self._apply_swarm(c, cs)
+                self._swarms[c] = None
 
     def _tick_period(self) -> float:
         """Nominal time between identification ticks, s."""
@@ -499,7 +504,9 @@ class EstimatorBank:
             seeds=seed, spread=tun.init_spread_log,
         )  # fmt: skip
         window, weights = self._window(c)
-        self._swarms[c] = _CellSwarm(swarm=sw, window=window, weights=weights, rng=rng)
+        self._swarms[c] = _CellSwarm(
+            swarm=sw, window=window, weights=weights, rng=rng, fitness=np.zeros(tun.n_particles)
+        )
         self._swarm_count[c] += 1
         self.counters["swarms"] += 1
 
@@ -521,14 +528,21 @@ class EstimatorBank:
         viol_r = np.maximum(tun.tau_ratio_min / ratio - 1.0, 0.0)
         return np.asarray(fit.rmse_V * (1.0 + 10.0 * (viol.sum(axis=1) + viol_r)))
 
-    def _swarm_iteration(self, c: int, cs: _CellSwarm) -> lpso.Swarm:
+    def _swarm_fits(self, c: int, cs: _CellSwarm, budget: int) -> None:
+        """Evaluate up to ``budget`` particles; when all are evaluated, move the swarm."""
         tun = self.tuning
-        f = self._fitness(c, cs.window, cs.weights, np.exp(cs.swarm.x))
+        n_p = cs.swarm.x.shape[0]
+        j0, j1 = cs.done_fits, min(cs.done_fits + budget, n_p)
+        cs.fitness[j0:j1] = self._fitness(c, cs.window, cs.weights, np.exp(cs.swarm.x[j0:j1]))
+        cs.done_fits = j1
+        if j1 < n_p:
+            return
         params = lpso.SwarmParams(
             c1=tun.c1, c2=tun.c2, w_max=tun.w_max, w_min=tun.w_min, shape=tun.inertia_shape,
             vmax_frac=tun.velocity_max_frac,
         )  # fmt: skip
-        return lpso.swarm_tell(cs.swarm, f, cs.rng, params)
+        cs.swarm = lpso.swarm_tell(cs.swarm, cs.fitness, cs.rng, params)
+        cs.done_fits = 0
 
     def _apply_swarm(self, c: int, cs: _CellSwarm) -> None:
         """Feed the swarm optimum back: poles, then theta/P/x as the AFFRLS would hold them."""
@@ -654,7 +668,7 @@ class EstimatorBank:
             tau2_s=self.tau2.copy(),
             M_V=np.asarray(m_v * np.ones(self.n)),
             ocv_offset_V=self.off.copy() if self.variant == "hy-affrls-lpso" else np.zeros(self.n),
-            lambda_=self.lam.copy(),
+            lambda_=self.lam**self._lam_exp,  # reported per second: in [lambda_min, 1]
             h=self.h.copy() if hyst else np.zeros(self.n),
             soc=self.z.copy(),
             v_model_V=np.asarray(v_model),

@@ -80,9 +80,10 @@ class EstimatorTuning(BaseModel):
     n_iter: int = Field(10, ge=2, le=500)
     n_iter_first: int = Field(20, ge=2, le=1000)
     """Iterations of the first (cold) swarm; later swarms start from the previous optimum."""
-    iterations_per_update: int = Field(1, ge=1)
-    """Swarm iterations per ``update`` call: the real-time budget (one iteration costs about
-    ``n_particles`` window fits, ~1 ms for 12 particles x 1800 samples)."""
+    fits_per_update: int = Field(4, ge=1)
+    """Window fits (one particle each) per ``update`` call and running swarm: the real-time
+    budget. One fit of an 1800-sample window costs ~0.3-1 ms; a swarm iteration takes
+    ``n_particles / fits_per_update`` ticks."""
     c1: float = Field(1.5, gt=0.0)
     c2: float = Field(1.5, gt=0.0)
     w_max: float = Field(0.9, gt=0.0)

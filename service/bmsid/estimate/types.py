@@ -44,7 +44,7 @@ class Estimates:
     tau2_s: FloatArray
     M_V: FloatArray  #: hysteresis half-gap at the present SOC, V
     ocv_offset_V: FloatArray  #: identified OCV offset, V (0 where not identified)
-    lambda_: FloatArray  #: forgetting factor in [lambda_min, 1]
+    lambda_: FloatArray  #: forgetting factor per second of data, in [lambda_min, 1]
     h: FloatArray  #: hysteresis state in [-1, 1] (-1 after discharge)
     soc: FloatArray  #: coulomb-counted SOC, fraction
     v_model_V: FloatArray
