@@ -408,7 +408,7 @@ class EstimatorBank:
         # The OCV offset is not tracked per tick (see _fusion_covariance): column zeroed.
         phi_n = phi * (self._scale * np.array([1.0, 1.0, 1.0, use_h, 0.0]))
         theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, ok, tun.trace_max)
-        self.theta = self._clamp_linear(theta)
+        self.theta = self._clamp_linear(self._project_linear(theta, self.P))
         self._buf.push(i, v - ocv_v, hm, ok)
         self._run_swarms(t)
         self._publish_linear()
@@ -426,6 +426,33 @@ class EstimatorBank:
         P[..., 4, :] = 0.0
         P[..., :, 4] = 0.0
         return P
+
+    def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> FloatArray:
+        """Project an estimate that left the bounds back onto them in the metric of P.
+
+        Clipping one coordinate alone leaves the coordinates correlated with it carrying a step
+        that assumed it had moved; the error then grows and the next updates push further the
+        wrong way. Moving coordinate j onto its bound by d shifts the others by P[:, j] d / P[j, j]
+        (the least-squares estimate conditioned on theta_j at the bound). P is kept, so the
+        parameter can leave the bound again when the data say so. Coordinates are taken one at a
+        time, in a fixed order; the final clip removes what is left.
+        """
+        th = theta_n * self._scale
+        viol = (th < self._lin_lo) | (th > self._lin_hi)
+        if not viol.any():
+            return theta_n
+        theta_n = theta_n.copy()
+        for j in range(5):  # fixed order, whatever the other cells do (bank == single)
+            th_j = theta_n[:, j] * self._scale[j]
+            d_n = (np.minimum(np.maximum(th_j, self._lin_lo[j]), self._lin_hi[j]) - th_j) / (
+                self._scale[j]
+            )
+            pjj = P[:, j, j]
+            gain = np.where(
+                pjj[:, None] > 0, P[:, :, j] / np.where(pjj > 0, pjj, 1.0)[:, None], 0.0
+            )
+            theta_n += gain * d_n[:, None]
+        return theta_n
 
     def _clamp_linear(self, theta_n: FloatArray) -> FloatArray:
         th = theta_n * self._scale

@@ -1,0 +1,295 @@
+"""The daemon's settings: one pydantic-settings model read from TOML with ``BMSID_...`` overrides.
+
+Precedence, highest first: environment variables (``BMSID_MQTT__URL``, nested with ``__``), then
+the TOML file, then the defaults below. Relative paths in the file are resolved against the
+file's directory; relative paths from the environment against the working directory.
+Secrets are :class:`~pydantic.SecretStr` (printed redacted); the MQTT password may instead come
+from ``password_file``, read when the daemon connects.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, Self
+from urllib.parse import urlsplit
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, model_validator
+from pydantic.functional_validators import AfterValidator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from bmsid.config.cell import CellConfig, load_cell_config, paper_cell
+from bmsid.errors import UserError
+from bmsid.estimate.tuning import EstimatorTuning, Variant
+
+MQTT_SCHEMES = {"mqtt": False, "tcp": False, "mqtts": True, "tls": True, "ssl": True}
+DEFAULT_PORTS = {False: 1883, True: 8883}
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _check_topic_prefix(value: str) -> str:
+    if not value:
+        raise ValueError("must not be empty")
+    if "+" in value or "#" in value:
+        raise ValueError("must not contain the MQTT wildcards '+' or '#'")
+    if any(level == "" for level in value.split("/")):
+        raise ValueError("must not have empty levels (leading, trailing or double '/')")
+    if "\x00" in value:
+        raise ValueError("must not contain NUL")
+    return value
+
+
+TopicPrefix = Annotated[str, AfterValidator(_check_topic_prefix)]
+
+
+class ReplaySettings(_Strict):
+    """Replay a candump log onto the ``virtual`` bus from inside the daemon (demo, tests)."""
+
+    log: Path
+    speed: float = Field(20.0, gt=0.0, le=100_000.0)
+    """Replay rate as a multiple of real time (log timestamps are kept on the frames)."""
+    start_delay_s: float = Field(0.5, ge=0.0)
+
+
+class CanSettings(_Strict):
+    """Input bus, decoding, and the parameter frames bmsid sends back."""
+
+    interface: Literal["socketcan", "virtual"] = "socketcan"
+    channel: str = Field("can0", min_length=1)
+    mapping: Path | None = None
+    """Bus mapping TOML (which signals carry current and voltages); None = bmsid's own DBC."""
+    n_cells: int = Field(ge=1, le=512)
+    staleness_s: float = Field(2.0, gt=0.0)
+    """A half-complete cycle or a current older than this is closed/dropped (frames_to_samples)."""
+    reader_queue_frames: int = Field(20_000, ge=100)
+    output: bool = True
+    """Send the parameter frames on the bus."""
+    output_dbc: Path | None = None
+    output_period_s: float = Field(0.1, gt=0.0)
+    output_extended_id: bool = True
+    output_fd: bool = False
+    bitrate_bps: int = Field(500_000, gt=0)
+    max_bus_share: float = Field(0.05, gt=0.0, le=0.5)
+    """The parameter frames never use more than this share of the bus bit rate."""
+    reopen_min_s: float = Field(0.5, gt=0.0)
+    reopen_max_s: float = Field(30.0, gt=0.0)
+    replay: ReplaySettings | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if self.replay is not None and self.interface != "virtual":
+            raise ValueError("replay needs interface = 'virtual'")
+        if self.reopen_min_s > self.reopen_max_s:
+            raise ValueError("reopen_min_s must be <= reopen_max_s")
+        return self
+
+
+class EstimatorSettings(_Strict):
+    """Cell type, estimator variant and tuning."""
+
+    cell: Path | None = None
+    """Cell config TOML/JSON (``bmsid fit-ocv``); None = the paper's 70 Ah NMC cell."""
+    variant: Variant = "hy-affrls-lpso"
+    tuning: EstimatorTuning = EstimatorTuning()
+    soc0: float | None = Field(None, ge=0.0, le=1.0)
+    """Initial SOC (fraction) for a fresh start; None applies the cell's ``soc_init`` policy."""
+
+    def load_cell(self) -> CellConfig:
+        if self.cell is None:
+            return paper_cell()
+        try:
+            return load_cell_config(self.cell)
+        except FileNotFoundError:
+            raise UserError(f"estimator.cell: file not found: {self.cell}") from None
+        except ValidationError as exc:
+            raise UserError(f"estimator.cell: {self.cell}: {_first_error(exc)}") from None
+        except (OSError, ValueError) as exc:
+            raise UserError(f"estimator.cell: cannot read {self.cell}: {exc}") from None
+
+
+class HomeAssistantSettings(_Strict):
+    enabled: bool = False
+    prefix: TopicPrefix = "homeassistant"
+
+
+class MqttSettings(_Strict):
+    """Broker connection and topics (``<topic_prefix>/<pack_id>/...``)."""
+
+    enabled: bool = True
+    url: str = "mqtt://localhost:1883"
+    """``mqtt://host[:port]`` (also ``tcp://``) or ``mqtts://host[:port]`` (also ``tls://``)."""
+    username: str | None = None
+    password: SecretStr | None = None
+    password_file: Path | None = None
+    ca_file: Path | None = None
+    tls_insecure: bool = False
+    client_id: str | None = None
+    """Unique per daemon (two clients with one id kick each other off); default bmsid-<pack_id>."""
+    qos: int = Field(1, ge=0, le=2)
+    topic_prefix: TopicPrefix = "bmsid"
+    publish_period_s: float = Field(1.0, ge=0.0)
+    """Least sample time between two publications of the cells, s (0: every estimator tick)."""
+    outbox_size: int = Field(100_000, ge=10)
+    """Messages held while the broker is away; when full the oldest are dropped and counted."""
+    keepalive_s: int = Field(30, ge=5)
+    reconnect_min_s: float = Field(0.5, gt=0.0)
+    reconnect_max_s: float = Field(30.0, gt=0.0)
+    publish_timeout_s: float = Field(10.0, gt=0.0)
+    max_inflight: int = Field(20, ge=1, le=1000)
+    homeassistant: HomeAssistantSettings = HomeAssistantSettings()
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        self.endpoint()  # raises ValueError on a bad URL
+        if self.password is not None and self.password_file is not None:
+            raise ValueError("set password or password_file, not both")
+        if self.reconnect_min_s > self.reconnect_max_s:
+            raise ValueError("reconnect_min_s must be <= reconnect_max_s")
+        return self
+
+    def endpoint(self) -> tuple[str, int, bool]:
+        """(host, port, tls) of ``url``."""
+        parts = urlsplit(self.url)
+        if parts.scheme not in MQTT_SCHEMES:
+            raise ValueError(
+                f"url scheme must be one of {', '.join(MQTT_SCHEMES)}, got {parts.scheme!r}"
+            )
+        if not parts.hostname:
+            raise ValueError(f"url {self.url!r} has no host")
+        if parts.path not in ("", "/") or parts.query or parts.username or parts.password:
+            raise ValueError("url takes scheme://host[:port] only (credentials go in username/...)")
+        tls = MQTT_SCHEMES[parts.scheme]
+        try:
+            port = parts.port or DEFAULT_PORTS[tls]
+        except ValueError as exc:
+            raise ValueError(f"url port: {exc}") from None
+        return parts.hostname, port, tls
+
+    def password_value(self) -> str | None:
+        """The password, read from ``password_file`` when set (trailing newline stripped)."""
+        if self.password_file is not None:
+            try:
+                return self.password_file.read_text(encoding="utf-8").rstrip("\r\n")
+            except OSError as exc:
+                raise UserError(
+                    f"mqtt.password_file: {exc.strerror}: {self.password_file}"
+                ) from None
+        return self.password.get_secret_value() if self.password is not None else None
+
+
+class StateSettings(_Strict):
+    directory: Path = Path("/var/lib/bmsid")
+    checkpoint_period_s: float = Field(60.0, gt=0.0)
+    restore: bool = True
+
+
+class Settings(BaseSettings):
+    """Everything ``bmsid run`` needs (see ``configs/bmsid.example.toml``)."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="BMSID_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        frozen=True,
+        nested_model_default_partial_update=True,
+    )
+
+    pack_id: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    can: CanSettings
+    estimator: EstimatorSettings = EstimatorSettings()
+    mqtt: MqttSettings = MqttSettings()
+    state: StateSettings = StateSettings()
+    status_period_s: float = Field(10.0, gt=0.0)
+    """Counters go to the status topic and the log this often, s."""
+    systemd_notify: bool = True
+    """Send READY/WATCHDOG/STOPPING to $NOTIFY_SOCKET when systemd set one."""
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # The environment overrides the file (passed as init arguments by load_settings).
+        return env_settings, init_settings
+
+    def client_id(self) -> str:
+        return self.mqtt.client_id or f"bmsid-{self.pack_id}"
+
+    def config_hash(self, cell: CellConfig) -> str:
+        """Hash of what a checkpoint's estimator state depends on (not I/O settings)."""
+        key = {
+            "pack_id": self.pack_id,
+            "n_cells": self.can.n_cells,
+            "variant": self.estimator.variant,
+            "tuning": self.estimator.tuning.model_dump(mode="json"),
+            "cell": cell.model_dump(mode="json"),
+        }
+        return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+    def redacted(self) -> dict[str, Any]:
+        """The effective settings as plain data, secrets shown as ``**********``."""
+        data: dict[str, Any] = self.model_dump(mode="json", exclude_none=True)
+        return data
+
+
+#: Keys holding paths, resolved relative to the config file.
+_PATH_KEYS = (
+    ("can", "mapping"),
+    ("can", "output_dbc"),
+    ("can", "replay", "log"),
+    ("estimator", "cell"),
+    ("mqtt", "password_file"),
+    ("mqtt", "ca_file"),
+    ("state", "directory"),
+)
+
+
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    for keys in _PATH_KEYS:
+        node: Any = data
+        for k in keys[:-1]:
+            node = node.get(k) if isinstance(node, dict) else None
+        if isinstance(node, dict) and isinstance(node.get(keys[-1]), str):
+            p = Path(node[keys[-1]]).expanduser()
+            node[keys[-1]] = str(p if p.is_absolute() else (base / p).resolve())
+
+
+def _first_error(exc: ValidationError) -> str:
+    errors = exc.errors()
+    err = errors[0]
+    field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    value = ""
+    if err["type"] not in ("missing", "extra_forbidden") and "input" in err:
+        shown = err["input"]
+        if "password" not in field and not isinstance(shown, dict | list):
+            value = f" (got {shown!r})"
+    msg = "unknown field" if err["type"] == "extra_forbidden" else err["msg"]
+    return f"field {field}: {msg}{value}{more}"
+
+
+def load_settings(path: str | Path) -> Settings:
+    """Read and validate a settings TOML (+ environment); UserError with the field on failure."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"config file not found: {p}") from None
+    except OSError as exc:
+        raise UserError(f"cannot read config {p}: {exc.strerror}") from None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise UserError(f"{p}: not valid TOML: {exc}") from None
+    _resolve_paths(data, p.resolve().parent)
+    try:
+        return Settings(**data)
+    except ValidationError as exc:
+        raise UserError(f"{p}: {_first_error(exc)}") from None

@@ -1,0 +1,581 @@
+"""The live daemon: frames -> samples -> estimator bank -> CAN and MQTT publishers.
+
+::
+
+    CAN source (socketcan add_reader | virtual thread)      [sources.py]
+        | batches of frames
+        v
+    FrameToSamples (canbus)  --samples-->  bounded queue
+                                                | batches, off the loop (one worker thread)
+                                                v
+                                      EstimatorBank.update   --> checkpoint (same thread)
+                                                | Estimates
+                     +--------------------------+---------------------------+
+                     v                                                      v
+        CAN output every output_period_s                   MQTT outbox (bounded, drop-oldest)
+        (pack summary + cells cycled, share cap)       -> MqttPublisher (reconnects) [publish/]
+
+The event loop only moves data: decoding costs microseconds per frame and the bank (whose
+swarm iterations take milliseconds) runs in a single worker thread, so the loop lag stays small
+(measured by a monitor task and reported as ``loop_lag_max_ms``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import contextlib
+import logging
+import signal
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+
+from bmsid import __version__
+from bmsid.canbus.bus import send_frames
+from bmsid.canbus.encoder import CLASSIC_PAGES, ParameterEncoder
+from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
+from bmsid.config.settings import Settings
+from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
+from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.daemon.sdnotify import SdNotifier
+from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
+from bmsid.errors import UserError
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.types import Estimates
+from bmsid.publish import payloads
+from bmsid.publish.discovery import discovery_messages
+from bmsid.publish.mqtt import MqttPublisher
+from bmsid.publish.outbox import Outbox, OutMessage
+from bmsid.samples import Sample
+
+log = logging.getLogger(__name__)
+
+DECODE_ERROR_KINDS = (
+    "unknown_id",
+    "wrong_dlc",
+    "mux_out_of_range",
+    "error_frames",
+    "remote_frames",
+    "out_of_range",
+    "decode_error",
+)
+CAN_ERR_BUSOFF = 0x40
+LAG_INTERVAL_S = 0.05
+SAMPLE_QUEUE = 50_000
+SAMPLE_BATCH = 64
+#: GIL switch interval of the daemon process: the loop gets the GIL back within 1 ms.
+SWITCH_INTERVAL_S = 0.001
+
+
+class Daemon:
+    """One pack's live identification; ``await run()`` until :meth:`request_stop`.
+
+    Args:
+        settings: validated settings.
+        on_estimates: called on the loop with every estimator tick (live view, tests).
+        shutdown_timeout_s: how long the shutdown may wait for the MQTT backlog.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        on_estimates: Callable[[Estimates], None] | None = None,
+        shutdown_timeout_s: float = 10.0,
+    ) -> None:
+        self.settings = settings
+        self.on_estimates = on_estimates
+        self.shutdown_timeout_s = shutdown_timeout_s
+        cs = settings.can
+        self.cell = settings.estimator.load_cell()
+        self.mapping: BusMapping = (
+            load_mapping(cs.mapping) if cs.mapping is not None else default_mapping()
+        )
+        if cs.n_cells > self.mapping.max_cells():
+            raise UserError(
+                f"can.n_cells={cs.n_cells}: mapping {self.mapping.name!r} carries "
+                f"{self.mapping.max_cells()} cells"
+            )
+        self.f2s = FrameToSamples(self.mapping, cs.n_cells, staleness_s=cs.staleness_s)
+        est = settings.estimator
+        self.bank = EstimatorBank(self.cell, cs.n_cells, est.variant, est.tuning, soc0=est.soc0)
+        self.encoder = ParameterEncoder(
+            cs.output_dbc, extended_id=cs.output_extended_id, fd=cs.output_fd
+        )
+        frames_per_cell = 1 if cs.output_fd else len(CLASSIC_PAGES)
+        bits = frame_bits(64 if cs.output_fd else 8, cs.output_extended_id)
+        self.cycler: CellCycler = plan_output(
+            cs.n_cells, frames_per_cell, bits, cs.bitrate_bps, cs.max_bus_share, cs.output_period_s
+        )
+        self.ckpt_key = CheckpointKey(settings.pack_id, cs.n_cells, settings.config_hash(self.cell))
+        self.ckpt_path = settings.state.directory / f"{settings.pack_id}.ckpt.npz"
+        self.prefix = settings.mqtt.topic_prefix
+        self.sd = SdNotifier(settings.systemd_notify)
+        self.latest: Estimates | None = None
+        self.restored = False
+        self.seq = 0
+        self.can_state = "starting"
+        self.counters: dict[str, int] = collections.Counter()
+        self.loop_lag_max_s = 0.0
+        self.loop_lags_s: collections.deque[float] = collections.deque(maxlen=50_000)
+        self._lag_window_max_s = 0.0
+        #: sample complete -> broker ack, s: every message / the first of each tick (cell 0)
+        self.latencies_s: collections.deque[float] = collections.deque(maxlen=50_000)
+        self.latencies_first_s: collections.deque[float] = collections.deque(maxlen=50_000)
+        self.replayer: LogReplayer | None = None
+        self.outbox: Outbox | None = None
+        self.mqtt: MqttPublisher | None = None
+        self._source: FrameSource | None = None
+        self._samples: asyncio.Queue[tuple[Sample, float]] | None = None
+        self._stop: asyncio.Event | None = None
+        self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="bmsid-bank")
+        self._last_pub_t = -float("inf")
+        self._last_sample_mono = 0.0
+        self._t_start = time.monotonic()
+        self._ready_sent = False
+
+    # ------------------------------------------------------------------ lifecycle
+    def request_stop(self) -> None:
+        """Graceful stop (SIGTERM/SIGINT): stop reading, flush, checkpoint, offline, exit."""
+        if self._stop is not None:
+            self._stop.set()
+
+    def idle(self) -> bool:
+        """True when a replay has ended and every frame and sample has been processed."""
+        return (
+            self.replayer is not None
+            and self.replayer.done.is_set()
+            and self._samples is not None
+            and self._samples.empty()
+            and self.counters["batches_in_flight"] == 0
+        )
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        self._samples = asyncio.Queue(SAMPLE_QUEUE)
+        self._t_start = time.monotonic()
+        if self.settings.state.restore:
+            await loop.run_in_executor(self._executor, self._restore)
+        mqtt_task: asyncio.Task[None] | None = None
+        if self.settings.mqtt.enabled:
+            self.outbox = Outbox(self.settings.mqtt.outbox_size)
+            mqtt_task = asyncio.create_task(self._start_mqtt(), name="mqtt")
+        tasks = [
+            asyncio.create_task(self._can_input(), name="can-input"),
+            asyncio.create_task(self._estimate(), name="estimator"),
+            asyncio.create_task(self._can_output(), name="can-output"),
+            asyncio.create_task(self._checkpoints(), name="checkpoints"),
+            asyncio.create_task(self._status(), name="status"),
+            asyncio.create_task(self._lag_monitor(), name="loop-lag"),
+        ]
+        if self.sd.watchdog_s:
+            tasks.append(asyncio.create_task(self._watchdog(), name="watchdog"))
+        stop_waiter = asyncio.create_task(self._stop.wait())
+        watched = {stop_waiter, *tasks, *([mqtt_task] if mqtt_task is not None else [])}
+        done, _ = await asyncio.wait(watched, return_when=asyncio.FIRST_COMPLETED)
+        failed = [t for t in done if t is not stop_waiter and not t.cancelled() and t.exception()]
+        await self._shutdown(tasks, mqtt_task)
+        stop_waiter.cancel()
+        if failed:
+            exc = failed[0].exception()
+            assert exc is not None
+            raise exc
+        return 0
+
+    async def _shutdown(
+        self, tasks: list[asyncio.Task[None]], mqtt_task: asyncio.Task[None] | None
+    ) -> None:
+        loop = asyncio.get_running_loop()
+        self.sd.notify("STOPPING=1")
+        log.info("stopping: draining samples, checkpointing, flushing MQTT")
+        input_task = tasks[0]
+        input_task.cancel()
+        await asyncio.gather(input_task, return_exceptions=True)
+        if self.replayer is not None:
+            self.replayer.stop()
+        assert self._samples is not None
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._samples.join(), timeout=self.shutdown_timeout_s)
+        for t in tasks[1:]:
+            t.cancel()
+        await asyncio.gather(*tasks[1:], return_exceptions=True)
+        await loop.run_in_executor(self._executor, self._checkpoint)
+        if self.mqtt is not None and mqtt_task is not None:
+            self.mqtt.stop()
+            try:
+                await asyncio.wait_for(asyncio.shield(mqtt_task), self.shutdown_timeout_s)
+            except TimeoutError:
+                assert self.outbox is not None
+                log.warning(
+                    "MQTT: %d messages not delivered at shutdown (broker unreachable)",
+                    len(self.outbox),
+                )
+                mqtt_task.cancel()
+                await asyncio.gather(mqtt_task, return_exceptions=True)
+        self._executor.shutdown(wait=True)
+        log.info("stopped: %s", self._counter_line())
+
+    # ------------------------------------------------------------------ state
+    def _restore(self) -> None:
+        ck = load_checkpoint(self.ckpt_path, self.ckpt_key)
+        if ck is None:
+            return
+        try:
+            self.bank.load_state_dict(ck.state)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning(
+                "checkpoint %s does not fit this bank (%s): starting fresh", self.ckpt_path, exc
+            )
+            self.bank = EstimatorBank(
+                self.cell,
+                self.settings.can.n_cells,
+                self.settings.estimator.variant,
+                self.settings.estimator.tuning,
+                soc0=self.settings.estimator.soc0,
+            )
+            return
+        self.seq = int(ck.extra.get("seq", 0))
+        self.restored = True
+        log.info(
+            "restored %s (saved at sample time %s s, seq %d)",
+            self.ckpt_path,
+            ck.extra.get("t_s"),
+            self.seq,
+        )
+
+    def _checkpoint(self) -> None:
+        """Runs in the bank's thread: the state is consistent between two updates."""
+        state = self.bank.state_dict()
+        try:
+            save_checkpoint(
+                self.ckpt_path,
+                self.ckpt_key,
+                state,
+                extra={"seq": self.seq, "t_s": state.get("_t_raw")},
+            )
+        except OSError as exc:
+            self.counters["checkpoint_errors"] += 1
+            log.error("checkpoint %s failed: %s", self.ckpt_path, exc)
+            return
+        self.counters["checkpoints"] += 1
+
+    async def _checkpoints(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(self.settings.state.checkpoint_period_s)
+            await loop.run_in_executor(self._executor, self._checkpoint)
+
+    # ------------------------------------------------------------------ CAN input
+    def _set_can_state(self, state: str) -> None:
+        if state != self.can_state:
+            log.log(logging.INFO if state == "up" else logging.WARNING, "CAN %s", state)
+            self.can_state = state
+            if self.mqtt is not None:
+                self.mqtt.publish_status()
+
+    async def _can_input(self) -> None:
+        cs = self.settings.can
+        backoff = cs.reopen_min_s
+        assert self._samples is not None
+        while True:
+            try:
+                src = open_source(cs.interface, cs.channel, cs.output_fd, cs.reader_queue_frames)
+            except (can.CanError, OSError, ValueError) as exc:
+                self.counters["can_open_failures"] += 1
+                self._set_can_state("down")
+                log.warning(
+                    "CAN %s/%s cannot be opened: %s (retry in %.1f s)",
+                    cs.interface,
+                    cs.channel,
+                    exc,
+                    backoff,
+                )
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2.0, cs.reopen_max_s)
+                continue
+            self._source = src
+            backoff = cs.reopen_min_s
+            self._set_can_state("up")
+            self._on_bus_open()
+            try:
+                await self._read(src)
+            except (can.CanError, OSError) as exc:
+                self.counters["can_reopens"] += 1
+                self._set_can_state("down")
+                log.warning("CAN %s failed: %s (reopen in %.1f s)", cs.channel, exc, backoff)
+            finally:
+                self._source = None
+                self.counters["reader_dropped"] += src.dropped
+                src.close()
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2.0, cs.reopen_max_s)
+
+    def _on_bus_open(self) -> None:
+        cs = self.settings.can
+        if cs.replay is not None and self.replayer is None:
+            self.replayer = LogReplayer(
+                cs.replay.log, cs.channel, cs.replay.speed, cs.replay.start_delay_s
+            )
+            self.replayer.start()
+        if not self._ready_sent:
+            self._ready_sent = True
+            self.sd.notify("READY=1", f"STATUS=reading {cs.channel}")
+
+    async def _read(self, src: FrameSource) -> None:
+        assert self._samples is not None
+        expire = self.settings.can.interface == "socketcan"
+        while True:
+            if expire:
+                try:
+                    batch = await asyncio.wait_for(src.get_batch(), self.settings.can.staleness_s)
+                except TimeoutError:
+                    self._enqueue_samples(self.f2s.expire(time.time()))
+                    continue
+            else:
+                batch = await src.get_batch()
+            for msg in batch:
+                if msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF:
+                    self.counters["bus_off"] += 1
+                    self._set_can_state("bus_off")
+                elif self.can_state == "bus_off" and not msg.is_error_frame:
+                    self._set_can_state("up")
+                samples = self.f2s.feed(msg)
+                if samples:
+                    for s in samples:
+                        await self._samples.put((s, time.monotonic()))
+
+    def _enqueue_samples(self, samples: list[Sample]) -> None:
+        assert self._samples is not None
+        for s in samples:
+            with contextlib.suppress(asyncio.QueueFull):
+                self._samples.put_nowait((s, time.monotonic()))
+
+    # ------------------------------------------------------------------ estimator
+    def _update_batch(
+        self, batch: list[tuple[Sample, float]]
+    ) -> list[tuple[Estimates, list[OutMessage]]]:
+        """Runs in the bank's thread: estimates and their MQTT messages (JSON encoding is
+        done here too, off the loop; ``seq`` is only touched by this thread)."""
+        out: list[tuple[Estimates, list[OutMessage]]] = []
+        for s, t_mono in batch:
+            est = self.bank.update(s.t_s, s.current_A, s.cell_voltages_V)
+            if est is not None:
+                out.append((est, self._messages(est, t_mono)))
+            # Hand the GIL to the event loop between samples: without this the loop waits a
+            # whole switch interval for every GIL release it makes (select, send) while the
+            # bank is busy (the convoy effect), and its lag grows to hundreds of ms.
+            time.sleep(0)
+        return out
+
+    def _messages(self, est: Estimates, t_mono: float) -> list[OutMessage]:
+        m = self.settings.mqtt
+        if not m.enabled:
+            return []
+        tol = 0.5 * self.settings.estimator.tuning.id_period_s
+        if m.publish_period_s > 0 and est.t_s - self._last_pub_t < m.publish_period_s - tol:
+            return []
+        self._last_pub_t = est.t_s
+        pid = self.settings.pack_id
+        out = []
+        for i in range(est.n_cells):
+            body = payloads.cell_payload(est, i, pid, self.seq)
+            self.seq += 1
+            topic = payloads.topic(self.prefix, pid, "cell", i)
+            out.append(OutMessage(topic, payloads.encode(body), m.qos, t_sample_mono=t_mono))
+        body = payloads.pack_payload(est, pid, self.seq, self._health(est))
+        self.seq += 1
+        topic = payloads.topic(self.prefix, pid, "pack")
+        out.append(OutMessage(topic, payloads.encode(body), m.qos, t_sample_mono=t_mono))
+        return out
+
+    async def _estimate(self) -> None:
+        loop = asyncio.get_running_loop()
+        q = self._samples
+        assert q is not None
+        while True:
+            batch = [await q.get()]
+            while len(batch) < SAMPLE_BATCH and not q.empty():
+                batch.append(q.get_nowait())
+            self.counters["batches_in_flight"] += 1
+            try:
+                results = await loop.run_in_executor(self._executor, self._update_batch, batch)
+                self._last_sample_mono = time.monotonic()
+                for est, messages in results:
+                    self.latest = est
+                    if self.on_estimates is not None:
+                        self.on_estimates(est)
+                    if self.outbox is not None:
+                        for msg in messages:
+                            self.outbox.put(msg)
+            finally:
+                self.counters["batches_in_flight"] -= 1
+                for _ in batch:
+                    q.task_done()
+
+    def _health(self, est: Estimates) -> int:
+        bits = payloads.health_bits(est)
+        if time.monotonic() - self._last_sample_mono > self.settings.can.staleness_s + 1.0:
+            bits |= payloads.HEALTH_INPUT_STALE
+        return bits
+
+    # ------------------------------------------------------------------ CAN output
+    async def _can_output(self) -> None:
+        cs = self.settings.can
+        if not cs.output:
+            return
+        period = cs.output_period_s
+        next_t = time.monotonic()
+        while True:
+            next_t += period
+            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+            if time.monotonic() - next_t > period:  # fell behind (suspend): do not burst
+                next_t = time.monotonic()
+            est, src = self.latest, self._source
+            if est is None or src is None:
+                continue
+            frames = [self.encoder.pack_frame(est, self._health(est))]
+            frames += self.encoder.cell_frames(est, self.cycler.next_round())
+            try:
+                self.counters["can_frames_sent"] += await send_frames(src.bus, frames)
+            except (can.CanError, OSError) as exc:
+                self.counters["can_send_errors"] += 1
+                n = self.counters["can_send_errors"]
+                if n == 10 ** (len(str(n)) - 1):
+                    log.warning("CAN send failed (%d so far): %s", n, exc)
+
+    # ------------------------------------------------------------------ MQTT
+    async def _start_mqtt(self) -> None:
+        s = self.settings
+        assert self.outbox is not None
+        status_topic = payloads.topic(self.prefix, s.pack_id, "status")
+        offline = payloads.encode(
+            payloads.status_payload("offline", s.pack_id, version=__version__)
+        )
+        discovery = None
+        if s.mqtt.homeassistant.enabled:
+            ha = s.mqtt.homeassistant.prefix
+            n = s.can.n_cells
+
+            def discovery() -> list[tuple[str, bytes]]:
+                return discovery_messages(ha, self.prefix, s.pack_id, n, __version__)
+
+        self.mqtt = MqttPublisher(
+            s.mqtt,
+            s.client_id(),
+            self.outbox,
+            status_topic,
+            self._online_payload,
+            offline,
+            discovery=discovery,
+            on_published=self._on_published,
+        )
+        await self.mqtt.run()
+
+    def _on_published(self, msg: OutMessage) -> None:
+        if msg.t_sample_mono is not None:
+            lat = time.monotonic() - msg.t_sample_mono
+            self.latencies_s.append(lat)
+            if msg.topic.endswith("/cell/0"):
+                self.latencies_first_s.append(lat)
+
+    def _online_payload(self) -> bytes:
+        return payloads.encode(
+            payloads.status_payload(
+                "online",
+                self.settings.pack_id,
+                can_state=self.can_state,
+                uptime_s=time.monotonic() - self._t_start,
+                counters=self.snapshot(),
+                version=__version__,
+            )
+        )
+
+    # ------------------------------------------------------------------ counters
+    def snapshot(self) -> dict[str, float]:
+        """Counters for the status payload and the log."""
+        f = self.f2s.counters
+        out: dict[str, float] = {
+            "frames": f["frames"],
+            "decode_errors": sum(f[k] for k in DECODE_ERROR_KINDS),
+            "incomplete_cycles": f["incomplete_cycles"],
+            "stale_current": f["stale_current"],
+            "samples": f["samples"],
+            "ticks": self.bank.counters["ticks"],
+            "swarms": self.bank.counters["swarms"],
+            "can_frames_sent": self.counters["can_frames_sent"],
+            "can_send_errors": self.counters["can_send_errors"],
+            "can_reopens": self.counters["can_reopens"],
+            "can_open_failures": self.counters["can_open_failures"],
+            "reader_drops": self.counters["reader_dropped"]
+            + (self._source.dropped if self._source is not None else 0),
+            "checkpoints": self.counters["checkpoints"],
+            "loop_lag_max_ms": round(self.loop_lag_max_s * 1e3, 3),
+            "seq": self.seq,
+        }
+        if self.mqtt is not None and self.outbox is not None:
+            out |= {
+                "publishes": self.mqtt.counters["publishes"],
+                "mqtt_drops": self.outbox.dropped,
+                "mqtt_backlog": len(self.outbox),
+                "mqtt_reconnects": self.mqtt.counters["reconnects"],
+            }
+        return out
+
+    def _counter_line(self) -> str:
+        return " ".join(f"{k}={v}" for k, v in self.snapshot().items())
+
+    async def _status(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.status_period_s)
+            log.info(
+                "counters: %s window_lag_max_ms=%.2f",
+                self._counter_line(),
+                self._lag_window_max_s * 1e3,
+            )
+            self._lag_window_max_s = 0.0
+            if self.mqtt is not None:
+                self.mqtt.publish_status()
+
+    async def _lag_monitor(self) -> None:
+        while True:
+            t0 = time.monotonic()
+            await asyncio.sleep(LAG_INTERVAL_S)
+            lag = max(0.0, time.monotonic() - t0 - LAG_INTERVAL_S)
+            self.loop_lags_s.append(lag)
+            self.loop_lag_max_s = max(self.loop_lag_max_s, lag)
+            self._lag_window_max_s = max(self._lag_window_max_s, lag)
+
+    async def _watchdog(self) -> None:
+        assert self.sd.watchdog_s is not None
+        while True:
+            await asyncio.sleep(self.sd.watchdog_s / 2.0)
+            # Alive = the loop runs (we are here) and the bank thread is not stuck.
+            if self.counters["batches_in_flight"] == 0 or (
+                time.monotonic() - self._last_sample_mono < self.sd.watchdog_s
+            ):
+                self.sd.notify("WATCHDOG=1")
+
+
+def run_daemon(settings: Settings) -> int:
+    """``bmsid run``: the daemon with SIGTERM/SIGINT as graceful stop; returns the exit code."""
+
+    async def main() -> int:
+        daemon = Daemon(settings)
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, daemon.request_stop)
+        return await daemon.run()
+
+    return asyncio.run(main())
+
+
+def state_file(settings: Settings) -> Path:
+    return settings.state.directory / f"{settings.pack_id}.ckpt.npz"

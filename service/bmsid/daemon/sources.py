@@ -1,0 +1,192 @@
+"""Frame sources of the daemon: SocketCAN through an ``add_reader`` reader, python-can's
+``virtual`` bus through a thread, and a candump-log replayer onto the virtual bus (demo, tests).
+
+Both sources hand the daemon batches of frames through a bounded queue. SocketCAN drops (and
+counts) when the queue is full, as the kernel would; the virtual-bus thread blocks instead, which
+pushes back into python-can's unbounded in-process queue (nothing is lost, the sender is slowed).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Protocol
+
+import can
+
+from bmsid.canbus.bus import AsyncFrameReader, open_socketcan
+from bmsid.canbus.logs import read_log
+
+log = logging.getLogger(__name__)
+
+BATCH_FRAMES = 256
+
+
+class FrameSource(Protocol):
+    @property
+    def bus(self) -> can.BusABC: ...
+
+    @property
+    def dropped(self) -> int:
+        """Frames lost because the queue was full."""
+        ...
+
+    async def get_batch(self) -> list[can.Message]:
+        """Frames received since the last call (at least one); raises on a bus error."""
+        ...
+
+    def close(self) -> None: ...
+
+
+IFF_UP = 0x1
+
+
+def link_problem(channel: str) -> str | None:
+    """Why ``channel`` cannot carry frames now (missing or administratively down), or None.
+
+    A CAN socket binds to a down interface without complaint and then simply receives nothing,
+    so the daemon checks the link before it reports the bus as up.
+    """
+    flags = Path("/sys/class/net") / channel / "flags"
+    try:
+        value = int(flags.read_text().strip(), 16)
+    except FileNotFoundError:
+        return f"no network interface {channel!r}"
+    except (OSError, ValueError):
+        return None  # no sysfs here: let the socket tell
+    return None if value & IFF_UP else f"interface {channel} is down"
+
+
+class SocketCanSource:
+    def __init__(self, channel: str, fd: bool, maxsize: int) -> None:
+        if (problem := link_problem(channel)) is not None:
+            raise OSError(problem)
+        self.bus = open_socketcan(channel, fd=fd)
+        self._reader = AsyncFrameReader(self.bus, maxsize=maxsize)
+
+    @property
+    def dropped(self) -> int:
+        return self._reader.dropped
+
+    async def get_batch(self) -> list[can.Message]:
+        batch = [await self._reader.get()]
+        q = self._reader._queue  # drain what is already there: one hop per batch, not per frame
+        while len(batch) < BATCH_FRAMES and not q.empty():
+            item = q.get_nowait()
+            if isinstance(item, BaseException):
+                raise item
+            batch.append(item)
+        return batch
+
+    def close(self) -> None:
+        self._reader.close()
+        self.bus.shutdown()
+
+
+class VirtualSource:
+    """python-can ``virtual`` bus read by a thread (the bus has no file descriptor)."""
+
+    def __init__(self, channel: str, maxsize_frames: int) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        self.dropped = 0
+        self._loop = asyncio.get_running_loop()
+        self._queue: asyncio.Queue[list[can.Message]] = asyncio.Queue(
+            max(2, maxsize_frames // BATCH_FRAMES)
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="bmsid-virtual-reader", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is None:
+                continue
+            batch = [msg]
+            while len(batch) < BATCH_FRAMES and (m := self.bus.recv(0)) is not None:
+                batch.append(m)
+            fut = asyncio.run_coroutine_threadsafe(self._queue.put(batch), self._loop)
+            while not self._stop.is_set():
+                try:
+                    fut.result(timeout=0.1)
+                    break
+                except TimeoutError:
+                    continue
+            else:
+                fut.cancel()
+
+    async def get_batch(self) -> list[can.Message]:
+        return await self._queue.get()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.bus.shutdown()
+
+
+def open_source(interface: str, channel: str, fd: bool, maxsize_frames: int) -> FrameSource:
+    if interface == "socketcan":
+        return SocketCanSource(channel, fd, maxsize_frames)
+    return VirtualSource(channel, maxsize_frames)
+
+
+class LogReplayer:
+    """Replays a candump log onto a ``virtual`` channel at ``speed`` x real time, in a thread.
+
+    Frames keep their log timestamps (``preserve_timestamps``), so the estimator sees the log's
+    time axis whatever the speed. Frames that others send on the channel (bmsid's own output)
+    are discarded as they arrive so the in-process queue cannot grow.
+    """
+
+    def __init__(self, log_path: Path, channel: str, speed: float, start_delay_s: float) -> None:
+        self.log_path = log_path
+        self.speed = speed
+        self.start_delay_s = start_delay_s
+        self.sent = 0
+        self.done = threading.Event()
+        self._stop = threading.Event()
+        self._bus = can.Bus(
+            interface="virtual",
+            channel=channel,
+            preserve_timestamps=True,
+            receive_own_messages=False,
+        )
+        self._thread = threading.Thread(target=self._run, name="bmsid-replay", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            if self._stop.wait(self.start_delay_s):
+                return
+            t0_wall = time.monotonic()
+            t0_log: float | None = None
+            for msg in read_log(self.log_path):
+                if t0_log is None:
+                    t0_log = msg.timestamp
+                due = t0_wall + (msg.timestamp - t0_log) / self.speed
+                delay = due - time.monotonic()
+                if delay > 0.001 and self._stop.wait(delay):
+                    return
+                if self._stop.is_set():
+                    return
+                self._bus.send(msg)
+                self.sent += 1
+                if self.sent % 512 == 0:
+                    while self._bus.recv(0) is not None:
+                        pass
+            log.info("replay of %s finished: %d frames", self.log_path, self.sent)
+        except Exception:
+            log.exception("replay of %s failed", self.log_path)
+        finally:
+            self.done.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        self._bus.shutdown()

@@ -1,0 +1,287 @@
+"""The paper's comparison tables: Table 2 (accuracy and run time per profile, temperature and
+variant) and the parameter-consistency analysis of Fig. 14. Pure: rows in, text out.
+
+Consistency (the paper gives no formula, Sec. 3.4): for each variant and each group of datasets
+of one cell at one temperature, take the median of every identified parameter (R0, R1, C1, R2,
+C2) over the evaluation window of each dataset; normalise each by its mean over the group's
+datasets (1 = the same value on every profile). A dataset's consistency error is the mean over
+the five parameters of |normalised - 1|, in percent; its spread is the same with the per-tick
+values in place of the median (median over time of |p(t) / group mean - 1|), which also counts
+how much the estimate wanders within the run. With two datasets the error is the same for both
+(each sits as far from the mean as the other); the spread differs.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+#: Parameters the consistency analysis covers (the model's "full parameters").
+CONSISTENCY_PARAMS = ("R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F")
+
+#: The paper's Table 2 RMSE in mV (70 Ah NMC cell), by (profile, temperature C) and variant.
+PAPER_RMSE_mV: dict[tuple[str, float], dict[str, float]] = {
+    ("DST", 15.0): {"non-hy-affrls": 30.0, "hy-affrls": 31.0, "hy-affrls-lpso": 11.8},
+    ("DST", 25.0): {"non-hy-affrls": 43.0, "hy-affrls": 47.3, "hy-affrls-lpso": 21.4},
+    ("DST", 35.0): {"non-hy-affrls": 37.8, "hy-affrls": 37.5, "hy-affrls-lpso": 14.2},
+    ("BBDST", 15.0): {"non-hy-affrls": 31.0, "hy-affrls": 18.3, "hy-affrls-lpso": 14.6},
+    ("BBDST", 25.0): {"non-hy-affrls": 44.0, "hy-affrls": 33.4, "hy-affrls-lpso": 28.4},
+    ("BBDST", 35.0): {"non-hy-affrls": 30.4, "hy-affrls": 29.6, "hy-affrls-lpso": 17.3},
+}
+#: The paper's run times per run, s (their MATLAB on their PC): DST and BBDST ranges.
+PAPER_RUNTIME_S = {"DST": (18.7, 22.3), "BBDST": (26.3, 35.4)}
+
+_PROFILES = ("bbdst", "bjdst", "dst", "fuds", "us06", "udds", "hwfet", "ocv")
+_PROFILE_RE = re.compile(r"(?:^|[_\-.])(" + "|".join(_PROFILES) + r"|dyn\d*)(?=$|[_\-.])", re.I)
+_TEMP_RE = re.compile(r"(?:^|[_\-.])(-?\d+(?:\.\d+)?)C(?=$|[_\-.])")
+
+
+@dataclass(frozen=True)
+class DatasetLabel:
+    """How a dataset is named in the tables: file stem, profile (e.g. DST) and temperature."""
+
+    stem: str
+    profile: str
+    temperature_C: float | None
+
+    @property
+    def display(self) -> str:
+        t = "" if self.temperature_C is None else f" {self.temperature_C:g}C"
+        return f"{self.profile}{t}"
+
+
+def file_stem(path: str | Path) -> str:
+    name = Path(path).name
+    for suffix in (".gz", ".csv", ".log"):
+        if name.lower().endswith(suffix):
+            name = name[: -len(suffix)]
+    return name
+
+
+def label_dataset(path: str | Path, temperature_C: float | None = None) -> DatasetLabel:
+    """Profile and temperature from the file name (``..._dst_25C...``), the temperature falling
+    back to ``temperature_C`` (e.g. the file's median temperature column)."""
+    stem = file_stem(path)
+    pm = _PROFILE_RE.search(stem)
+    tm = _TEMP_RE.search(stem)
+    profile = pm.group(1).upper() if pm else stem
+    temp = float(tm.group(1)) if tm else temperature_C
+    if temp is not None and not math.isfinite(temp):
+        temp = None
+    return DatasetLabel(stem=stem, profile=profile, temperature_C=temp)
+
+
+def unique_displays(labels: Sequence[DatasetLabel]) -> list[str]:
+    """Display names, falling back to the file stem where two datasets would look alike."""
+    shown = [lb.display for lb in labels]
+    return [lb.stem if shown.count(s) > 1 else s for lb, s in zip(labels, shown, strict=True)]
+
+
+@dataclass(frozen=True)
+class Table2Row:
+    """One dataset x variant line of Table 2 (errors over the evaluation window)."""
+
+    dataset: str
+    profile: str
+    temperature_C: float | None
+    algorithm: str
+    n_samples: int
+    max_abs_error_V: float
+    rmse_V: float
+    mape_pct: float
+    runtime_s: float
+
+    @property
+    def rmse_mV(self) -> float:
+        return 1e3 * self.rmse_V
+
+
+def table2_csv(rows: Sequence[Table2Row]) -> str:
+    buf = io.StringIO()
+    names = list(Table2Row.__dataclass_fields__)
+    w = csv.DictWriter(buf, fieldnames=names, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if v is None else v) for k, v in asdict(r).items()})
+    return buf.getvalue()
+
+
+def _fmt_t(t: float | None) -> str:
+    return "-" if t is None else f"{t:g}"
+
+
+def table2_markdown(rows: Sequence[Table2Row], window_text: str) -> str:
+    """Table 2 as Markdown: the long table, an RMSE pivot, and the paper's RMSE where a
+    dataset has the paper's profile and temperature."""
+    lines = [
+        "## Table 2: model-voltage accuracy and run time",
+        "",
+        f"Errors over the evaluation window ({window_text}); run time = wall time of the "
+        "identification loop.",
+        "",
+        "| dataset | profile | T / C | algorithm | max error / mV | RMSE / mV | MAPE / % "
+        "| run time / s |",
+        "|---|---|---|---|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.dataset} | {r.profile} | {_fmt_t(r.temperature_C)} | {r.algorithm} "
+            f"| {1e3 * r.max_abs_error_V:.1f} | {r.rmse_mV:.2f} | {r.mape_pct:.3f} "
+            f"| {r.runtime_s:.1f} |"
+        )
+    datasets = list(dict.fromkeys(r.dataset for r in rows))
+    variants = list(dict.fromkeys(r.algorithm for r in rows))
+    by = {(r.dataset, r.algorithm): r for r in rows}
+    lines += ["", "RMSE / mV (ours):", "", "| algorithm | " + " | ".join(datasets) + " |"]
+    lines.append("|---|" + "---:|" * len(datasets))
+    for v in variants:
+        cells = [f"{by[(d, v)].rmse_mV:.2f}" if (d, v) in by else "-" for d in datasets]
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    first = {d: next(r for r in rows if r.dataset == d) for d in datasets}
+    keys: dict[str, tuple[str, float]] = {}
+    for d in datasets:
+        temp = first[d].temperature_C
+        if temp is not None and (first[d].profile, temp) in PAPER_RMSE_mV:
+            keys[d] = (first[d].profile, temp)
+    if keys:
+        lines += ["", "RMSE / mV in the paper (Table 2, their 70 Ah cell, same profile and "
+                  "temperature):", ""]  # fmt: skip
+        lines.append("| algorithm | " + " | ".join(keys) + " |")
+        lines.append("|---|" + "---:|" * len(keys))
+        for v in variants:
+            cells = [f"{PAPER_RMSE_mV[k].get(v, math.nan):.1f}" for k in keys.values()]
+            lines.append(f"| {v} (paper) | " + " | ".join(cells) + " |")
+        lines.append("")
+        lines.append(
+            "Paper run times per run: DST 18.7-22.3 s, BBDST 26.3-35.4 s (MATLAB, their PC)."
+        )
+    return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """Fig. 14 for one group (cell and temperature) and one variant.
+
+    ``medians[dataset][parameter]`` in SI units (ohm, F); ``normalised[dataset][parameter]`` =
+    the dataset's median / the group mean of the medians; ``error_pct[dataset]`` = mean over the
+    parameters of |normalised - 1| x 100 (agreement of the levels); ``spread_pct[dataset]`` =
+    mean over the parameters of the median over time of |p(t) / group mean - 1| x 100 (also
+    counts how much each estimate wanders within the run; NaN without trajectories).
+    """
+
+    group: str
+    algorithm: str
+    medians: dict[str, dict[str, float]]
+    normalised: dict[str, dict[str, float]]
+    error_pct: dict[str, float]
+    spread_pct: dict[str, float]
+
+    @property
+    def mean_error_pct(self) -> float:
+        vals = list(self.error_pct.values())
+        return sum(vals) / len(vals) if vals else math.nan
+
+
+def _median(values: Sequence[float]) -> float:
+    v = sorted(x for x in values if math.isfinite(x))
+    if not v:
+        return math.nan
+    k = len(v) // 2
+    return v[k] if len(v) % 2 else 0.5 * (v[k - 1] + v[k])
+
+
+def consistency(
+    group: str,
+    algorithm: str,
+    medians: Mapping[str, Mapping[str, float]],
+    trajectories: Mapping[str, Mapping[str, Sequence[float]]] | None = None,
+) -> Consistency:
+    """Consistency of several datasets' parameters (module docstring); ``trajectories``
+    [dataset][parameter] are the scored per-tick values, for ``spread_pct``."""
+    datasets = list(medians)
+    norm: dict[str, dict[str, float]] = {d: {} for d in datasets}
+    ref: dict[str, float] = {}
+    for p in CONSISTENCY_PARAMS:
+        vals = [float(medians[d][p]) for d in datasets]
+        finite = [v for v in vals if math.isfinite(v)]
+        ref[p] = sum(finite) / len(finite) if finite else math.nan
+        for d, v in zip(datasets, vals, strict=True):
+            norm[d][p] = v / ref[p] if ref[p] and math.isfinite(ref[p]) else math.nan
+    n_p = len(CONSISTENCY_PARAMS)
+    err = {
+        d: 100.0 * sum(abs(norm[d][p] - 1.0) for p in CONSISTENCY_PARAMS) / n_p for d in datasets
+    }
+    spread: dict[str, float] = {}
+    for d in datasets:
+        if trajectories is None or d not in trajectories:
+            spread[d] = math.nan
+            continue
+        per_param = [
+            _median([abs(x / ref[p] - 1.0) for x in trajectories[d][p]]) for p in CONSISTENCY_PARAMS
+        ]
+        spread[d] = 100.0 * sum(per_param) / n_p
+    return Consistency(
+        group=group,
+        algorithm=algorithm,
+        medians={d: {p: float(medians[d][p]) for p in CONSISTENCY_PARAMS} for d in datasets},
+        normalised=norm,
+        error_pct=err,
+        spread_pct=spread,
+    )
+
+
+def consistency_csv(results: Sequence[Consistency]) -> str:
+    buf = io.StringIO()
+    head = ["group", "algorithm", "dataset"]
+    head += [f"{p}_median" for p in CONSISTENCY_PARAMS]
+    head += [f"{p}_normalised" for p in CONSISTENCY_PARAMS]
+    head += ["consistency_error_pct", "trajectory_spread_pct"]
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(head)
+    for c in results:
+        for d in c.medians:
+            w.writerow(
+                [c.group, c.algorithm, d]
+                + [f"{c.medians[d][p]:.6g}" for p in CONSISTENCY_PARAMS]
+                + [f"{c.normalised[d][p]:.4f}" for p in CONSISTENCY_PARAMS]
+                + [f"{c.error_pct[d]:.2f}", f"{c.spread_pct[d]:.2f}"]
+            )
+    return buf.getvalue()
+
+
+def consistency_markdown(results: Sequence[Consistency]) -> str:
+    lines = [
+        "## Parameter consistency across profiles (Fig. 14)",
+        "",
+        "Normalised = a parameter's median over the evaluation window / its mean over the "
+        "datasets of the group. Error = mean |normalised - 1| over R0, R1, C1, R2, C2 (do the "
+        "profiles agree?); spread = mean over the parameters of the median over time of "
+        "|p(t) / group mean - 1| (also counts how much the estimate wanders within the run).",
+        "",
+    ]
+    if not results:
+        lines.append("No group has two or more datasets of one cell at one temperature.")
+        return "\n".join(lines) + "\n"
+    short = [p.split("_")[0] for p in CONSISTENCY_PARAMS]
+    lines.append(
+        "| group | algorithm | dataset | " + " | ".join(short) + " | error / % | spread / % |"
+    )
+    lines.append("|---|---|---|" + "---:|" * (len(short) + 2))
+    for c in results:
+        for d in c.medians:
+            vals = " | ".join(f"{c.normalised[d][p]:.3f}" for p in CONSISTENCY_PARAMS)
+            lines.append(
+                f"| {c.group} | {c.algorithm} | {d} | {vals} | {c.error_pct[d]:.1f} "
+                f"| {c.spread_pct[d]:.1f} |"
+            )
+    lines += [
+        "",
+        "Paper (15 C, DST / BBDST, its definition unstated): AFFRLS 26.4 % / 12.3 %, "
+        "AFFRLS-LPSO 16.5 % / 9.9 %.",
+    ]
+    return "\n".join(lines) + "\n"

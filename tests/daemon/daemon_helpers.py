@@ -1,0 +1,240 @@
+"""Builders shared by the daemon tests: demo frames, settings, offline reference, MQTT capture."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import json
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.logs import read_log
+from bmsid.canbus.mapping import default_mapping
+from bmsid.config.settings import Settings
+from bmsid.daemon.core import Daemon
+from bmsid.daemon.demo_data import DEMO_LOG, N_CELLS
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.types import Estimates
+
+SCHEMA_DIR = Path(__file__).resolve().parents[2] / "service" / "bmsid" / "publish" / "schemas"
+#: Short swarm windows so the LPSO fusion runs within a few hundred seconds of data.
+FAST_TUNING = {"min_window_s": 120.0, "window_s": 300.0, "swarm_period_s": 150.0}
+
+
+@functools.cache
+def _demo_frames() -> tuple[can.Message, ...]:
+    return tuple(read_log(DEMO_LOG))
+
+
+def demo_frames(duration_s: float) -> list[can.Message]:
+    """Fresh copies of the bundled demo log's frames of the first ``duration_s`` seconds."""
+    frames = _demo_frames()
+    t0 = frames[0].timestamp
+    return [
+        can.Message(
+            timestamp=m.timestamp,
+            arbitration_id=m.arbitration_id,
+            is_extended_id=m.is_extended_id,
+            data=bytes(m.data),
+        )
+        for m in frames
+        if m.timestamp - t0 < duration_s
+    ]
+
+
+def make_settings(tmp_path: Path, port: int | None, **sections: Any) -> Settings:
+    """Settings for a virtual-bus daemon (channel unique per test), MQTT on ``port``."""
+    data: dict[str, Any] = {
+        "pack_id": "testpack",
+        "status_period_s": 0.5,
+        "systemd_notify": False,
+        "can": {
+            "interface": "virtual",
+            "channel": f"t{time.monotonic_ns()}",
+            "n_cells": N_CELLS,
+            "output_period_s": 0.05,
+        },
+        "estimator": {"tuning": dict(FAST_TUNING)},
+        "mqtt": {
+            "enabled": port is not None,
+            "url": f"mqtt://127.0.0.1:{port or 1883}",
+            "publish_period_s": 0.0,
+            "reconnect_min_s": 0.1,
+            "reconnect_max_s": 0.5,
+        },
+        "state": {"directory": str(tmp_path / "state"), "checkpoint_period_s": 1.0},
+    }
+    for name, values in sections.items():
+        if isinstance(values, dict) and isinstance(data.get(name), dict):
+            data[name] = {**data[name], **values}
+        else:
+            data[name] = values
+    return Settings(**data)
+
+
+def offline_estimates(frames: list[can.Message], settings: Settings) -> dict[float, Estimates]:
+    """What the bank computes from the same frames, offline: sample time -> estimates."""
+    f2s = FrameToSamples(default_mapping(), settings.can.n_cells, settings.can.staleness_s)
+    est_cfg = settings.estimator
+    bank = EstimatorBank(
+        est_cfg.load_cell(),
+        settings.can.n_cells,
+        est_cfg.variant,
+        est_cfg.tuning,
+        soc0=est_cfg.soc0,
+    )
+    out: dict[float, Estimates] = {}
+    for m in frames:
+        for s in f2s.feed(m):
+            e = bank.update(s.t_s, s.current_A, s.cell_voltages_V)
+            if e is not None:
+                out[e.t_s] = e
+    return out
+
+
+class MqttCapture:
+    """``mosquitto_sub`` (the independent peer) writing ``topic payload`` lines to a file."""
+
+    def __init__(
+        self,
+        exe: str,
+        port: int,
+        path: Path,
+        topic: str = "bmsid/#",
+        persistent_id: str | None = None,
+    ) -> None:
+        self.path = path
+        args = [exe, "-h", "127.0.0.1", "-p", str(port), "-t", topic, "-v", "-q", "1"]
+        if persistent_id is not None:
+            args += ["-c", "-i", persistent_id]
+        args += ["-t", "probe/#"]
+        self._fh = path.open("wb")
+        self.proc = subprocess.Popen(args, stdout=self._fh, stderr=subprocess.STDOUT)
+
+    def wait_ready(self, pub_exe: str, port: int, timeout_s: float = 10.0) -> None:
+        """Publish probes until one comes back: the subscription is in place."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            subprocess.run(
+                [pub_exe, "-h", "127.0.0.1", "-p", str(port), "-t", "probe/x", "-m", "probe"],
+                check=False,
+                timeout=5,
+            )
+            time.sleep(0.1)
+            if b"probe/x" in self.path.read_bytes():
+                return
+        raise AssertionError(f"mosquitto_sub did not subscribe: {self.path.read_text()}")
+
+    def messages(self, prefix: str = "bmsid/") -> list[tuple[str, dict[str, Any]]]:
+        out = []
+        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+            topic, _, payload = line.partition(" ")
+            if topic.startswith(prefix):
+                out.append((topic, json.loads(payload)))
+        return out
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        self._fh.close()
+
+
+def send_virtual(channel: str, frames: list[can.Message], pace_s: float = 0.0) -> threading.Thread:
+    """Send ``frames`` on a virtual channel (log timestamps kept) from a thread."""
+
+    def run() -> None:
+        bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+        try:
+            for k, m in enumerate(frames):
+                bus.send(m)
+                if pace_s and k % 3 == 2:
+                    time.sleep(pace_s)
+        finally:
+            bus.shutdown()
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th
+
+
+async def wait_for(cond: Any, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        await asyncio.sleep(0.02)
+
+
+async def run_with_frames(
+    daemon: Daemon,
+    frames: list[can.Message],
+    *,
+    pace_s: float = 0.0,
+    during: Any = None,
+    timeout_s: float = 120.0,
+) -> None:
+    """Run ``daemon``, feed ``frames`` on its virtual channel, wait until all is processed and
+    published, stop it. ``during(daemon)`` (async) runs while the frames flow."""
+    task = asyncio.create_task(daemon.run())
+    await wait_for(lambda: daemon.can_state == "up" or task.done(), 20, "the bus")
+    if daemon.mqtt is not None:
+        await wait_for(lambda: daemon.mqtt is not None and daemon.mqtt.connected, 20, "MQTT")
+    sender = send_virtual(daemon.settings.can.channel, frames, pace_s)
+    if during is not None:
+        await during(daemon)
+    n = len(frames)
+
+    def drained() -> bool:
+        q = daemon._samples
+        done = (
+            not sender.is_alive()
+            and daemon.f2s.counters["frames"] >= n
+            and q is not None
+            and q.empty()
+            and daemon.counters["batches_in_flight"] == 0
+        )
+        if daemon.outbox is not None:
+            done = done and len(daemon.outbox) == 0
+        return done or task.done()
+
+    await wait_for(drained, timeout_s, "the frames to be processed and published")
+    daemon.request_stop()
+    assert await asyncio.wait_for(task, 60) == 0
+
+
+def assert_matches_offline(payload: dict[str, Any], est: Estimates) -> None:
+    """Every published value equals the offline estimate exactly (JSON keeps float repr)."""
+    i = payload["cell"]
+    for key, attr in (
+        ("R0_ohm", "R0_ohm"),
+        ("R1_ohm", "R1_ohm"),
+        ("R2_ohm", "R2_ohm"),
+        ("C1_F", "C1_F"),
+        ("C2_F", "C2_F"),
+        ("tau1_s", "tau1_s"),
+        ("tau2_s", "tau2_s"),
+        ("lambda", "lambda_"),
+        ("h", "h"),
+        ("soc", "soc"),
+        ("M_V", "M_V"),
+        ("v_model_V", "v_model_V"),
+    ):
+        want = float(getattr(est, attr)[i])
+        assert payload[key] == want, (key, payload["t_s"], i, payload[key], want)
+    assert payload["quality"] == int(est.quality[i])
+
+
+def contiguous(seqs: list[int]) -> bool:
+    u = np.unique(seqs)
+    return bool(u.size and u[-1] - u[0] + 1 == u.size)

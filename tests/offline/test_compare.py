@@ -1,0 +1,166 @@
+"""``bmsid compare``: Table 2 and consistency files from short synthetic runs; the pure report
+functions (labels, tables, consistency) on known numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_identify_cli import synthetic_columns, write_csv
+
+from bmsid.cli.main import main
+from bmsid.config.cell import paper_cell, save_cell_config
+from bmsid.estimate.types import VARIANTS
+from bmsid.offline.report import (
+    CONSISTENCY_PARAMS,
+    Table2Row,
+    consistency,
+    label_dataset,
+    table2_csv,
+    table2_markdown,
+    unique_displays,
+)
+
+
+@pytest.fixture(scope="module")
+def compare_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("cmp")
+    cfg = tmp / "cell.toml"
+    save_cell_config(paper_cell(), cfg)
+    dst = write_csv(tmp / "syn_dst_25C.csv", synthetic_columns(1500, seed=1))
+    cols = synthetic_columns(1500, seed=2, bus=True)
+    bus = write_csv(tmp / "syn_bbdst_25C.csv.gz", cols)
+    out = tmp / "out"
+    argv = ["compare", str(dst), str(bus), "--cell-config", str(cfg), "--out", str(out)]
+    assert main(argv) == 0
+    return out
+
+
+def test_compare_writes_table2(compare_out: Path) -> None:
+    with (compare_out / "table2.csv").open(encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * len(VARIANTS)
+    assert {r["dataset"] for r in rows} == {"DST 25C", "BBDST 25C"}
+    assert {r["algorithm"] for r in rows} == set(VARIANTS)
+    for r in rows:
+        assert r["temperature_C"] == "25.0"
+        for key in ("max_abs_error_V", "rmse_V", "mape_pct", "runtime_s"):
+            assert math.isfinite(float(r[key])) and float(r[key]) >= 0
+        assert int(r["n_samples"]) == 1500 - 150
+    md = (compare_out / "table2.md").read_text(encoding="utf-8")
+    assert "| hy-affrls-lpso (paper) | 21.4 | 28.4 |" in md  # the paper's 25 C DST / BBDST
+    assert (compare_out / "rmse.png").read_bytes()[:4] == b"\x89PNG"
+    for stem in ("syn_dst_25C", "syn_bbdst_25C"):
+        for variant in VARIANTS:
+            doc = json.loads((compare_out / stem / variant / "metrics.json").read_text())
+            assert doc["algorithm"] == variant
+            assert (compare_out / stem / variant / "voltage.png").exists()
+
+
+def test_compare_writes_consistency(compare_out: Path) -> None:
+    with (compare_out / "consistency.csv").open(encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 * len(VARIANTS)
+    assert {r["group"] for r in rows} == {"paper-70Ah-NMC_25C"}
+    for r in rows:
+        assert math.isfinite(float(r["consistency_error_pct"]))
+        assert math.isfinite(float(r["trajectory_spread_pct"]))
+    # Two profiles of one simulated cell: R0 agrees to a few percent after fusion.
+    lpso = [r for r in rows if r["algorithm"] == "hy-affrls-lpso"]
+    assert all(abs(float(r["R0_ohm_normalised"]) - 1) < 0.05 for r in lpso)
+    assert (compare_out / "consistency_paper-70Ah-NMC_25C.png").exists()
+    assert "Fig. 14" in (compare_out / "consistency.md").read_text(encoding="utf-8")
+
+
+def test_compare_bad_config_count_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    a = write_csv(tmp_path / "a.csv", synthetic_columns(30))
+    cfg = tmp_path / "c.toml"
+    save_cell_config(paper_cell(), cfg)
+    argv = ["compare", str(a), str(a), str(a), "--out", str(tmp_path / "o")]
+    assert main([*argv, "--cell-config", str(cfg), "--cell-config", str(cfg)]) == 2
+    assert main([*argv, "--cell-config", str(cfg), "--algorithms", "affrls"]) == 2
+    assert main(argv) == 2
+    errs = capsys.readouterr().err.strip().splitlines()
+    assert len(errs) == 3
+    assert "2 --cell-config for 3 datasets" in errs[0]
+    assert "unknown 'affrls'" in errs[1]
+    assert "give --cell-config" in errs[2]
+
+
+@pytest.mark.parametrize(
+    ("name", "profile", "temp"),
+    [
+        ("dfn_nmc_dst_15C.csv.gz", "DST", 15.0),
+        ("dfn_nmc_bbdst_35C.csv.gz", "BBDST", 35.0),
+        ("calce_inr18650-20r_45C_BJDST_80soc.csv.gz", "BJDST", 45.0),
+        ("a123_25C_DYN50.csv.gz", "DYN50", 25.0),
+        ("run.csv", "run", None),
+    ],
+)
+def test_label_dataset(name: str, profile: str, temp: float | None) -> None:
+    lb = label_dataset(name)
+    assert (lb.profile, lb.temperature_C) == (profile, temp)
+
+
+def test_label_falls_back_to_temperature_column_and_stem() -> None:
+    assert label_dataset("x_dst.csv", 24.96).temperature_C == 24.96
+    labels = [label_dataset("a_dst_25C_80soc.csv"), label_dataset("a_dst_25C_50soc.csv")]
+    assert unique_displays(labels) == ["a_dst_25C_80soc", "a_dst_25C_50soc"]
+
+
+def test_table2_formats() -> None:
+    rows = [
+        Table2Row("DST 15C", "DST", 15.0, v, 100, 0.01 * (k + 1), 0.001 * (k + 1), 0.1, 2.0)
+        for k, v in enumerate(VARIANTS)
+    ]
+    text = table2_csv(rows)
+    assert text.splitlines()[0].startswith("dataset,profile,temperature_C,algorithm")
+    assert len(text.splitlines()) == 4
+    md = table2_markdown(rows, "all ticks")
+    assert "| DST 15C | DST | 15 | hy-affrls-lpso | 30.0 | 3.00 | 0.100 | 2.0 |" in md
+    assert "| hy-affrls-lpso (paper) | 11.8 |" in md
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    base=st.lists(st.floats(1e-4, 1e5), min_size=5, max_size=5),
+    factors=st.lists(st.floats(0.5, 2.0), min_size=2, max_size=4),
+)
+def test_consistency_normalises_to_the_mean(base: list[float], factors: list[float]) -> None:
+    medians = {
+        f"d{k}": {p: b * f for p, b in zip(CONSISTENCY_PARAMS, base, strict=True)}
+        for k, f in enumerate(factors)
+    }
+    # Constant trajectories at the medians: the spread equals the level error.
+    flat = {d: {p: [v] * 3 for p, v in m.items()} for d, m in medians.items()}
+    c = consistency("g", "hy-affrls", medians, flat)
+    mean_f = float(np.mean(factors))
+    for k, f in enumerate(factors):
+        for p in CONSISTENCY_PARAMS:
+            assert c.normalised[f"d{k}"][p] == pytest.approx(f / mean_f, rel=1e-9)
+        assert c.error_pct[f"d{k}"] == pytest.approx(100 * abs(f / mean_f - 1), rel=1e-9, abs=1e-9)
+        assert c.spread_pct[f"d{k}"] == pytest.approx(c.error_pct[f"d{k}"], rel=1e-9, abs=1e-9)
+    same = consistency("g", "x", {"a": medians["d0"], "b": medians["d0"]})
+    assert same.mean_error_pct == pytest.approx(0.0, abs=1e-9)
+    assert math.isnan(same.spread_pct["a"])  # no trajectories given
+
+
+def test_consistency_spread_counts_wandering() -> None:
+    level = {p: 1.0 for p in CONSISTENCY_PARAMS}
+    medians = {"a": level, "b": level}
+    wandering = {p: [0.5, 1.0, 1.5, 1.0, 1.0] for p in CONSISTENCY_PARAMS}
+    steady = {p: [1.0] * 5 for p in CONSISTENCY_PARAMS}
+    c = consistency("g", "x", medians, {"a": wandering, "b": steady})
+    assert c.error_pct == {"a": 0.0, "b": 0.0}
+    assert c.spread_pct["b"] == 0.0
+    assert c.spread_pct["a"] == pytest.approx(0.0)  # median of |dev| = 0 (3 of 5 at the level)
+    c2 = consistency("g", "x", medians, {"a": {p: [1.2] * 5 for p in level}, "b": steady})
+    assert c2.spread_pct["a"] == pytest.approx(20.0)
