@@ -31,3 +31,7 @@ for T in 0 45; do
         --initial R0_ohm=$R0,R1_ohm=0.02,tau1_s=10,R2_ohm=0.02,tau2_s=300 \
         --out $OUT/calce_inr18650_20r_${T}C.toml
 done
+
+# The physics reference data's cell (PyBaMM DFN, LG M50), from its shipped C/20 test.
+$BMSID fit-ocv data/physics/dfn_nmc_ocv_c20_25C.csv.gz --chemistry NMC --name dfn-nmc-lgm50-25C \
+    --out $OUT/dfn_nmc_lgm50_25C.toml

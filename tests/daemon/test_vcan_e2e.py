@@ -25,7 +25,9 @@ import pytest
 from daemon_helpers import SCHEMA_DIR, MqttCapture, demo_frames, make_settings, offline_estimates
 
 from bmsid.canbus.encoder import ParameterEncoder
-from bmsid.canbus.logs import read_log, write_log
+from bmsid.canbus.logs import read_log, samples_from_log, write_log
+from bmsid.canbus.mapping import default_mapping
+from bmsid.offline.identify import run_samples
 
 REPO = Path(__file__).resolve().parents[2]
 COMPRESS = 10.0
@@ -147,6 +149,21 @@ def test_vcan_end_to_end(
     )
     ref = offline_estimates(inputs, settings)
     assert len(ref) > 250
+    # ... which is what `bmsid identify` computes from the captured log (its own code path:
+    # candump log -> samples_from_log -> run_samples)
+    write_log(tmp_path / "captured_inputs.log", inputs)
+    est_cfg = settings.estimator
+    ident = run_samples(
+        samples_from_log(tmp_path / "captured_inputs.log", default_mapping(), 8, 0.5),
+        est_cfg.load_cell(),
+        est_cfg.variant,
+        est_cfg.tuning,
+        est_cfg.soc0,
+    ).trace
+    assert ident.t_s.shape[0] == len(ref)
+    last_ref = ref[max(ref)]
+    for key in ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "soc", "h", "lambda_"):
+        assert ident.cells[key][-1] == pytest.approx(getattr(last_ref, key), rel=1e-12), key
     # MQTT: every tick of every cell, equal to the offline run on what the daemon received
     schemas = {
         k: jsonschema.Draft202012Validator(json.loads((SCHEMA_DIR / f"{k}.json").read_text()))
