@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import pytest
@@ -98,12 +101,20 @@ def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:
         samples_from_log(p, mapping, 4)
 
 
-REAL = Path("/work/shared/data/real/a123_lfp_25C/a123_25C_DYN50.csv.gz")
+REAL = (
+    Path(os.environ.get("BMSID_REAL_DATA", Path(__file__).resolve().parents[2].parent / "shared"
+                        / "data" / "real"))
+    / "a123_lfp_25C" / "a123_25C_DYN50.csv.gz"
+)  # fmt: skip
 
 
-@pytest.mark.skipif(not REAL.exists(), reason="shared real data not present")
-def test_real_a123_profile_survives_the_log(tmp_path: Path) -> None:
+def test_real_a123_profile_survives_the_log(
+    tmp_path: Path, real_part_missing: Callable[[str], NoReturn]
+) -> None:
     from bmsid.canbus.logs import csv_to_messages
+
+    if not REAL.exists():
+        real_part_missing(f"measured cell data at {REAL} (set BMSID_REAL_DATA)")
 
     data = np.loadtxt(REAL, delimiter=",", skiprows=1, max_rows=3000)
     t, i, v = data[:, 0], data[:, 1], data[:, 2]
