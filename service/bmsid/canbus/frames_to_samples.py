@@ -43,9 +43,8 @@ from bmsid.samples import Sample
 
 log = logging.getLogger(__name__)
 
-COUNTER_NAMES = (
-    "frames",
-    "decoded",
+#: Counters of frames that were rejected (their sum is the daemon's ``decode_errors``).
+DECODE_ERROR_KINDS = (
     "unknown_id",
     "wrong_dlc",
     "mux_out_of_range",
@@ -53,6 +52,11 @@ COUNTER_NAMES = (
     "remote_frames",
     "out_of_range",
     "decode_error",
+)
+COUNTER_NAMES = (
+    "frames",
+    "decoded",
+    *DECODE_ERROR_KINDS,
     "samples",
     "incomplete_cycles",
     "stale_current",

@@ -38,7 +38,7 @@ import can
 from bmsid import __version__
 from bmsid.canbus.bus import send_frames
 from bmsid.canbus.encoder import CLASSIC_PAGES, ParameterEncoder
-from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.frames_to_samples import DECODE_ERROR_KINDS, FrameToSamples
 from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
 from bmsid.config.settings import Settings
 from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
@@ -56,15 +56,6 @@ from bmsid.samples import Sample
 
 log = logging.getLogger(__name__)
 
-DECODE_ERROR_KINDS = (
-    "unknown_id",
-    "wrong_dlc",
-    "mux_out_of_range",
-    "error_frames",
-    "remote_frames",
-    "out_of_range",
-    "decode_error",
-)
 CAN_ERR_BUSOFF = 0x40
 LAG_INTERVAL_S = 0.05
 SAMPLE_QUEUE = 50_000
