@@ -300,6 +300,22 @@ def real_part_missing() -> Callable[[str], NoReturn]:
     return missing_real_part
 
 
+#: Measured cell data (``shared/data/real`` beside the clone, as in CI), never copied here.
+REAL_DATA_DIR = Path(
+    os.environ.get("BMSID_REAL_DATA", Path(__file__).resolve().parents[1].parent / "shared"
+                   / "data" / "real")
+)  # fmt: skip
+
+
+@pytest.fixture
+def real_data_dir() -> Path:
+    """The measured-data folder (``$BMSID_REAL_DATA`` or ``../shared/data/real``); a missing
+    one fails or skips the test by the real-parts rule."""
+    if not REAL_DATA_DIR.is_dir():
+        missing_real_part(f"measured cell data at {REAL_DATA_DIR} (set BMSID_REAL_DATA)")
+    return REAL_DATA_DIR
+
+
 # ---------------------------------------------------------------------------------------------
 # Hooks
 # ---------------------------------------------------------------------------------------------

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 import pytest
@@ -101,22 +98,12 @@ def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:
         samples_from_log(p, mapping, 4)
 
 
-REAL = (
-    Path(os.environ.get("BMSID_REAL_DATA", Path(__file__).resolve().parents[2].parent / "shared"
-                        / "data" / "real"))
-    / "a123_lfp_25C" / "a123_25C_DYN50.csv.gz"
-)  # fmt: skip
-
-
-def test_real_a123_profile_survives_the_log(
-    tmp_path: Path, real_part_missing: Callable[[str], NoReturn]
-) -> None:
+def test_real_a123_profile_survives_the_log(tmp_path: Path, real_data_dir: Path) -> None:
     from bmsid.canbus.logs import csv_to_messages
 
-    if not REAL.exists():
-        real_part_missing(f"measured cell data at {REAL} (set BMSID_REAL_DATA)")
+    real = real_data_dir / "a123_lfp_25C" / "a123_25C_DYN50.csv.gz"
 
-    data = np.loadtxt(REAL, delimiter=",", skiprows=1, max_rows=3000)
+    data = np.loadtxt(real, delimiter=",", skiprows=1, max_rows=3000)
     t, i, v = data[:, 0], data[:, 1], data[:, 2]
     write_log(tmp_path / "r.log", csv_to_messages(t, i, v, default_mapping(), t0_s=1.7e9))
     samples = samples_from_log(tmp_path / "r.log", default_mapping(), 1)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import functools
 import json
+import os
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -47,6 +49,20 @@ def demo_frames(duration_s: float) -> list[can.Message]:
         for m in frames
         if m.timestamp - t0 < duration_s
     ]
+
+
+def start_daemon(config: Path, log: Path) -> subprocess.Popen[bytes]:
+    """``bmsid run --config CONFIG`` as a separate process (the way a gateway runs it), its
+    output appended to ``log`` (so restarts of one test share a log)."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "service")}
+    with log.open("ab") as fh:
+        return subprocess.Popen(
+            [sys.executable, "-m", "bmsid.cli.main", "-v", "run", "--config", str(config)],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env=env,
+            cwd=config.parent,
+        )
 
 
 def make_settings(tmp_path: Path, port: int | None, **sections: Any) -> Settings:

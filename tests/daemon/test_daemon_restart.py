@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-from daemon_helpers import FAST_TUNING, MqttCapture, demo_frames, make_settings, offline_estimates
+from daemon_helpers import (
+    FAST_TUNING,
+    MqttCapture,
+    demo_frames,
+    make_settings,
+    offline_estimates,
+    start_daemon,
+)
 
 from bmsid.config.cell import paper_cell
 from bmsid.daemon.demo_data import DEMO_LOG, T0_S, WEAK_CELL
@@ -49,18 +54,6 @@ checkpoint_period_s = 1.0
     return path
 
 
-def _start(config: Path, log: Path) -> subprocess.Popen[bytes]:
-    env = {**os.environ, "PYTHONPATH": str(REPO / "service")}
-    with log.open("ab") as fh:
-        return subprocess.Popen(
-            [sys.executable, "-m", "bmsid.cli.main", "-v", "run", "--config", str(config)],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env=env,
-            cwd=config.parent,
-        )
-
-
 def _cell0(cap: MqttCapture, skip: int = 0) -> list[dict[str, Any]]:
     return [p for t, p in cap.messages()[skip:] if t.endswith("/cell/0")]
 
@@ -84,7 +77,7 @@ def test_kill_9_then_restart_continues(
     config = _config(tmp_path, mosquitto_broker.port)
     log = tmp_path / "daemon.log"
     ckpt = tmp_path / "state" / "testpack.ckpt.npz"
-    first = _start(config, log)
+    first = start_daemon(config, log)
     try:
         _wait(
             lambda: any(p["t_s"] - T0_S >= 420 for p in _cell0(cap)) and ckpt.exists(),
@@ -98,7 +91,7 @@ def test_kill_9_then_restart_continues(
         first.wait(10)
     before = _cell0(cap)[-1]
     n_before = len(cap.messages())
-    second = _start(config, log)
+    second = start_daemon(config, log)
     try:
         _wait(
             lambda: len(_cell0(cap, n_before)) >= 3, 90, "messages after the restart", second, log

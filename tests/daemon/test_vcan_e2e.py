@@ -11,10 +11,8 @@ the CAN frames within their encoding resolution, and every payload validates aga
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,14 @@ from typing import Any
 import can
 import jsonschema
 import pytest
-from daemon_helpers import SCHEMA_DIR, MqttCapture, demo_frames, make_settings, offline_estimates
+from daemon_helpers import (
+    SCHEMA_DIR,
+    MqttCapture,
+    demo_frames,
+    make_settings,
+    offline_estimates,
+    start_daemon,
+)
 
 from bmsid.canbus.encoder import ParameterEncoder
 from bmsid.canbus.logs import read_log, samples_from_log, write_log
@@ -116,14 +121,7 @@ def test_vcan_end_to_end(
     n_in = _compressed_log(log_in)
     config = _config(tmp_path, vcan_channel, mosquitto_broker.port)
     daemon_log = tmp_path / "daemon.log"
-    env = {**os.environ, "PYTHONPATH": str(REPO / "service")}
-    with daemon_log.open("wb") as fh:
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "bmsid.cli.main", "-v", "run", "--config", str(config)],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env=env,
-        )
+    daemon = start_daemon(config, daemon_log)
     captured = tmp_path / "capture.log"
     try:
         deadline = time.monotonic() + 60
@@ -225,14 +223,7 @@ def test_interface_down_is_reported_and_reopened(
     cap.wait_ready(require_tool("mosquitto_pub"), mosquitto_broker.port)
     config = _config(tmp_path, vcan_channel, mosquitto_broker.port)
     daemon_log = tmp_path / "daemon.log"
-    env = {**os.environ, "PYTHONPATH": str(REPO / "service")}
-    with daemon_log.open("wb") as fh:
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "bmsid.cli.main", "-v", "run", "--config", str(config)],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env=env,
-        )
+    daemon = start_daemon(config, daemon_log)
 
     def wait(cond: Any, what: str, timeout_s: float = 60.0) -> None:
         deadline = time.monotonic() + timeout_s

@@ -7,10 +7,7 @@ dataset with the same thresholds. The measured data are read from ``../shared/da
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
 
 import pytest
 
@@ -20,7 +17,6 @@ from bmsid.offline.csvio import read_tester_csv
 from bmsid.offline.identify import EvalWindow, run_tester, score
 
 REPO = Path(__file__).resolve().parents[2]
-REAL = Path(os.environ.get("BMSID_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
 CELLS = REPO / "configs" / "cells"
 PHYSICS = REPO / "data" / "physics"
 SOC_15_95 = EvalWindow(skip_fraction=0.0, soc_lo=0.15, soc_hi=0.95)
@@ -33,17 +29,10 @@ def _rmse(
     return score(res.trace, window).window.rmse_V
 
 
-@pytest.fixture
-def real_data(real_part_missing: Callable[[str], NoReturn]) -> Path:
-    if not REAL.is_dir():
-        real_part_missing(f"measured cell data at {REAL} (set BMSID_REAL_DATA)")
-    return REAL
-
-
 @pytest.mark.slow
-def test_a123_lfp_hysteresis_fusion_beats_the_plain_model(real_data: Path) -> None:
+def test_a123_lfp_hysteresis_fusion_beats_the_plain_model(real_data_dir: Path) -> None:
     """RMSE <= 15 mV between 95 % and 15 % SOC, and >= 30 % below non-hy-affrls."""
-    path = real_data / "a123_lfp_25C" / "a123_25C_DYN50.csv.gz"
+    path = real_data_dir / "a123_lfp_25C" / "a123_25C_DYN50.csv.gz"
     cfg = CELLS / "a123_lfp_25C.toml"
     fused = _rmse(path, cfg, "hy-affrls-lpso", SOC_15_95)
     plain = _rmse(path, cfg, "non-hy-affrls", SOC_15_95)
@@ -53,9 +42,10 @@ def test_a123_lfp_hysteresis_fusion_beats_the_plain_model(real_data: Path) -> No
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("profile", "temp"), [("DST", 25), ("BJDST", 45)])
-def test_calce_nmc_within_20_mV(real_data: Path, profile: str, temp: int) -> None:
+def test_calce_nmc_within_20_mV(real_data_dir: Path, profile: str, temp: int) -> None:
     """OCV from the shipped rest-point tables (configs/cells/README.md), 80 % SOC start."""
-    path = real_data / "calce_inr18650-20r" / f"calce_inr18650-20r_{temp}C_{profile}_80soc.csv.gz"
+    name = f"calce_inr18650-20r_{temp}C_{profile}_80soc.csv.gz"
+    path = real_data_dir / "calce_inr18650-20r" / name
     cfg = CELLS / f"calce_inr18650_20r_{temp}C.toml"
     assert _rmse(path, cfg, "hy-affrls-lpso", SOC_15_95, soc0=0.8) <= 20e-3
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +24,6 @@ from bmsid.offline.ocv_fit import (
 )
 
 REPO = Path(__file__).resolve().parents[2]
-REAL = Path(os.environ.get("BMSID_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
-A123 = REAL / "a123_lfp_25C"
 PAPER = np.asarray(PAPER_OCV_MEAN)
 
 
@@ -104,10 +101,10 @@ def test_synthetic_test_recovers_capacity_resistance_and_m() -> None:
     assert np.max(np.abs(eval_ocv(res.mean.coeffs, grid) - eval_ocv(PAPER, grid))) < 2e-3
 
 
-def test_a123_c30_test_fits_with_r2_above_099() -> None:
+def test_a123_c30_test_fits_with_r2_above_099(real_data_dir: Path) -> None:
     parts = []
     for k in (1, 2, 3, 4):
-        d = read_tester_csv(A123 / f"a123_25C_OCV_S{k}.csv.gz")
+        d = read_tester_csv(real_data_dir / "a123_lfp_25C" / f"a123_25C_OCV_S{k}.csv.gz")
         parts.append(OcvTestPart(d.t_s, d.current_A, d.cell_voltages_V[:, 0]))
     br = extract_branches(parts)
     assert br.capacity_Ah == pytest.approx(2.07, abs=0.02)
