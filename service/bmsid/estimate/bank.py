@@ -228,7 +228,6 @@ class EstimatorBank:
         # Swarm scheduling.
         size = int(np.ceil(tun.window_s / tun.id_period_s)) + 1
         self._buf = _Buffer(size=size, n_cells=n)
-        self._t_segment = 0.0
         self._next_swarm = np.zeros(n)
         self._swarm_count = np.zeros(n, dtype=np.int64)
         self._swarms: list[_CellSwarm | None] = [None] * n
@@ -310,7 +309,6 @@ class EstimatorBank:
 
     def _start_segment(self, t_s: float) -> None:
         tun = self.tuning
-        self._t_segment = t_s
         self._buf.clear()
         self._swarms = [None] * self.n
         self._next_swarm = t_s + tun.min_window_s + self._phase * tun.swarm_period_s
@@ -712,7 +710,7 @@ class EstimatorBank:
     )  # fmt: skip
     _SCALARS = (
         "T_arx", "_hist_n", "_t_raw", "_i_raw", "_t_tick", "_i_tick", "_bin_i", "_bin_n",
-        "_i_mean", "_i_var", "_t_segment", "soc_init_method", "_dt_nom",
+        "_i_mean", "_i_var", "soc_init_method", "_dt_nom",
     )  # fmt: skip
 
     def state_dict(self) -> dict[str, Any]:
