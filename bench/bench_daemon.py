@@ -124,7 +124,7 @@ async def _run(
         await asyncio.sleep(0.05)
         now = time.monotonic()
         if sample_rss_s and now - last_rss >= sample_rss_s:
-            rss.append((daemon.bank.counters["samples"], _rss_mb()))
+            rss.append((daemon.bank_counters["samples"], _rss_mb()))
             last_rss = now
         idle = q is not None and q.empty() and daemon.counters["batches_in_flight"] == 0
         flushed = daemon.outbox is None or len(daemon.outbox) == 0
@@ -148,6 +148,7 @@ async def _run(
         "mqtt_drops": snap.get("mqtt_drops", 0),
         "loop_lag_max_ms": snap["loop_lag_max_ms"],
         "loop_lag_p99_ms": float(np.percentile(lags, 99)) if lags.size else None,
+        "lags": lags,
         "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
         "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
         "latency_first_p50_ms": float(np.percentile(lat1, 50)) if lat1.size else None,

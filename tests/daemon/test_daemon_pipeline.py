@@ -84,7 +84,7 @@ def test_end_to_end_values_equal_offline_and_validate(
     assert len(cells) == len(ref) * settings.can.n_cells
     for p in cells:
         assert_matches_offline(p, ref[p["t_s"]])
-    assert daemon.bank.counters["swarms"] > 0  # the fusion ran, not only the AFFRLS
+    assert daemon.bank_counters["swarms"] > 0  # the fusion ran, not only the AFFRLS
     seqs = [p["seq"] for t, p in msgs if _kind(t) in ("cell", "pack")]
     assert seqs == list(range(len(seqs)))
     status = [p for t, p in msgs if _kind(t) == "status"]
@@ -167,7 +167,7 @@ def test_malformed_frame_flood_changes_no_estimate(
         assert_matches_offline(p, ref[p["t_s"]])
     snap = daemon.snapshot()
     assert snap["decode_errors"] == n_bad
-    assert snap["samples"] == daemon.bank.counters["samples"]
+    assert snap["samples"] == daemon.bank_counters["samples"]
 
 
 def test_broker_outage_loses_no_message(
@@ -241,7 +241,7 @@ def test_outbox_overflow_drops_oldest_and_counts(tmp_path: Path) -> None:
         task = asyncio.create_task(daemon.run())
         await wait_for(lambda: daemon.can_state == "up", 20, "the bus")
         send_virtual(settings.can.channel, frames).join()
-        await wait_for(lambda: daemon.bank.counters["samples"] >= 60, 30, "samples")
+        await wait_for(lambda: daemon.bank_counters["samples"] >= 60, 30, "samples")
         daemon.request_stop()
         await task
         return daemon

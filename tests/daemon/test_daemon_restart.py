@@ -58,6 +58,19 @@ def _cell0(cap: MqttCapture, skip: int = 0) -> list[dict[str, Any]]:
     return [p for t, p in cap.messages()[skip:] if t.endswith("/cell/0")]
 
 
+def _children(pid: int) -> list[int]:
+    """Live child processes of ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
 def _wait(cond: Any, timeout_s: float, what: str, proc: subprocess.Popen[bytes], log: Path) -> None:
     deadline = time.monotonic() + timeout_s
     while not cond():
@@ -86,10 +99,18 @@ def test_kill_9_then_restart_continues(
             first,
             log,
         )
+        workers = _children(first.pid)
+        assert workers, "the bank worker process is missing"
     finally:
         first.send_signal(signal.SIGKILL)
         first.wait(10)
+    # the bank worker does not outlive a killed daemon (no orphan computing and checkpointing)
+    deadline = time.monotonic() + 5.0
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [pid for pid in workers if Path(f"/proc/{pid}").exists()]
     before = _cell0(cap)[-1]
+    seq_before = max(p["seq"] for _, p in cap.messages() if "seq" in p)
     n_before = len(cap.messages())
     second = start_daemon(config, log)
     try:
@@ -104,6 +125,8 @@ def test_kill_9_then_restart_continues(
         cap.stop()
     assert "restored" in log.read_text()
     after = _cell0(cap, n_before)[0]
+    # sequence numbers never repeat across a crash (a gap marks it): consumers may dedupe by seq
+    assert min(p["seq"] for _, p in cap.messages()[n_before:] if "seq" in p) > seq_before
     assert after["t_s"] > T0_S + 300  # continued, not restarted from the log's beginning
     settings = make_settings(tmp_path, None)
     ref = offline_estimates(demo_frames(after["t_s"] - T0_S + 0.5), settings)[after["t_s"]]

@@ -137,10 +137,13 @@ def test_status_payloads_validate() -> None:
             "loop_lag_max_ms": 0.3,
             "seq": 0,
         },
+        mqtt={"state": "connected", "last_error": None},
     )
     jsonschema.validate(online, schema)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({**online, "counters": {}}, schema)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**online, "mqtt": {"state": "connected"}}, schema)
 
 
 def test_outbox_keeps_newest_in_order_and_counts_drops() -> None:

@@ -94,6 +94,26 @@ def test_time_going_backwards_is_dropped_and_counted() -> None:
     assert bank.counters["non_increasing_time"] == 2
 
 
+def test_time_base_restart_starts_a_new_segment_keeping_the_state() -> None:
+    """A clock set back (replay from the start, gateway without RTC after a restart from a
+    checkpoint) must not stall the bank: every later sample would look 'non-increasing'."""
+    bank = EstimatorBank(CELL, 2, "hy-affrls-lpso", FAST, soc0=0.6)
+    for k in range(600):
+        bank.update(1000.0 + k, 40.0 * np.sin(k / 9.0), [3.7, 3.71])
+    soc, r0 = bank.z.copy(), np.asarray(bank.state_dict()["R0"]).copy()
+    ests = []
+    for k in range(300):
+        est = bank.update(10.0 + k, 40.0 * np.sin(k / 9.0), [3.7, 3.71])
+        assert est is not None  # every sample of the new time base is used
+        _check(est)
+        ests.append(est)
+    assert bank.counters["time_jumps_back"] == 1
+    assert bank.counters["non_increasing_time"] == 0
+    # the state carries on: parameters not reset, SOC coulomb-counted on (mean current ~0 A)
+    np.testing.assert_allclose(ests[0].R0_ohm, r0, rtol=0.01)  # one RLS step from the old value
+    np.testing.assert_allclose(ests[-1].soc, soc, atol=0.002)
+
+
 def test_checkpoint_round_trip_continues_identically() -> None:
     t = np.arange(0.0, 900.0)
     i = 50 * np.sin(t / 20.0)

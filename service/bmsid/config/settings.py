@@ -29,7 +29,7 @@ DEFAULT_PORTS = {False: 1883, True: 8883}
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
 
 def _check_topic_prefix(value: str) -> str:
@@ -41,6 +41,8 @@ def _check_topic_prefix(value: str) -> str:
         raise ValueError("must not have empty levels (leading, trailing or double '/')")
     if "\x00" in value:
         raise ValueError("must not contain NUL")
+    if value.startswith("$"):
+        raise ValueError("must not start with '$' (topics reserved for the broker, e.g. $SYS)")
     return value
 
 
@@ -51,34 +53,50 @@ class ReplaySettings(_Strict):
     """Replay a candump log onto the ``virtual`` bus from inside the daemon (demo, tests)."""
 
     log: Path
+
+    """candump log (``candump -l`` or console format) to replay."""
     speed: float = Field(20.0, gt=0.0, le=100_000.0)
     """Replay rate as a multiple of real time (log timestamps are kept on the frames)."""
     start_delay_s: float = Field(0.5, ge=0.0)
+    """Wait this long after the bus opens before the first frame, s."""
 
 
 class CanSettings(_Strict):
     """Input bus, decoding, and the parameter frames bmsid sends back."""
 
     interface: Literal["socketcan", "virtual"] = "socketcan"
+
+    """python-can interface: ``socketcan`` on a gateway, ``virtual`` (in-process) for demos."""
     channel: str = Field("can0", min_length=1)
+    """Network interface (``can0``, ``vcan0``) or virtual channel name."""
     mapping: Path | None = None
     """Bus mapping TOML (which signals carry current and voltages); None = bmsid's own DBC."""
     n_cells: int = Field(ge=1, le=512)
+    """Cells in series identified (the first n of the mapping)."""
     staleness_s: float = Field(2.0, gt=0.0)
     """A half-complete cycle or a current older than this is closed/dropped (frames_to_samples)."""
     reader_queue_frames: int = Field(20_000, ge=100)
+    """Frames buffered between socket and decoder; beyond that, frames are dropped and counted."""
     output: bool = True
     """Send the parameter frames on the bus."""
     output_dbc: Path | None = None
+    """DBC of the parameter frames; None = bmsid's own ``bmsid.dbc``."""
     output_period_s: float = Field(0.1, gt=0.0)
+    """One round of parameter frames (pack summary + the next cells) every this many s."""
     output_extended_id: bool = True
+    """29-bit ids for the parameter frames (False: the 11-bit twins)."""
     output_fd: bool = False
+    """Send one 48-byte CAN FD frame per cell instead of three classic frames."""
     bitrate_bps: int = Field(500_000, gt=0)
+    """Bus bit rate, bit/s: the base of ``max_bus_share``."""
     max_bus_share: float = Field(0.05, gt=0.0, le=0.5)
     """The parameter frames never use more than this share of the bus bit rate."""
     reopen_min_s: float = Field(0.5, gt=0.0)
+    """First delay before reopening a failed or missing interface, s (doubled each time)."""
     reopen_max_s: float = Field(30.0, gt=0.0)
+    """Longest delay between two reopen attempts, s."""
     replay: ReplaySettings | None = None
+    """Replay a candump log onto the virtual bus (demo, tests)."""
 
     @model_validator(mode="after")
     def _check(self) -> Self:
@@ -95,9 +113,14 @@ class EstimatorSettings(_Strict):
     cell: Path | None = None
     """Cell config TOML/JSON (``bmsid fit-ocv``); None = the paper's 70 Ah NMC cell."""
     variant: Variant = "hy-affrls-lpso"
+    """``hy-affrls-lpso`` (the paper's fusion), ``hy-affrls`` or ``non-hy-affrls`` (baselines)."""
     tuning: EstimatorTuning = EstimatorTuning()
+    """Estimator constants (defaults are the documented physics-based choices)."""
     soc0: float | None = Field(None, ge=0.0, le=1.0)
     """Initial SOC (fraction) for a fresh start; None applies the cell's ``soc_init`` policy."""
+    isolation: Literal["process", "thread"] = "process"
+    """Run the bank in a child process (the event loop keeps its 5 ms budget under load) or in
+    a thread of the daemon (platforms that cannot spawn processes)."""
 
     def load_cell(self) -> CellConfig:
         if self.cell is None:
@@ -113,41 +136,77 @@ class EstimatorSettings(_Strict):
 
 
 class HomeAssistantSettings(_Strict):
+    """Home Assistant MQTT discovery (retained config messages, re-sent when HA comes online)."""
+
     enabled: bool = False
+    """Publish discovery config for every cell and pack sensor."""
     prefix: TopicPrefix = "homeassistant"
+    """Home Assistant's discovery prefix; same rules as ``topic_prefix``."""
 
 
 class MqttSettings(_Strict):
-    """Broker connection and topics (``<topic_prefix>/<pack_id>/...``)."""
+    """Broker connection, credentials, TLS and topics (``<topic_prefix>/<pack_id>/...``)."""
 
     enabled: bool = True
+    """Publish on MQTT at all (False: CAN output only)."""
     url: str = "mqtt://localhost:1883"
     """``mqtt://host[:port]`` (also ``tcp://``) or ``mqtts://host[:port]`` (also ``tls://``)."""
     username: str | None = None
+    """Broker user name; None connects anonymously (then no password may be set)."""
     password: SecretStr | None = None
+    """Broker password, never printed; better ``password_file`` or env ``BMSID_MQTT__PASSWORD``."""
     password_file: Path | None = None
+    """File holding the password (trailing newline stripped), read at every connect attempt."""
     ca_file: Path | None = None
+    """PEM CA certificate(s) the broker's certificate must chain to; None = system trust store."""
+    cert_file: Path | None = None
+    """PEM client certificate for brokers that require one (``mqtts://``); needs ``key_file``."""
+    key_file: Path | None = None
+    """Unencrypted PEM private key of ``cert_file`` (may be the same file); keep it mode 600."""
     tls_insecure: bool = False
+    """Tests only: skip the broker certificate and host name checks (logged as a warning)."""
     client_id: str | None = None
     """Unique per daemon (two clients with one id kick each other off); default bmsid-<pack_id>."""
     qos: int = Field(1, ge=0, le=2)
+    """QoS of the cell and pack messages (status and discovery always use 1)."""
     topic_prefix: TopicPrefix = "bmsid"
+    """First topic level(s); no wildcards ``+``/``#``, no empty levels, no leading ``$``."""
     publish_period_s: float = Field(1.0, ge=0.0)
     """Least sample time between two publications of the cells, s (0: every estimator tick)."""
     outbox_size: int = Field(100_000, ge=10)
     """Messages held while the broker is away; when full the oldest are dropped and counted."""
     keepalive_s: int = Field(30, ge=5)
+    """MQTT keep-alive interval, s (the broker drops the client after 1.5x without traffic)."""
     reconnect_min_s: float = Field(0.5, gt=0.0)
+    """First reconnect delay, s; doubled (with +-20 % jitter) after each failure."""
     reconnect_max_s: float = Field(30.0, gt=0.0)
+    """Longest reconnect delay, s; login and TLS failures go straight to it after one retry."""
     publish_timeout_s: float = Field(10.0, gt=0.0)
+    """Longest wait for the broker's CONNACK or publish acknowledgement, s."""
     max_inflight: int = Field(20, ge=1, le=1000)
+    """Unacknowledged QoS 1/2 messages the client allows at once."""
     homeassistant: HomeAssistantSettings = HomeAssistantSettings()
+    """Home Assistant MQTT discovery."""
 
     @model_validator(mode="after")
     def _check(self) -> Self:
-        self.endpoint()  # raises ValueError on a bad URL
+        _, _, tls = self.endpoint()  # raises ValueError on a bad URL
         if self.password is not None and self.password_file is not None:
             raise ValueError("set password or password_file, not both")
+        if self.username is None and (self.password is not None or self.password_file is not None):
+            raise ValueError("a password (password or password_file) needs a username")
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("a client certificate needs both cert_file and key_file")
+        if not tls:
+            tls_only = [
+                name
+                for name in ("ca_file", "cert_file", "key_file", "tls_insecure")
+                if getattr(self, name) not in (None, False)
+            ]
+            if tls_only:
+                raise ValueError(
+                    f"{', '.join(tls_only)} need(s) a TLS url (mqtts://), got {self.url!r}"
+                )
         if self.reconnect_min_s > self.reconnect_max_s:
             raise ValueError("reconnect_min_s must be <= reconnect_max_s")
         return self
@@ -171,21 +230,41 @@ class MqttSettings(_Strict):
         return parts.hostname, port, tls
 
     def password_value(self) -> str | None:
-        """The password, read from ``password_file`` when set (trailing newline stripped)."""
+        """The password, read from ``password_file`` when set (trailing newline stripped).
+
+        Raises:
+            UserError: naming ``mqtt.password_file`` when it is missing, unreadable or empty
+                (never with its content).
+        """
         if self.password_file is not None:
             try:
-                return self.password_file.read_text(encoding="utf-8").rstrip("\r\n")
+                raw = self.password_file.read_bytes()
             except OSError as exc:
                 raise UserError(
-                    f"mqtt.password_file: {exc.strerror}: {self.password_file}"
+                    f"mqtt.password_file: cannot read {self.password_file}: "
+                    f"{exc.strerror or type(exc).__name__}"
                 ) from None
+            try:
+                value = raw.decode("utf-8").rstrip("\r\n")
+            except UnicodeDecodeError:
+                raise UserError(
+                    f"mqtt.password_file: {self.password_file} is not UTF-8 text"
+                ) from None
+            if not value:
+                raise UserError(f"mqtt.password_file: {self.password_file} is empty")
+            return value
         return self.password.get_secret_value() if self.password is not None else None
 
 
 class StateSettings(_Strict):
+    """Where the estimator state survives restarts."""
+
     directory: Path = Path("/var/lib/bmsid")
+    """Checkpoints (``<pack_id>.ckpt.npz``) and the sequence file (``<pack_id>.seq``)."""
     checkpoint_period_s: float = Field(60.0, gt=0.0)
+    """Atomic checkpoint of the whole estimator state every this many s (and at shutdown)."""
     restore: bool = True
+    """Restore the checkpoint at start when pack id, cell count and config match."""
 
 
 class Settings(BaseSettings):
@@ -197,9 +276,12 @@ class Settings(BaseSettings):
         extra="forbid",
         frozen=True,
         nested_model_default_partial_update=True,
+        use_attribute_docstrings=True,
     )
 
     pack_id: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+
+    """Names the pack in topics and checkpoints: letters, digits, ``_.-``."""
     can: CanSettings
     estimator: EstimatorSettings = EstimatorSettings()
     mqtt: MqttSettings = MqttSettings()
@@ -249,6 +331,8 @@ _PATH_KEYS = (
     ("estimator", "cell"),
     ("mqtt", "password_file"),
     ("mqtt", "ca_file"),
+    ("mqtt", "cert_file"),
+    ("mqtt", "key_file"),
     ("state", "directory"),
 )
 

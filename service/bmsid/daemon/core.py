@@ -6,25 +6,25 @@
         | batches of frames
         v
     FrameToSamples (canbus)  --samples-->  bounded queue
-                                                | batches, off the loop (one worker thread)
+                                                | batches (pickled)
                                                 v
-                                      EstimatorBank.update   --> checkpoint (same thread)
-                                                | Estimates
+                         bank worker process: EstimatorBank.update, MQTT JSON,
+                         checkpoints, sequence numbers               [bank_worker.py]
+                                                | Estimates + encoded messages
                      +--------------------------+---------------------------+
                      v                                                      v
         CAN output every output_period_s                   MQTT outbox (bounded, drop-oldest)
         (pack summary + cells cycled, share cap)       -> MqttPublisher (reconnects) [publish/]
 
-The event loop only moves data: decoding costs microseconds per frame and the bank (whose
-swarm iterations take milliseconds) runs in a single worker thread, so the loop lag stays small
-(measured by a monitor task and reported as ``loop_lag_max_ms``).
+The event loop only moves data: decoding costs microseconds per frame, and the bank (whose
+swarm iterations take milliseconds) runs in a child process, so it never holds the loop's
+interpreter lock; the loop lag is measured by a monitor task (``loop_lag_max_ms``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import concurrent.futures
 import contextlib
 import logging
 import signal
@@ -41,12 +41,12 @@ from bmsid.canbus.encoder import CLASSIC_PAGES, ParameterEncoder
 from bmsid.canbus.frames_to_samples import DECODE_ERROR_KINDS, FrameToSamples
 from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
 from bmsid.config.settings import Settings
+from bmsid.daemon.bank_worker import BankSpec, BankWorker
 from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
-from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
 from bmsid.errors import UserError
-from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
 from bmsid.publish.discovery import discovery_messages
@@ -60,6 +60,7 @@ CAN_ERR_BUSOFF = 0x40
 LAG_INTERVAL_S = 0.05
 SAMPLE_QUEUE = 50_000
 SAMPLE_BATCH = 64
+FRAMES_PER_YIELD = 64
 #: GIL switch interval of the daemon process: the loop gets the GIL back within 1 ms.
 SWITCH_INTERVAL_S = 0.001
 
@@ -94,8 +95,6 @@ class Daemon:
                 f"{self.mapping.max_cells()} cells"
             )
         self.f2s = FrameToSamples(self.mapping, cs.n_cells, staleness_s=cs.staleness_s)
-        est = settings.estimator
-        self.bank = EstimatorBank(self.cell, cs.n_cells, est.variant, est.tuning, soc0=est.soc0)
         self.encoder = ParameterEncoder(
             cs.output_dbc, extended_id=cs.output_extended_id, fd=cs.output_fd
         )
@@ -106,6 +105,26 @@ class Daemon:
         )
         self.ckpt_key = CheckpointKey(settings.pack_id, cs.n_cells, settings.config_hash(self.cell))
         self.ckpt_path = settings.state.directory / f"{settings.pack_id}.ckpt.npz"
+        est, m = settings.estimator, settings.mqtt
+        self.bank_spec = BankSpec(
+            cell=self.cell,
+            n_cells=cs.n_cells,
+            variant=est.variant,
+            tuning=est.tuning,
+            soc0=est.soc0,
+            restore=settings.state.restore,
+            ckpt_path=self.ckpt_path,
+            ckpt_key=self.ckpt_key,
+            pack_id=settings.pack_id,
+            topic_prefix=m.topic_prefix,
+            mqtt_enabled=m.enabled,
+            qos=m.qos,
+            publish_period_s=m.publish_period_s,
+            keep_all_estimates=on_estimates is not None,
+        )
+        #: the bank's counters (samples, ticks, swarms, ...) as of its latest batch
+        self.bank_counters: dict[str, int] = dict.fromkeys(("samples", "ticks", "swarms"), 0)
+        self.worker: BankWorker | None = None
         self.prefix = settings.mqtt.topic_prefix
         self.sd = SdNotifier(settings.systemd_notify)
         self.latest: Estimates | None = None
@@ -125,11 +144,10 @@ class Daemon:
         self._source: FrameSource | None = None
         self._samples: asyncio.Queue[tuple[Sample, float]] | None = None
         self._stop: asyncio.Event | None = None
-        self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="bmsid-bank")
-        self._last_pub_t = -float("inf")
         self._last_sample_mono = 0.0
         self._t_start = time.monotonic()
         self._ready_sent = False
+        self._restored_t_s: float | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def request_stop(self) -> None:
@@ -148,12 +166,27 @@ class Daemon:
         )
 
     async def run(self) -> int:
-        loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         self._samples = asyncio.Queue(SAMPLE_QUEUE)
         self._t_start = time.monotonic()
-        if self.settings.state.restore:
-            await loop.run_in_executor(self._executor, self._restore)
+        self.worker = BankWorker(self.bank_spec, self.settings.estimator.isolation)
+        try:
+            return await self._run_with_worker(self.worker)
+        finally:
+            await asyncio.to_thread(self.worker.close)
+
+    async def _run_with_worker(self, worker: BankWorker) -> int:
+        info = await worker.start()
+        self.seq = info.seq
+        if info.restored:
+            self.restored = True
+            self._restored_t_s = info.t_s
+            log.info(
+                "restored %s (saved at sample time %s s); MQTT seq continues at %d",
+                self.ckpt_path,
+                info.t_s,
+                self.seq,
+            )
         mqtt_task: asyncio.Task[None] | None = None
         if self.settings.mqtt.enabled:
             self.outbox = Outbox(self.settings.mqtt.outbox_size)
@@ -168,6 +201,7 @@ class Daemon:
         ]
         if self.sd.watchdog_s:
             tasks.append(asyncio.create_task(self._watchdog(), name="watchdog"))
+        assert self._stop is not None
         stop_waiter = asyncio.create_task(self._stop.wait())
         watched = {stop_waiter, *tasks, *([mqtt_task] if mqtt_task is not None else [])}
         done, _ = await asyncio.wait(watched, return_when=asyncio.FIRST_COMPLETED)
@@ -183,7 +217,6 @@ class Daemon:
     async def _shutdown(
         self, tasks: list[asyncio.Task[None]], mqtt_task: asyncio.Task[None] | None
     ) -> None:
-        loop = asyncio.get_running_loop()
         self.sd.notify("STOPPING=1")
         log.info("stopping: draining samples, checkpointing, flushing MQTT")
         input_task = tasks[0]
@@ -197,7 +230,7 @@ class Daemon:
         for t in tasks[1:]:
             t.cancel()
         await asyncio.gather(*tasks[1:], return_exceptions=True)
-        await loop.run_in_executor(self._executor, self._checkpoint)
+        await self._checkpoint(clean=True)
         if self.mqtt is not None and mqtt_task is not None:
             self.mqtt.stop()
             try:
@@ -210,58 +243,18 @@ class Daemon:
                 )
                 mqtt_task.cancel()
                 await asyncio.gather(mqtt_task, return_exceptions=True)
-        self._executor.shutdown(wait=True)
         log.info("stopped: %s", self._counter_line())
 
     # ------------------------------------------------------------------ state
-    def _restore(self) -> None:
-        ck = load_checkpoint(self.ckpt_path, self.ckpt_key)
-        if ck is None:
-            return
-        try:
-            self.bank.load_state_dict(ck.state)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning(
-                "checkpoint %s does not fit this bank (%s): starting fresh", self.ckpt_path, exc
-            )
-            self.bank = EstimatorBank(
-                self.cell,
-                self.settings.can.n_cells,
-                self.settings.estimator.variant,
-                self.settings.estimator.tuning,
-                soc0=self.settings.estimator.soc0,
-            )
-            return
-        self.seq = int(ck.extra.get("seq", 0))
-        self.restored = True
-        log.info(
-            "restored %s (saved at sample time %s s, seq %d)",
-            self.ckpt_path,
-            ck.extra.get("t_s"),
-            self.seq,
-        )
-
-    def _checkpoint(self) -> None:
-        """Runs in the bank's thread: the state is consistent between two updates."""
-        state = self.bank.state_dict()
-        try:
-            save_checkpoint(
-                self.ckpt_path,
-                self.ckpt_key,
-                state,
-                extra={"seq": self.seq, "t_s": state.get("_t_raw")},
-            )
-        except OSError as exc:
-            self.counters["checkpoint_errors"] += 1
-            log.error("checkpoint %s failed: %s", self.ckpt_path, exc)
-            return
-        self.counters["checkpoints"] += 1
+    async def _checkpoint(self, clean: bool = False) -> None:
+        """Checkpoint in the bank's worker, between two batches (the state is consistent)."""
+        assert self.worker is not None
+        self.bank_counters.update(await self.worker.checkpoint(clean))
 
     async def _checkpoints(self) -> None:
-        loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(self.settings.state.checkpoint_period_s)
-            await loop.run_in_executor(self._executor, self._checkpoint)
+            await self._checkpoint()
 
     # ------------------------------------------------------------------ CAN input
     def _set_can_state(self, state: str) -> None:
@@ -312,7 +305,11 @@ class Daemon:
         cs = self.settings.can
         if cs.replay is not None and self.replayer is None:
             self.replayer = LogReplayer(
-                cs.replay.log, cs.channel, cs.replay.speed, cs.replay.start_delay_s
+                cs.replay.log,
+                cs.channel,
+                cs.replay.speed,
+                cs.replay.start_delay_s,
+                resume_after_s=self._restored_t_s,
             )
             self.replayer.start()
         if not self._ready_sent:
@@ -331,7 +328,10 @@ class Daemon:
                     continue
             else:
                 batch = await src.get_batch()
-            for msg in batch:
+            for n, msg in enumerate(batch, 1):
+                if n % FRAMES_PER_YIELD == 0:
+                    # ~10 us a frame: yield now and then so a flood cannot starve timers
+                    await asyncio.sleep(0)
                 if msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF:
                     self.counters["bus_off"] += 1
                     self._set_can_state("bus_off")
@@ -349,62 +349,33 @@ class Daemon:
                 self._samples.put_nowait((s, time.monotonic()))
 
     # ------------------------------------------------------------------ estimator
-    def _update_batch(
-        self, batch: list[tuple[Sample, float]]
-    ) -> list[tuple[Estimates, list[OutMessage]]]:
-        """Runs in the bank's thread: estimates and their MQTT messages (JSON encoding is
-        done here too, off the loop; ``seq`` is only touched by this thread)."""
-        out: list[tuple[Estimates, list[OutMessage]]] = []
-        for s, t_mono in batch:
-            est = self.bank.update(s.t_s, s.current_A, s.cell_voltages_V)
-            if est is not None:
-                out.append((est, self._messages(est, t_mono)))
-            # Hand the GIL to the event loop between samples: without this the loop waits a
-            # whole switch interval for every GIL release it makes (select, send) while the
-            # bank is busy (the convoy effect), and its lag grows to hundreds of ms.
-            time.sleep(0)
-        return out
-
-    def _messages(self, est: Estimates, t_mono: float) -> list[OutMessage]:
-        m = self.settings.mqtt
-        if not m.enabled:
-            return []
-        tol = 0.5 * self.settings.estimator.tuning.id_period_s
-        if m.publish_period_s > 0 and est.t_s - self._last_pub_t < m.publish_period_s - tol:
-            return []
-        self._last_pub_t = est.t_s
-        pid = self.settings.pack_id
-        out = []
-        for i in range(est.n_cells):
-            body = payloads.cell_payload(est, i, pid, self.seq)
-            self.seq += 1
-            topic = payloads.topic(self.prefix, pid, "cell", i)
-            out.append(OutMessage(topic, payloads.encode(body), m.qos, t_sample_mono=t_mono))
-        body = payloads.pack_payload(est, pid, self.seq, self._health(est))
-        self.seq += 1
-        topic = payloads.topic(self.prefix, pid, "pack")
-        out.append(OutMessage(topic, payloads.encode(body), m.qos, t_sample_mono=t_mono))
-        return out
-
     async def _estimate(self) -> None:
-        loop = asyncio.get_running_loop()
         q = self._samples
-        assert q is not None
+        assert q is not None and self.worker is not None
         while True:
             batch = [await q.get()]
             while len(batch) < SAMPLE_BATCH and not q.empty():
                 batch.append(q.get_nowait())
             self.counters["batches_in_flight"] += 1
             try:
-                results = await loop.run_in_executor(self._executor, self._update_batch, batch)
+                result = await self.worker.update(batch)
                 self._last_sample_mono = time.monotonic()
-                for est, messages in results:
+                self.seq = result.seq
+                jumps = self.bank_counters.get("time_jumps_back", 0)
+                self.bank_counters.update(result.counters)
+                if self.bank_counters.get("time_jumps_back", 0) > jumps:
+                    log.warning(
+                        "the sample clock went back by more than %.0f s (a replay restarted, "
+                        "or the clock was set back): new estimation segment, state kept",
+                        self.settings.estimator.tuning.gap_s,
+                    )
+                for est in result.estimates:
                     self.latest = est
                     if self.on_estimates is not None:
                         self.on_estimates(est)
-                    if self.outbox is not None:
-                        for msg in messages:
-                            self.outbox.put(msg)
+                if self.outbox is not None:
+                    for msg in result.messages:
+                        self.outbox.put(msg)
             finally:
                 self.counters["batches_in_flight"] -= 1
                 for _ in batch:
@@ -485,6 +456,11 @@ class Daemon:
                 uptime_s=time.monotonic() - self._t_start,
                 counters=self.snapshot(),
                 version=__version__,
+                mqtt=(
+                    {"state": self.mqtt.state, "last_error": self.mqtt.last_error}
+                    if self.mqtt is not None
+                    else None
+                ),
             )
         )
 
@@ -498,15 +474,16 @@ class Daemon:
             "incomplete_cycles": f["incomplete_cycles"],
             "stale_current": f["stale_current"],
             "samples": f["samples"],
-            "ticks": self.bank.counters["ticks"],
-            "swarms": self.bank.counters["swarms"],
+            "ticks": self.bank_counters["ticks"],
+            "swarms": self.bank_counters["swarms"],
+            "time_jumps_back": self.bank_counters.get("time_jumps_back", 0),
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],
             "can_reopens": self.counters["can_reopens"],
             "can_open_failures": self.counters["can_open_failures"],
             "reader_drops": self.counters["reader_dropped"]
             + (self._source.dropped if self._source is not None else 0),
-            "checkpoints": self.counters["checkpoints"],
+            "checkpoints": self.bank_counters.get("checkpoints", 0),
             "loop_lag_max_ms": round(self.loop_lag_max_s * 1e3, 3),
             "seq": self.seq,
         }
@@ -516,6 +493,7 @@ class Daemon:
                 "mqtt_drops": self.outbox.dropped,
                 "mqtt_backlog": len(self.outbox),
                 "mqtt_reconnects": self.mqtt.counters["reconnects"],
+                "mqtt_connect_failures": self.mqtt.counters["connect_failures"],
             }
         return out
 

@@ -138,13 +138,24 @@ class LogReplayer:
 
     Frames keep their log timestamps (``preserve_timestamps``), so the estimator sees the log's
     time axis whatever the speed. Frames that others send on the channel (bmsid's own output)
-    are discarded as they arrive so the in-process queue cannot grow.
+    are discarded as they arrive so the in-process queue cannot grow. ``resume_after_s`` skips
+    the frames up to that log time: a daemon restored from a checkpoint resumes the replay
+    where its state left off, as a live bus would have moved on.
     """
 
-    def __init__(self, log_path: Path, channel: str, speed: float, start_delay_s: float) -> None:
+    def __init__(
+        self,
+        log_path: Path,
+        channel: str,
+        speed: float,
+        start_delay_s: float,
+        resume_after_s: float | None = None,
+    ) -> None:
         self.log_path = log_path
         self.speed = speed
         self.start_delay_s = start_delay_s
+        self.resume_after_s = resume_after_s
+        self.skipped = 0
         self.sent = 0
         self.done = threading.Event()
         self._stop = threading.Event()
@@ -166,6 +177,9 @@ class LogReplayer:
             t0_wall = time.monotonic()
             t0_log: float | None = None
             for msg in read_log(self.log_path):
+                if self.resume_after_s is not None and msg.timestamp <= self.resume_after_s:
+                    self.skipped += 1
+                    continue
                 if t0_log is None:
                     t0_log = msg.timestamp
                 due = t0_wall + (msg.timestamp - t0_log) / self.speed
@@ -179,7 +193,12 @@ class LogReplayer:
                 if self.sent % 512 == 0:
                     while self._bus.recv(0) is not None:
                         pass
-            log.info("replay of %s finished: %d frames", self.log_path, self.sent)
+            log.info(
+                "replay of %s finished: %d frames (%d skipped: before the checkpoint)",
+                self.log_path,
+                self.sent,
+                self.skipped,
+            )
         except Exception:
             log.exception("replay of %s failed", self.log_path)
         finally:

@@ -156,6 +156,7 @@ class EstimatorBank:
             "samples": 0,
             "ticks": 0,
             "non_increasing_time": 0,
+            "time_jumps_back": 0,
             "nan_current": 0,
             "nan_voltage": 0,
             "gaps": 0,
@@ -256,6 +257,13 @@ class EstimatorBank:
             self._start(t_s, current_A, v_raw)
             return self._tick(t_s, current_A, v_raw, ~bad_v, 0.0)
         dt = t_s - self._t_raw
+        if dt < -self.tuning.gap_s:
+            # The time base restarted (a replay from its beginning, a gateway clock set back
+            # after a restart from a checkpoint): start a new segment instead of rejecting every
+            # later sample as "non-increasing"; the time in between is unknown, so nothing is
+            # propagated across it.
+            self.counters["time_jumps_back"] += 1
+            return self._gap(t_s, current_A, v_raw, ~bad_v, elapsed_s=0.0)
         if dt <= 0:
             self.counters["non_increasing_time"] += 1
             return None
@@ -314,9 +322,17 @@ class EstimatorBank:
         self._next_swarm = t_s + tun.min_window_s + self._phase * tun.swarm_period_s
         self._hist_n = 0
 
-    def _gap(self, t_s: float, current_A: float, v: FloatArray, ok: BoolArray) -> Estimates:
+    def _gap(
+        self,
+        t_s: float,
+        current_A: float,
+        v: FloatArray,
+        ok: BoolArray,
+        elapsed_s: float | None = None,
+    ) -> Estimates:
+        """New segment after a gap of ``elapsed_s`` (default: the time since the last tick)."""
         self.counters["gaps"] += 1
-        dt = t_s - self._t_tick
+        dt = t_s - self._t_tick if elapsed_s is None else elapsed_s
         self._clear_bin()
         self._t_raw = t_s
         self._i_raw = current_A

@@ -17,7 +17,7 @@ VARIANTS_T: tuple[Variant, ...] = ("non-hy-affrls", "hy-affrls", "hy-affrls-lpso
 class EstimatorTuning(BaseModel):
     """Tuning of AFFRLS (Eq. 16-21), LPSO (Eq. 24-30) and their fusion."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     # --- identification rate -------------------------------------------------------------
     id_period_s: float = Field(1.0, gt=0.0, le=10.0)
@@ -56,6 +56,7 @@ class EstimatorTuning(BaseModel):
     """RMS current variation (C-rate) over ``excitation_window_s`` below which an estimate is
     flagged poorly excited."""
     excitation_window_s: float = Field(300.0, gt=0.0)
+    """Time constant of the running current variance that measures excitation, s."""
 
     # --- fusion ------------------------------------------------------------------------
     identify_ocv_offset: bool = False
@@ -77,7 +78,9 @@ class EstimatorTuning(BaseModel):
     swarm_period_s: float = Field(600.0, gt=0.0)
     """A swarm starts every this many seconds per cell (cells of a bank are staggered)."""
     n_particles: int = Field(12, ge=4, le=200)
+    """Particles per swarm (each one a candidate pair tau1, tau2)."""
     n_iter: int = Field(10, ge=2, le=500)
+    """Iterations of a warm-started swarm (iter_max of Eq. 29)."""
     n_iter_first: int = Field(20, ge=2, le=1000)
     """Iterations of the first (cold) swarm; later swarms start from the previous optimum."""
     fits_per_update: int = Field(4, ge=1)
@@ -85,9 +88,13 @@ class EstimatorTuning(BaseModel):
     budget. One fit of an 1800-sample window costs ~0.3-1 ms; a swarm iteration takes
     ``n_particles / fits_per_update`` ticks."""
     c1: float = Field(1.5, gt=0.0)
+    """Cognitive acceleration (towards a particle's own best), Eq. 24."""
     c2: float = Field(1.5, gt=0.0)
+    """Social acceleration (towards the swarm's best), Eq. 24."""
     w_max: float = Field(0.9, gt=0.0)
+    """Inertia weight at the first iteration (Eq. 29)."""
     w_min: float = Field(0.4, gt=0.0)
+    """Inertia weight the schedule decays to (Eq. 29)."""
     inertia_shape: float = Field(0.5, gt=0.0)
     """n in Eq. 29: w = (w_max - w_min) exp(-(iter / (n iter_max))^2) + w_min."""
     velocity_max_frac: float = Field(0.25, gt=0.0, le=1.0)
@@ -97,6 +104,7 @@ class EstimatorTuning(BaseModel):
     tau_ratio_min: float = Field(2.0, ge=1.0)
     """tau2 >= this x tau1: two branches that are really two."""
     seed: int = 0
+    """Seed of the swarms' random numbers (combined with each cell's index): runs repeat exactly."""
 
     @model_validator(mode="after")
     def _check(self) -> Self:

@@ -118,13 +118,17 @@ def status_payload(
     uptime_s: float = 0.0,
     counters: dict[str, float] | None = None,
     version: str = "",
+    mqtt: dict[str, str | None] | None = None,
 ) -> dict[str, Any]:
-    """``online``/``offline`` with the daemon's counters (the will carries ``offline`` only)."""
+    """``online``/``offline`` with the daemon's counters (the will carries ``offline`` only);
+    ``mqtt`` is the connection's ``{"state", "last_error"}`` (never a secret)."""
     out: dict[str, Any] = {"schema": SCHEMA_VERSION, "state": state, "pack_id": pack_id}
     if version:
         out["version"] = version
     if state == "online":
         out["can"] = can_state
+        if mqtt is not None:
+            out["mqtt"] = dict(mqtt)
         out["uptime_s"] = round(float(uptime_s), 3)
         out["counters"] = dict(counters or {})
     return out

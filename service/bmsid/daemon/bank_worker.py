@@ -1,0 +1,327 @@
+"""The estimator bank in its own process, so its swarm never holds the event loop's GIL.
+
+The daemon's event loop must answer within 5 ms. A 96-cell bank with swarms running spends
+milliseconds per sample in Python and numpy; in a thread of the daemon's process it competes
+with the loop for the interpreter lock and the loop's lag grows with the load (measured: max
+8-42 ms under a frame flood). In a child process the two only exchange pickled batches.
+
+The child (:class:`BankHost`) owns everything the bank's output depends on: the bank, its
+checkpoint, the MQTT sequence number and the JSON encoding of the messages. The parent
+(:class:`BankWorker`) sends batches of samples and gets back estimates, ready messages and
+counters. ``isolation="thread"`` runs the same host in one worker thread instead (platforms
+without process spawning; tests compare the two).
+
+Sequence numbers never repeat across restarts: the host reserves them in blocks in
+``<pack_id>.seq`` (written before a block is used) and writes the exact value at a clean
+stop, so a graceful restart continues contiguously and a crash (``kill -9``) leaves a gap
+instead of reusing numbers that consumers may already have seen.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import logging
+import logging.handlers
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from bmsid.config.cell import CellConfig
+from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.tuning import EstimatorTuning, Variant
+from bmsid.estimate.types import Estimates
+from bmsid.publish import payloads
+from bmsid.publish.outbox import OutMessage
+from bmsid.samples import Sample
+
+log = logging.getLogger(__name__)
+
+Isolation = Literal["process", "thread"]
+#: Sequence numbers reserved per write of the ``.seq`` file.
+SEQ_BLOCK = 100_000
+#: How often the worker checks that the daemon still lives, s.
+PARENT_POLL_S = 0.5
+
+
+@dataclass(frozen=True)
+class BankSpec:
+    """Everything the host needs; picklable (sent to the child once)."""
+
+    cell: CellConfig
+    n_cells: int
+    variant: Variant
+    tuning: EstimatorTuning
+    soc0: float | None
+    restore: bool
+    ckpt_path: Path
+    ckpt_key: CheckpointKey
+    pack_id: str
+    topic_prefix: str
+    mqtt_enabled: bool
+    qos: int
+    publish_period_s: float
+    #: return every tick's estimates (live view, tests), not only the newest of a batch
+    keep_all_estimates: bool = False
+
+    @property
+    def seq_path(self) -> Path:
+        return self.ckpt_path.with_name(f"{self.pack_id}.seq")
+
+
+@dataclass(frozen=True)
+class StartInfo:
+    restored: bool
+    seq: int
+    t_s: float | None
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    #: the ticks' estimates (all, or only the newest unless ``keep_all_estimates``)
+    estimates: list[Estimates]
+    messages: list[OutMessage]
+    counters: dict[str, int]
+    seq: int
+
+
+@dataclass
+class BankHost:
+    """Runs in the worker: bank updates, MQTT message encoding, checkpoints, sequence numbers."""
+
+    spec: BankSpec
+    bank: EstimatorBank = field(init=False)
+    seq: int = 0
+    counters: dict[str, int] = field(default_factory=dict)
+    _seq_reserved: int = 0
+    _last_pub_t: float = -float("inf")
+
+    def __post_init__(self) -> None:
+        self.bank = self._fresh_bank()
+        self.counters = {"checkpoints": 0, "checkpoint_errors": 0, "seq_file_errors": 0}
+
+    def _fresh_bank(self) -> EstimatorBank:
+        s = self.spec
+        return EstimatorBank(s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0)
+
+    # ------------------------------------------------------------------ start
+    def start(self) -> StartInfo:
+        """Restore the checkpoint (if allowed and matching) and the sequence high-water mark."""
+        t_s = None
+        restored = False
+        ck_seq = 0
+        ck = load_checkpoint(self.spec.ckpt_path, self.spec.ckpt_key) if self.spec.restore else None
+        if ck is not None:
+            try:
+                self.bank.load_state_dict(ck.state)
+            except (ValueError, KeyError, TypeError) as exc:
+                log.warning(
+                    "checkpoint %s does not fit this bank (%s): starting fresh",
+                    self.spec.ckpt_path,
+                    exc,
+                )
+                self.bank = self._fresh_bank()
+            else:
+                restored = True
+                ck_seq = int(ck.extra.get("seq", 0))
+                t_raw = ck.extra.get("t_s")
+                t_s = float(t_raw) if t_raw is not None else None
+        self.seq = max(ck_seq, self._read_seq_file())
+        self._seq_reserved = self.seq
+        return StartInfo(restored=restored, seq=self.seq, t_s=t_s)
+
+    def _read_seq_file(self) -> int:
+        try:
+            return max(0, int(self.spec.seq_path.read_text(encoding="ascii").strip()))
+        except FileNotFoundError:
+            return 0
+        except (OSError, ValueError) as exc:
+            log.warning("sequence file %s unreadable (%s): ignored", self.spec.seq_path, exc)
+            return 0
+
+    def _write_seq_file(self, value: int) -> bool:
+        path = self.spec.seq_path
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with tmp.open("w", encoding="ascii") as fh:
+                fh.write(f"{value}\n")
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except OSError as exc:
+            self.counters["seq_file_errors"] += 1
+            log.error("sequence file %s cannot be written: %s", path, exc)
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            return False
+        return True
+
+    def _next_seq(self) -> int:
+        if self.seq >= self._seq_reserved:
+            # Reserve before use; if the disk refuses, go on (numbers may repeat after a crash).
+            self._write_seq_file(self.seq + SEQ_BLOCK)
+            self._seq_reserved = self.seq + SEQ_BLOCK
+        n = self.seq
+        self.seq += 1
+        return n
+
+    # ------------------------------------------------------------------ samples
+    def update(self, batch: list[tuple[Sample, float]]) -> BatchResult:
+        """Feed a batch of (sample, monotonic time it was complete) to the bank."""
+        estimates: list[Estimates] = []
+        messages: list[OutMessage] = []
+        for sample, t_mono in batch:
+            est = self.bank.update(sample.t_s, sample.current_A, sample.cell_voltages_V)
+            if est is None:
+                continue
+            if self.spec.keep_all_estimates or not estimates:
+                estimates.append(est)
+            else:
+                estimates[0] = est
+            messages += self._messages(est, t_mono)
+            # In thread isolation, hand the GIL to the event loop between samples: otherwise the
+            # loop waits a whole switch interval for every GIL release it makes (convoy effect).
+            time.sleep(0)
+        return BatchResult(estimates, messages, self._counters(), self.seq)
+
+    def _counters(self) -> dict[str, int]:
+        return {**self.bank.counters, **self.counters}
+
+    def _messages(self, est: Estimates, t_mono: float) -> list[OutMessage]:
+        s = self.spec
+        if not s.mqtt_enabled:
+            return []
+        tol = 0.5 * s.tuning.id_period_s
+        if s.publish_period_s > 0 and est.t_s - self._last_pub_t < s.publish_period_s - tol:
+            return []
+        self._last_pub_t = est.t_s
+        out = []
+        for i in range(est.n_cells):
+            body = payloads.cell_payload(est, i, s.pack_id, self._next_seq())
+            topic = payloads.topic(s.topic_prefix, s.pack_id, "cell", i)
+            out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
+        # Input staleness cannot be true here: a sample just arrived.
+        body = payloads.pack_payload(est, s.pack_id, self._next_seq(), payloads.health_bits(est))
+        topic = payloads.topic(s.topic_prefix, s.pack_id, "pack")
+        out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
+        return out
+
+    # ------------------------------------------------------------------ state
+    def checkpoint(self, clean: bool = False) -> dict[str, int]:
+        """Atomic checkpoint of the whole bank; ``clean`` (shutdown) also pins the exact seq."""
+        state = self.bank.state_dict()
+        try:
+            save_checkpoint(
+                self.spec.ckpt_path,
+                self.spec.ckpt_key,
+                state,
+                extra={"seq": self.seq, "t_s": state.get("_t_raw")},
+            )
+        except OSError as exc:
+            self.counters["checkpoint_errors"] += 1
+            log.error("checkpoint %s failed: %s", self.spec.ckpt_path, exc)
+        else:
+            self.counters["checkpoints"] += 1
+        if clean and self._write_seq_file(self.seq):
+            self._seq_reserved = self.seq
+        return self._counters()
+
+
+# ---------------------------------------------------------------------- child process side
+#: the child's one host (a dict, not a global statement)
+_CHILD: dict[str, BankHost] = {}
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    # A parent killed with SIGKILL cannot stop its worker: the worker notices it was re-parented
+    # and exits, so a crash-restart never leaves an orphan bank computing (and checkpointing).
+    while os.getppid() == parent_pid:
+        time.sleep(PARENT_POLL_S)
+    os._exit(0)
+
+
+def _child_init(spec: BankSpec, log_queue: Any, level: int, parent_pid: int) -> None:
+    # The parent decides when to stop: a terminal's ^C or systemd's SIGTERM to the whole
+    # cgroup must not kill the bank before the parent's final checkpoint.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    root = logging.getLogger()
+    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
+    root.setLevel(level)
+    threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
+    _CHILD["host"] = BankHost(spec)
+
+
+def _child_call(method: str, *args: Any) -> Any:
+    return getattr(_CHILD["host"], method)(*args)
+
+
+class _ForwardToLogger(logging.Handler):
+    """Parent side of the child's log queue: re-emit under the record's own logger."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        logging.getLogger(record.name).handle(record)
+
+
+class BankWorker:
+    """Parent-side handle: ``await start()``, ``await update(batch)``, ``await checkpoint()``.
+
+    Calls are serialised by the single worker; a dead child process raises
+    ``concurrent.futures.process.BrokenProcessPool`` from the call (the daemon then exits
+    non-zero and its supervisor restarts it from the last checkpoint).
+    """
+
+    def __init__(self, spec: BankSpec, isolation: Isolation = "process") -> None:
+        self.isolation = isolation
+        self._listener: logging.handlers.QueueListener | None = None
+        self._host: BankHost | None = None
+        self._executor: concurrent.futures.Executor
+        if isolation == "process":
+            ctx = multiprocessing.get_context("spawn")  # fork is unsafe with threads running
+            queue = ctx.Queue()
+            self._listener = logging.handlers.QueueListener(queue, _ForwardToLogger())
+            self._listener.start()
+            self._executor = concurrent.futures.ProcessPoolExecutor(
+                1,
+                mp_context=ctx,
+                initializer=_child_init,
+                initargs=(spec, queue, logging.getLogger().getEffectiveLevel(), os.getpid()),
+            )
+        else:
+            self._host = BankHost(spec)
+            self._executor = concurrent.futures.ThreadPoolExecutor(
+                1, thread_name_prefix="bmsid-bank"
+            )
+
+    async def _call(self, method: str, *args: Any) -> Any:
+        loop = asyncio.get_running_loop()
+        if self._host is not None:
+            return await loop.run_in_executor(self._executor, getattr(self._host, method), *args)
+        return await loop.run_in_executor(self._executor, _child_call, method, *args)
+
+    async def start(self) -> StartInfo:
+        t0 = time.monotonic()
+        info: StartInfo = await self._call("start")
+        log.debug("bank worker (%s) ready in %.2f s", self.isolation, time.monotonic() - t0)
+        return info
+
+    async def update(self, batch: list[tuple[Sample, float]]) -> BatchResult:
+        result: BatchResult = await self._call("update", batch)
+        return result
+
+    async def checkpoint(self, clean: bool = False) -> dict[str, int]:
+        counters: dict[str, int] = await self._call("checkpoint", clean)
+        return counters
+
+    def close(self) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+        if self._listener is not None:
+            self._listener.stop()
