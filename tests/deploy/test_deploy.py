@@ -218,7 +218,9 @@ def test_unit_restart_prevent_status_is_bmsids_config_error(tmp_path: Path) -> N
     assert "can.no_such_key" in result.stderr
 
 
-def test_unit_environment_names_are_real_settings(tmp_path: Path) -> None:
+def test_unit_environment_names_are_real_settings(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The unit's BMSID_* variables, with %S and %d as systemd expands them, load into the
     settings model on top of the example config and land where the unit means them to."""
     entries = unit_entries(UNIT.read_text(encoding="utf-8"))
@@ -244,16 +246,9 @@ def test_unit_environment_names_are_real_settings(tmp_path: Path) -> None:
         ),
         encoding="utf-8",
     )
-    saved = {name: os.environ.get(name) for name in expanded}
-    try:
-        os.environ.update(expanded)
-        settings: Settings = load_settings(config)
-    finally:
-        for name, old in saved.items():
-            if old is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = old
+    for name, value in expanded.items():
+        monkeypatch.setenv(name, value)
+    settings: Settings = load_settings(config)
     assert settings.state.directory == state_root / "bmsid"
     assert settings.mqtt.password_file == cred_dir / "mqtt-password"
     assert settings.mqtt.password_value() == "s3cret"
@@ -775,7 +770,7 @@ def test_node_red_flow_reads_only_published_topics_and_fields() -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-def test_replay_block_matches_the_log_and_the_settings() -> None:
+def test_replay_block_matches_the_log_and_the_settings(monkeypatch: pytest.MonkeyPatch) -> None:
     readme = (DEPLOY / "README.md").read_text(encoding="utf-8")
     section = readme.split("## Replay a log on a virtual bus", 1)[1].split("\n## ", 1)[0]
     blocks = re.findall(r"```sh\n(.*?)```", section, flags=re.DOTALL)
@@ -791,16 +786,9 @@ def test_replay_block_matches_the_log_and_the_settings() -> None:
     overrides = dict(re.findall(r"\b(BMSID_\w+)=(\S+)", block))
     assert overrides["BMSID_CAN__CHANNEL"] == "vcan0"
     assert "--config configs/bmsid.example.toml" in block
-    saved = {name: os.environ.get(name) for name in overrides}
-    try:
-        os.environ.update(overrides)
-        settings = load_settings(EXAMPLE_CONFIG)
-    finally:
-        for name, old in saved.items():
-            if old is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = old
+    for name, value in overrides.items():
+        monkeypatch.setenv(name, value)
+    settings = load_settings(EXAMPLE_CONFIG)
     assert settings.can.channel == "vcan0"
     assert settings.can.n_cells == 8  # the demo log's pack
     assert "deploy/vcan-setup.sh vcan0" in block
