@@ -192,16 +192,30 @@ async def wait_for(cond: Any, timeout_s: float, what: str) -> None:
         await asyncio.sleep(0.02)
 
 
+async def full_can_output_cycle(daemon: Daemon, timeout_s: float = 30.0) -> None:
+    """Wait until every cell's parameter frames went out again after this call, plus one round:
+    a round already under way may carry the previous tick's estimates."""
+    per_round = daemon.cycler.per_round
+    rounds = -(-daemon.settings.can.n_cells // per_round) + 1
+    frames_per_round = 1 + per_round * (1 if daemon.settings.can.output_fd else 3)
+    target = daemon.counters["can_frames_sent"] + rounds * frames_per_round
+    await wait_for(
+        lambda: daemon.counters["can_frames_sent"] >= target, timeout_s, "a full CAN output cycle"
+    )
+
+
 async def run_with_frames(
     daemon: Daemon,
     frames: list[can.Message],
     *,
     pace_s: float = 0.0,
     during: Any = None,
+    after: Any = None,
     timeout_s: float = 120.0,
 ) -> None:
     """Run ``daemon``, feed ``frames`` on its virtual channel, wait until all is processed and
-    published, stop it. ``during(daemon)`` (async) runs while the frames flow."""
+    published, stop it. ``during(daemon)`` (async) runs while the frames flow, ``after(daemon)``
+    (async) once everything is processed, before the stop."""
     task = asyncio.create_task(daemon.run())
     await wait_for(lambda: daemon.can_state == "up" or task.done(), 20, "the bus")
     if daemon.mqtt is not None:
@@ -225,6 +239,8 @@ async def run_with_frames(
         return done or task.done()
 
     await wait_for(drained, timeout_s, "the frames to be processed and published")
+    if after is not None:
+        await after(daemon)
     daemon.request_stop()
     assert await asyncio.wait_for(task, 60) == 0
 

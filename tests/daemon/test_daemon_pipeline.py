@@ -18,6 +18,7 @@ from daemon_helpers import (
     assert_matches_offline,
     contiguous,
     demo_frames,
+    full_can_output_cycle,
     make_settings,
     offline_estimates,
     run_with_frames,
@@ -67,7 +68,8 @@ def test_end_to_end_values_equal_offline_and_validate(
         async def during(d: Daemon) -> None:
             await collect_output(d)
 
-        await run_with_frames(daemon, frames, during=during)
+        # then the last frames of every cell carry the final estimates
+        await run_with_frames(daemon, frames, during=during, after=full_can_output_cycle)
         return daemon
 
     daemon = asyncio.run(main())
