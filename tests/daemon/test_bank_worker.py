@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -130,3 +132,19 @@ def test_worker_logs_reach_the_parent(
     with caplog.at_level("WARNING"):
         asyncio.run(start())
     assert "unreadable" in caplog.text
+
+
+def test_daemon_process_does_not_load_the_estimator_stack() -> None:
+    # With process isolation only the worker needs the bank (scipy.signal: ~65 MB resident);
+    # a gateway pays for it once, not twice.
+    code = """
+import sys
+from bmsid.config.settings import Settings
+from bmsid.daemon.core import Daemon
+Daemon(Settings(pack_id="p", can={"interface": "virtual", "channel": "x", "n_cells": 96}))
+print(sorted(m for m in sys.modules if m.split(".")[0] == "scipy" or m == "bmsid.estimate.bank"))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert out.stdout.strip() == "[]", out.stdout[:300]

@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import gc
 import logging
 import logging.handlers
 import multiprocessing
@@ -31,16 +32,20 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from bmsid.config.cell import CellConfig
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
-from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
 from bmsid.publish.outbox import OutMessage
 from bmsid.samples import Sample
+
+if TYPE_CHECKING:
+    # Imported where the bank is built: with process isolation the daemon itself never loads
+    # the estimator stack (scipy.signal alone adds ~65 MB of resident memory).
+    from bmsid.estimate.bank import EstimatorBank
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +113,8 @@ class BankHost:
         self.counters = {"checkpoints": 0, "checkpoint_errors": 0, "seq_file_errors": 0}
 
     def _fresh_bank(self) -> EstimatorBank:
+        from bmsid.estimate.bank import EstimatorBank  # noqa: PLC0415 (see TYPE_CHECKING)
+
         s = self.spec
         return EstimatorBank(s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0)
 
@@ -258,6 +265,8 @@ def _child_init(spec: BankSpec, log_queue: Any, level: int, parent_pid: int) -> 
     root.setLevel(level)
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
     _CHILD["host"] = BankHost(spec)
+    gc.collect()
+    gc.freeze()  # the start-up heap, as in the daemon: full collections stay short
 
 
 def _child_call(method: str, *args: Any) -> Any:
