@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
 import json
 import os
 import resource
@@ -52,17 +53,19 @@ def _children() -> list[int]:
     return pids
 
 
+def _rss_of_mb(pid: str) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
 def _rss_mb() -> float:
     """Resident set of the daemon: this process plus its children, MB."""
-    total = 0.0
-    for pid in ["self", *map(str, _children())]:
-        try:
-            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024.0
-        except OSError:
-            continue
-    return total
+    return sum(_rss_of_mb(pid) for pid in ["self", *map(str, _children())])
 
 
 def _cpu_s() -> float:
@@ -163,6 +166,11 @@ async def _run(
         if done.is_set() and daemon.f2s.counters["frames"] >= n_frames and idle and flushed:
             break
     wall, cpu = time.monotonic() - wall0, _cpu_s() - cpu0
+    t_gc = time.perf_counter()
+    gc.collect()  # what a full collection costs the loop with this run's live objects
+    gc_ms = (time.perf_counter() - t_gc) * 1e3
+    children = [_rss_of_mb(str(pid)) for pid in _children()]
+    rss_split = {"daemon": _rss_of_mb("self"), "children": children}
     snap = daemon.snapshot()
     lat = np.asarray(daemon.latencies_s) * 1e3
     lat1 = np.asarray(daemon.latencies_first_s) * 1e3
@@ -187,6 +195,8 @@ async def _run(
         "latency_first_p99_ms": float(np.percentile(lat1, 99)) if lat1.size else None,
         "publishes": snap.get("publishes", 0),
         "rss_mb": rss,
+        "rss_split_mb": rss_split,
+        "full_gc_ms": gc_ms,
     }
 
 
@@ -266,7 +276,8 @@ def main() -> int:
         f"  real time 10 Hz, {args.realtime_s:.0f} s: CPU {100 * rt['cpu_share']:.1f} % of one "
         f"core, latency last frame -> MQTT ack {lat}, loop lag p99 "
         f"{rt['loop_lag_p99_ms']:.1f} ms, max {rt['loop_lag_max_ms']:.1f} ms, "
-        f"MQTT messages {rt['publishes']}"
+        f"MQTT messages {rt['publishes']}, a full garbage collection at the end "
+        f"{rt['full_gc_ms']:.1f} ms"
     )
     r = np.asarray(mem["rss_mb"])
     if r.size >= 4 and np.unique(r[:, 0]).size >= 3:
@@ -275,7 +286,9 @@ def main() -> int:
         print(
             f"  memory, {args.hours:g} h of data x {args.mem_cells} cells in "
             f"{mem['wall_s']:.0f} s: RSS {r[0, 1]:.0f} -> {r[-1, 1]:.0f} MB (max "
-            f"{r[:, 1].max():.0f}), slope over the 2nd half {slope:+.2f} MB per 100k samples"
+            f"{r[:, 1].max():.0f}), slope over the 2nd half {slope:+.2f} MB per 100k samples; "
+            f"at the end this process {mem['rss_split_mb']['daemon']:.0f} MB, children "
+            f"{', '.join(f'{c:.0f}' for c in mem['rss_split_mb']['children'])} MB"
         )
     return 0
 

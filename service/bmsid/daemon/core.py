@@ -532,7 +532,7 @@ class Daemon:
         assert self.sd.watchdog_s is not None
         while True:
             await asyncio.sleep(self.sd.watchdog_s / 2.0)
-            # Alive = the loop runs (we are here) and the bank thread is not stuck.
+            # Alive = the loop runs (we are here) and the bank worker is not stuck.
             if self.counters["batches_in_flight"] == 0 or (
                 time.monotonic() - self._last_sample_mono < self.sd.watchdog_s
             ):
