@@ -136,11 +136,13 @@ def test_worker_logs_reach_the_parent(
 
 def test_daemon_process_does_not_load_the_estimator_stack() -> None:
     # With process isolation only the worker needs the bank (scipy.signal: ~65 MB resident);
-    # a gateway pays for it once, not twice.
+    # a gateway pays for it once, not twice. `bmsid run` must not load the other commands either.
     code = """
 import sys
+from bmsid.cli.main import _requested_command, build_parser
 from bmsid.config.settings import Settings
 from bmsid.daemon.core import Daemon
+build_parser(_requested_command(["-v", "run", "--config", "x.toml"]))  # as `bmsid -v run` does
 Daemon(Settings(pack_id="p", can={"interface": "virtual", "channel": "x", "n_cells": 96}))
 print(sorted(m for m in sys.modules if m.split(".")[0] == "scipy" or m == "bmsid.estimate.bank"))
 """
