@@ -230,7 +230,7 @@ class Daemon:
         input_task.cancel()
         await asyncio.gather(input_task, return_exceptions=True)
         if self.replayer is not None:
-            self.replayer.stop()
+            await asyncio.to_thread(self.replayer.stop)  # joins the replay thread
         assert self._samples is not None
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._samples.join(), timeout=self.shutdown_timeout_s)
@@ -304,7 +304,7 @@ class Daemon:
             finally:
                 self._source = None
                 self.counters["reader_dropped"] += src.dropped
-                src.close()
+                await src.aclose()
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2.0, cs.reopen_max_s)
 

@@ -38,7 +38,9 @@ class FrameSource(Protocol):
         """Frames received since the last call (at least one); raises on a bus error."""
         ...
 
-    def close(self) -> None: ...
+    async def aclose(self) -> None:
+        """Release the bus without blocking the event loop."""
+        ...
 
 
 IFF_UP = 0x1
@@ -81,7 +83,8 @@ class SocketCanSource:
             batch.append(item)
         return batch
 
-    def close(self) -> None:
+    async def aclose(self) -> None:
+        # on the loop: the reader is registered with it (add_reader); both calls are quick
         self._reader.close()
         self.bus.shutdown()
 
@@ -121,9 +124,10 @@ class VirtualSource:
     async def get_batch(self) -> list[can.Message]:
         return await self._queue.get()
 
-    def close(self) -> None:
+    async def aclose(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=2.0)
+        # the reader thread notices within its 50 ms receive timeout: wait for it off the loop
+        await asyncio.to_thread(self._thread.join, 2.0)
         self.bus.shutdown()
 
 
