@@ -183,7 +183,8 @@ def test_vcan_end_to_end(
         schemas[kind].validate(payload)
         if kind == "cell":
             cells.append(payload)
-    assert len(cells) == 8 * len(ref)
+    stopped = [ln for ln in daemon_log.read_text().splitlines() if "stopped:" in ln]
+    assert len(cells) == 8 * len(ref), stopped  # the daemon's final counters
     for p in cells:
         e = _nearest(ref, p["t_s"])
         for key in ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "soc", "h", "lambda"):

@@ -15,6 +15,7 @@ import os
 import queue
 import re
 import shutil
+import signal
 import stat
 import subprocess
 import sys
@@ -536,7 +537,10 @@ class Subscriber:
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise AssertionError(f"no {what} within {timeout} s; saw {self.seen}")
+                raise AssertionError(
+                    f"no {what} within {timeout} s; saw {len(self.seen)} lines, the last: "
+                    f"{self.seen[-6:]}"
+                )
             try:
                 line = self.lines.get(timeout=left)
             except queue.Empty:
@@ -588,7 +592,12 @@ def acl_broker(
         key = line.split()[0]
         value = {"password_file": str(passwd), "acl_file": str(acl)}.get(key)
         globals_.append(f"{key} {value}" if value else line)
-    assert {g.split()[0] for g in globals_} == {"allow_anonymous", "password_file", "acl_file"}
+    assert {g.split()[0] for g in globals_} == {
+        "allow_anonymous",
+        "password_file",
+        "acl_file",
+        "max_queued_messages",
+    }
     assert "allow_anonymous false" in globals_
     broker = mosquitto_factory("\n".join(globals_))
     yield broker.host, broker.port
@@ -660,6 +669,31 @@ def test_mosquitto_acl_allows_and_refuses_what_it_says(
         [pub_exe, "-h", host, "-p", str(port), "-u", "bmsid", "-P", "wrong", "-t", cell, "-m", "x"]
     )
     assert wrong.returncode != 0
+
+
+def test_mosquitto_config_keeps_a_backlog_for_a_dashboard_that_falls_behind(
+    acl_broker: tuple[str, int], require_tool: ToolFinder
+) -> None:
+    """bmsid delivers its outbox after an outage as fast as the broker takes it. A dashboard
+    that cannot keep up (here: stopped) must get all of it, in order; with Mosquitto's default
+    it would get the first 1020 only."""
+    host, port = acl_broker
+    n = 3000
+    cell = topic("bmsid", "p1", "cell", 0)
+    dashboard = Subscriber(require_tool("mosquitto_sub"), host, port, "dashboard", ["bmsid/#"])
+    try:
+        dashboard.proc.send_signal(signal.SIGSTOP)
+        try:
+            pub = [require_tool("mosquitto_pub"), "-h", host, "-p", str(port), "-u", "bmsid",
+                   "-P", PASSWORDS["bmsid"], "-q", "1", "-t", cell, "-l"]  # fmt: skip
+            result = run(pub, input="".join(f"m{i}\n" for i in range(n)), timeout=60)
+            assert result.returncode == 0, result.stderr
+        finally:
+            dashboard.proc.send_signal(signal.SIGCONT)
+        got = dashboard.messages_until(f"{cell} m{n - 1}", timeout=30.0)
+        assert got == [f"{cell} m{i}" for i in range(n)]
+    finally:
+        dashboard.close()
 
 
 # ---------------------------------------------------------------------------------------------
