@@ -14,6 +14,7 @@ import pytest
 from bmsid.config.cell import paper_cell
 from bmsid.daemon.bank_worker import SEQ_BLOCK, BankHost, BankSpec, BankWorker, Isolation
 from bmsid.daemon.checkpoint import CheckpointKey
+from bmsid.daemon.sample_queue import SampleBlock
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.samples import Sample
 
@@ -40,15 +41,15 @@ def _spec(tmp_path: Path, **kw: object) -> BankSpec:
     return BankSpec(**(base | kw))  # type: ignore[arg-type]
 
 
-def _samples(t0: float, n: int) -> list[tuple[Sample, float]]:
+def _samples(t0: float, n: int) -> SampleBlock:
     rng = np.random.default_rng(int(t0))
     out = []
     for k in range(n):
         t = t0 + k
         i = 60.0 * np.sin(t / 9.0) + 30.0 * np.sign(np.sin(t / 37.0))
         v = 3.7 - 0.002 * i + rng.normal(0.0, 5e-4, N_CELLS)
-        out.append((Sample(t_s=t, current_A=float(i), cell_voltages_V=v), 0.0))
-    return out
+        out.append(Sample(t_s=t, current_A=float(i), cell_voltages_V=v))
+    return SampleBlock.from_samples(out, [0.0] * n)
 
 
 async def _run(spec: BankSpec, isolation: Isolation, batches: int) -> list[bytes]:

@@ -7,9 +7,9 @@ with the loop for the interpreter lock and the loop's lag grows with the load (m
 
 The child (:class:`BankHost`) owns everything the bank's output depends on: the bank, its
 checkpoint, the MQTT sequence number and the JSON encoding of the messages. The parent
-(:class:`BankWorker`) sends batches of samples and gets back estimates, ready messages and
-counters. ``isolation="thread"`` runs the same host in one worker thread instead (platforms
-without process spawning; tests compare the two).
+(:class:`BankWorker`) sends blocks of samples (:class:`SampleBlock`) and gets back estimates,
+ready messages and counters. ``isolation="thread"`` runs the same host in one worker thread
+instead (platforms without process spawning; tests compare the two).
 
 Sequence numbers never repeat across restarts: the host reserves them in blocks in
 ``<pack_id>.seq`` (written before a block is used) and writes the exact value at a clean
@@ -36,11 +36,11 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from bmsid.config.cell import CellConfig
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.daemon.sample_queue import SampleBlock
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
 from bmsid.publish.outbox import OutMessage
-from bmsid.samples import Sample
 
 if TYPE_CHECKING:
     # Imported where the bank is built: with process isolation the daemon itself never loads
@@ -181,12 +181,20 @@ class BankHost:
         return n
 
     # ------------------------------------------------------------------ samples
-    def update(self, batch: list[tuple[Sample, float]]) -> BatchResult:
-        """Feed a batch of (sample, monotonic time it was complete) to the bank."""
+    def update(self, block: SampleBlock) -> BatchResult:
+        """Feed a block of samples to the bank, in order."""
         estimates: list[Estimates] = []
         messages: list[OutMessage] = []
-        for sample, t_mono in batch:
-            est = self.bank.update(sample.t_s, sample.current_A, sample.cell_voltages_V)
+        volts = block.cell_voltages_V
+        for k, (t_s, current_A, t_mono) in enumerate(
+            zip(
+                block.t_s.tolist(),
+                block.current_A.tolist(),
+                block.t_complete_mono.tolist(),
+                strict=True,
+            )
+        ):
+            est = self.bank.update(t_s, current_A, volts[k])
             if est is None:
                 continue
             if self.spec.keep_all_estimates or not estimates:
@@ -281,7 +289,7 @@ class _ForwardToLogger(logging.Handler):
 
 
 class BankWorker:
-    """Parent-side handle: ``await start()``, ``await update(batch)``, ``await checkpoint()``.
+    """Parent-side handle: ``await start()``, ``await update(block)``, ``await checkpoint()``.
 
     Calls are serialised by the single worker; a dead child process raises
     ``concurrent.futures.process.BrokenProcessPool`` from the call (the daemon then exits
@@ -322,8 +330,8 @@ class BankWorker:
         log.debug("bank worker (%s) ready in %.2f s", self.isolation, time.monotonic() - t0)
         return info
 
-    async def update(self, batch: list[tuple[Sample, float]]) -> BatchResult:
-        result: BatchResult = await self._call("update", batch)
+    async def update(self, block: SampleBlock) -> BatchResult:
+        result: BatchResult = await self._call("update", block)
         return result
 
     async def checkpoint(self, clean: bool = False) -> dict[str, int]:

@@ -5,7 +5,7 @@
     CAN source (socketcan add_reader | virtual thread)      [sources.py]
         | batches of frames
         v
-    FrameToSamples (canbus)  --samples-->  bounded queue
+    FrameToSamples (canbus)  --samples-->  SampleQueue of columnar blocks   [sample_queue.py]
                                                 | batches (pickled)
                                                 v
                          bank worker process: EstimatorBank.update, MQTT JSON,
@@ -45,6 +45,7 @@ from bmsid.config.settings import Settings
 from bmsid.daemon.bank_worker import BankSpec, BankWorker
 from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey
+from bmsid.daemon.sample_queue import SampleBlock, SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
 from bmsid.errors import UserError
@@ -59,7 +60,9 @@ log = logging.getLogger(__name__)
 
 CAN_ERR_BUSOFF = 0x40
 LAG_INTERVAL_S = 0.05
+#: samples held while the bank is behind (the reader waits beyond that)
 SAMPLE_QUEUE = 50_000
+#: samples per block put in the queue, and per batch sent to the bank
 SAMPLE_BATCH = 64
 FRAMES_PER_YIELD = 64
 #: GIL switch interval of the daemon process: the loop gets the GIL back within 1 ms.
@@ -143,7 +146,11 @@ class Daemon:
         self.outbox: Outbox | None = None
         self.mqtt: MqttPublisher | None = None
         self._source: FrameSource | None = None
-        self._samples: asyncio.Queue[tuple[Sample, float]] | None = None
+        self._samples: SampleQueue | None = None
+        #: decoded samples not yet in the queue (and their completion times); always empty
+        #: while the reader awaits, so other tasks never see them missing
+        self._pending: list[Sample] = []
+        self._pending_mono: list[float] = []
         self._stop: asyncio.Event | None = None
         self._last_sample_mono = 0.0
         self._t_start = time.monotonic()
@@ -168,7 +175,7 @@ class Daemon:
 
     async def run(self) -> int:
         self._stop = asyncio.Event()
-        self._samples = asyncio.Queue(SAMPLE_QUEUE)
+        self._samples = SampleQueue(SAMPLE_QUEUE)
         self._t_start = time.monotonic()
         self.worker = BankWorker(self.bank_spec, self.settings.estimator.isolation)
         # ~120k long-lived objects (cantools' multiplexed DBC, pydantic, aiomqtt, numpy) make a
@@ -331,13 +338,17 @@ class Daemon:
                 try:
                     batch = await asyncio.wait_for(src.get_batch(), self.settings.can.staleness_s)
                 except TimeoutError:
-                    self._enqueue_samples(self.f2s.expire(time.time()))
+                    self._pend(self.f2s.expire(time.time()))
+                    if self._pending:
+                        with contextlib.suppress(asyncio.QueueFull):
+                            self._samples.put_nowait(self._take_block())
                     continue
             else:
                 batch = await src.get_batch()
             for n, msg in enumerate(batch, 1):
                 if n % FRAMES_PER_YIELD == 0:
                     # ~10 us a frame: yield now and then so a flood cannot starve timers
+                    await self._flush_samples()
                     await asyncio.sleep(0)
                 if msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF:
                     self.counters["bus_off"] += 1
@@ -346,26 +357,40 @@ class Daemon:
                     self._set_can_state("up")
                 samples = self.f2s.feed(msg)
                 if samples:
-                    for s in samples:
-                        await self._samples.put((s, time.monotonic()))
+                    self._pend(samples)
+                    if len(self._pending) >= SAMPLE_BATCH:
+                        await self._flush_samples()
+            await self._flush_samples()
 
-    def _enqueue_samples(self, samples: list[Sample]) -> None:
-        assert self._samples is not None
-        for s in samples:
-            with contextlib.suppress(asyncio.QueueFull):
-                self._samples.put_nowait((s, time.monotonic()))
+    def _pend(self, samples: list[Sample]) -> None:
+        now = time.monotonic()
+        self._pending += samples
+        self._pending_mono += [now] * len(samples)
+
+    def _take_block(self) -> SampleBlock:
+        block = SampleBlock.from_samples(self._pending, self._pending_mono)
+        self._pending, self._pending_mono = [], []
+        return block
+
+    async def _flush_samples(self) -> None:
+        """Queue the pending samples as one block (waits while the queue is full)."""
+        if self._pending:
+            assert self._samples is not None
+            await self._samples.put(self._take_block())
 
     # ------------------------------------------------------------------ estimator
     async def _estimate(self) -> None:
         q = self._samples
         assert q is not None and self.worker is not None
         while True:
-            batch = [await q.get()]
-            while len(batch) < SAMPLE_BATCH and not q.empty():
-                batch.append(q.get_nowait())
+            blocks = [await q.get()]
+            n = len(blocks[0])
+            while n < SAMPLE_BATCH and not q.empty():
+                blocks.append(q.get_nowait())
+                n += len(blocks[-1])
             self.counters["batches_in_flight"] += 1
             try:
-                result = await self.worker.update(batch)
+                result = await self.worker.update(SampleBlock.concat(blocks))
                 self._last_sample_mono = time.monotonic()
                 self.seq = result.seq
                 jumps = self.bank_counters.get("time_jumps_back", 0)
@@ -385,7 +410,7 @@ class Daemon:
                         self.outbox.put(msg)
             finally:
                 self.counters["batches_in_flight"] -= 1
-                for _ in batch:
+                for _ in blocks:
                     q.task_done()
 
     def _health(self, est: Estimates) -> int:
