@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import os
 import socket
@@ -213,3 +214,20 @@ def test_docs_carry_the_published_schemas() -> None:
         jsonschema.Draft202012Validator.check_schema(
             json.loads((SCHEMA_DIR / f"{name}.json").read_text())
         )
+
+
+def test_an_outbox_backlog_adds_no_work_for_the_garbage_collector() -> None:
+    """A broker outage queues many messages; a full collection on the loop must not walk them."""
+
+    async def main() -> tuple[int, int]:
+        box = Outbox(20_000)
+        gc.collect()
+        before = len(gc.get_objects())
+        for k in range(20_000):
+            box.put(OutMessage(f"bmsid/p/cell/{k % 96}", b'{"seq": %d}' % k, t_sample_mono=1.0))
+        gc.collect()
+        return len(gc.get_objects()) - before, len(box)
+
+    added, held = asyncio.run(main())
+    assert held == 20_000
+    assert added < 1_000
