@@ -30,7 +30,14 @@ from bmsid.config.settings import MqttSettings, load_settings
 from bmsid.daemon.core import Daemon
 from bmsid.errors import UserError
 from bmsid.publish import mqtt as mqtt_mod
-from bmsid.publish.mqtt import MqttPublisher, tls_context
+from bmsid.publish.mqtt import (
+    TLS_FAILED,
+    UNREACHABLE,
+    ConnectFailure,
+    MqttPublisher,
+    explain_failure,
+    tls_context,
+)
 from bmsid.publish.outbox import Outbox, OutMessage
 
 USER = "bmsid-gw"
@@ -646,3 +653,20 @@ def test_library_messages_are_redacted() -> None:
     pub._secret = PASSWORD
     pub._on_failure(mqtt_mod.ConnectFailure("unreachable", f"oops {PASSWORD} echoed"))
     assert pub.last_error == "oops ********** echoed"
+
+
+def test_an_unexplained_tls_close_keeps_the_earlier_certificate_diagnosis() -> None:
+    """TLS 1.3: a client certificate is rejected after the handshake, and the alert saying so
+    can be lost to a reset (seen in CI). The next attempt's bare close must not replace the
+    diagnosis with a vaguer one, but a different cause (refused) must."""
+    rejected = ConnectFailure(TLS_FAILED, "rejected the client certificate")
+    closed = ConnectFailure(UNREACHABLE, "closed during the TLS handshake", ambiguous=True)
+    refused = ConnectFailure(UNREACHABLE, "connection refused")
+    shown, kept = explain_failure(rejected, None)
+    assert shown is rejected and kept is rejected
+    shown, kept = explain_failure(closed, kept)
+    assert shown is rejected and kept is rejected
+    shown, kept = explain_failure(refused, kept)
+    assert shown is refused and kept is None
+    shown, kept = explain_failure(closed, kept)
+    assert shown is closed and kept is None

@@ -94,10 +94,29 @@ class ConnectFailure:
 
     state: str
     message: str
+    #: the broker closed the TLS connection without saying why (see :func:`explain_failure`)
+    ambiguous: bool = False
 
     @property
     def persistent(self) -> bool:
         return self.state in PERSISTENT_STATES
+
+
+def explain_failure(
+    failure: ConnectFailure, tls_diagnosis: ConnectFailure | None
+) -> tuple[ConnectFailure, ConnectFailure | None]:
+    """The failure to report for an attempt, and the TLS diagnosis to keep for the next one.
+
+    TLS 1.3 checks the client certificate after the client's side of the handshake is done;
+    the broker's alert that says why can be lost to a TCP reset, and the same rejection then
+    looks like an unexplained close. Until a connect succeeds, or another cause shows, an
+    ambiguous close keeps the definite TLS diagnosis of an earlier attempt.
+    """
+    if failure.state == TLS_FAILED:
+        return failure, failure
+    if failure.ambiguous and tls_diagnosis is not None:
+        return tls_diagnosis, tls_diagnosis
+    return failure, None
 
 
 class _SocketFailedError(Exception):
@@ -238,6 +257,7 @@ def _closed_during_handshake(settings: MqttSettings) -> ConnectFailure:
         f"the broker {host}:{port} closed the connection during the TLS handshake: is that "
         "port a TLS listener (mqtt:// for a plain one)? does it require a client certificate "
         "(mqtt.cert_file)?",
+        ambiguous=True,
     )
 
 
@@ -431,6 +451,8 @@ class MqttPublisher:
         self.state = CONNECTING
         self.last_error: str | None = None
         self.failed_attempts = 0
+        #: the last definite TLS failure since the last connect (see explain_failure)
+        self._tls_diagnosis: ConnectFailure | None = None
         self.counters: dict[str, int] = {
             "publishes": 0,
             "connects": 0,
@@ -512,7 +534,9 @@ class MqttPublisher:
                     client = self._client(client_log)
                     await self._connect(client, client_log)
                 except (UserError, aiomqtt.MqttError, _SocketFailedError) as exc:
-                    failure = classify_connect_error(exc, s, client_log.errors)
+                    failure, self._tls_diagnosis = explain_failure(
+                        classify_connect_error(exc, s, client_log.errors), self._tls_diagnosis
+                    )
                     self._on_failure(failure)
                 else:
                     t_connect = self._on_connected()
@@ -581,6 +605,7 @@ class MqttPublisher:
     def _on_connected(self) -> float:
         self.connected = True
         self.state = CONNECTED
+        self._tls_diagnosis = None
         self.counters["connects"] += 1
         n_short = self._short_sessions.counts.get("", 0)
         if self.failed_attempts:
