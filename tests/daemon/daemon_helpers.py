@@ -16,6 +16,7 @@ from typing import Any
 import can
 import numpy as np
 
+from bmsid.canbus.encoder import CLASSIC_PAGES
 from bmsid.canbus.frames_to_samples import FrameToSamples
 from bmsid.canbus.logs import read_log
 from bmsid.canbus.mapping import default_mapping
@@ -196,8 +197,9 @@ async def full_can_output_cycle(daemon: Daemon, timeout_s: float = 30.0) -> None
     """Wait until every cell's parameter frames went out again after this call, plus one round:
     a round already under way may carry the previous tick's estimates."""
     per_round = daemon.cycler.per_round
-    rounds = -(-daemon.settings.can.n_cells // per_round) + 1
-    frames_per_round = 1 + per_round * (1 if daemon.settings.can.output_fd else 3)
+    rounds = -(-daemon.cycler.n_cells // per_round) + 1
+    frames_per_cell = 1 if daemon.settings.can.output_fd else len(CLASSIC_PAGES)
+    frames_per_round = 1 + per_round * frames_per_cell  # the pack frame, then the cells'
     target = daemon.counters["can_frames_sent"] + rounds * frames_per_round
     await wait_for(
         lambda: daemon.counters["can_frames_sent"] >= target, timeout_s, "a full CAN output cycle"
