@@ -22,18 +22,18 @@ The real data are read from ``../shared/data/real`` (or ``$BMSID_REAL_DATA``); n
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import os
 import sys
 import tempfile
 from pathlib import Path
 
-from bmsid.cli.identify import load_config, parse_tuning
-from bmsid.cli.main import main as bmsid_main
+from bmsid.config.cell import save_cell_config
+from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning, Variant
-from bmsid.offline.csvio import read_tester_csv
-from bmsid.offline.identify import EvalWindow, run_tester, score
+from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.offline.inputs import load_config, parse_tuning
+from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
+from bmsid.offline.scoring import EvalWindow, score
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = Path(os.environ.get("BMSID_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
@@ -53,7 +53,8 @@ VARIANTS: tuple[Variant, ...] = ("non-hy-affrls", "hy-affrls", "hy-affrls-lpso")
 
 def rmse(path: Path, cfg: Path, variant: Variant, tuning: EstimatorTuning, window: EvalWindow,
          soc0: float | None = None) -> float:  # fmt: skip
-    res = run_tester(read_tester_csv(path), load_config(cfg), variant, tuning, soc0)
+    spec = IdentifySpec(cell=load_config(cfg), variant=variant, tuning=tuning, soc0=soc0)
+    res = identify_file(path, spec)
     return score(res.trace, window).window.rmse_V
 
 
@@ -62,12 +63,12 @@ def check_physics(tuning: EstimatorTuning) -> int:
     failures = 0
     with tempfile.TemporaryDirectory() as td:
         cfg = Path(td) / "dfn_fitted.toml"
-        with contextlib.redirect_stdout(io.StringIO()):
-            rc = bmsid_main(["fit-ocv", str(PHYSICS / "dfn_nmc_ocv_c20_25C.csv.gz"), "--out",
-                             str(cfg)])  # fmt: skip
-        if rc != 0:
+        try:  # what `bmsid fit-ocv dfn_nmc_ocv_c20_25C.csv.gz --out dfn_fitted.toml` writes
+            fit = fit_ocv_files([PHYSICS / "dfn_nmc_ocv_c20_25C.csv.gz"], OcvFitSpec(cfg.stem))
+        except UserError:
             print("fit-ocv failed on the physics OCV test")
             return 1
+        save_cell_config(fit.config, cfg)
         for prof in ("dst", "bbdst"):
             for temp in (15, 25, 35):
                 path = PHYSICS / f"dfn_nmc_{prof}_{temp}C.csv.gz"

@@ -10,22 +10,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from bmsid.estimate.bank import EstimatorBank
+from bmsid.config.engine import build_bank
 from bmsid.estimate.tuning import VARIANTS_T, EstimatorTuning, Variant
 from bmsid.metrics import voltage_metrics
+from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
 
 
 def score(run: SyntheticRun, variant: Variant, tuning: EstimatorTuning) -> dict[str, float]:
-    bank = EstimatorBank(run.cell, 1, variant, tuning, soc0=0.98)
+    bank = build_bank(run.cell, 1, variant, tuning, soc0=0.98)
+    est = bank.update_block(SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V))
     keys = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "v_model_V", "v_meas_V")
-    out: dict[str, list[float]] = {k: [] for k in keys}
-    for k in range(run.t_s.shape[0]):
-        est = bank.update(run.t_s[k], run.current_A[k], run.voltages_V[k])
-        if est is not None:
-            for key in keys:
-                out[key].append(float(getattr(est, key)[0]))
-    a = {k: np.asarray(v)[len(v) // 10 :] for k, v in out.items()}
+    a = {k: est[k][est.n_ticks // 10 :, 0] for k in keys}
     r0_true = run.R0_true_ohm[run.t_s.shape[0] // 10 :, 0]
     t = run.truth
     rsum_true = r0_true + t["R1_ohm"] + t["R2_ohm"]

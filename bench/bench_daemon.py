@@ -39,9 +39,9 @@ import numpy as np
 
 from bmsid.canbus.logs import csv_to_messages
 from bmsid.canbus.mapping import default_mapping
-from bmsid.cli.demo import _start_mosquitto
 from bmsid.config.settings import Settings
 from bmsid.daemon.core import SWITCH_INTERVAL_S, Daemon
+from bmsid.daemon.local_broker import start_mosquitto
 from bmsid.profiles import dst_current
 
 
@@ -227,7 +227,7 @@ def main() -> int:
         args.throughput_s, args.realtime_s, args.hours = 60.0, 10.0, 0.5
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     tmp = Path(tempfile.mkdtemp(prefix="bmsid-bench-"))
-    broker = _start_mosquitto(tmp)
+    broker = start_mosquitto(tmp)
     port = broker[1] if broker else None
     fpt = 1 + (args.cells + 3) // 4  # current frame + one frame per 4 cells
     results: dict[str, Any] = {"cells": args.cells, "mosquitto": broker is not None}

@@ -1,11 +1,13 @@
-"""Wall time of ``bmsid identify`` per variant on a DST file, beside the paper's run times.
+"""Wall time of an offline identification per variant on a DST file, beside the paper's run times.
 
 Input: the physics 15 C DST file (``data/physics/dfn_nmc_dst_15C.csv.gz``, 12,588 samples at
 1 s) with a cell config fitted by ``bmsid fit-ocv`` from ``data/physics/dfn_nmc_ocv_c20_25C``
 when both exist, else a synthetic DST run of the paper's 70 Ah cell (8,250 samples, the length
-of the paper's DST test) generated here. Each variant runs the whole command in-process
-(CSV read, identification, params.csv, metrics.json, plots); "loop" is the identification loop
-alone (``runtime_s`` in metrics.json). The paper: 18.7-22.3 s per DST run (MATLAB, their PC).
+of the paper's DST test) generated here. Each variant calls the library function behind
+``bmsid identify``, :func:`bmsid.offline.identify.identify_file`, in-process (cell config load,
+CSV read, identification, params.csv, metrics.json, plots: the command without its argument
+parsing and printing); "loop" is the identification alone (``runtime_s`` in metrics.json).
+The paper: 18.7-22.3 s per DST run (MATLAB, their PC).
 
     PYTHONPATH=service python bench/bench_identify.py [--input FILE --cell-config FILE]
 """
@@ -13,8 +15,6 @@ alone (``runtime_s`` in metrics.json). The paper: 18.7-22.3 s per DST run (MATLA
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import tempfile
 import time
@@ -22,12 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell, save_cell_config
+from bmsid.config.engine import ocv_model
+from bmsid.errors import UserError
 from bmsid.estimate.types import VARIANTS
-from bmsid.model.ocv import OcvModel
 from bmsid.model.simulator import simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
+from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.offline.inputs import load_config
+from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
 from bmsid.offline.report import PAPER_RUNTIME_S
 from bmsid.profiles import dst_current
 
@@ -42,7 +45,7 @@ def synthetic_dst(tmp: Path, n: int = 8250) -> tuple[Path, Path]:
     t = np.arange(n, dtype=float)
     i = dst_current(t, 2.0 * cell.capacity_Ah)
     sim = simulate(
-        t, i, OcvModel.from_cell(cell), capacity_Ah=cell.capacity_Ah, R0_ohm=1.2e-3,
+        t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah, R0_ohm=1.2e-3,
         R1_ohm=0.8e-3, tau1_s=30.0, R2_ohm=1.0e-3, tau2_s=600.0, gamma=30.0, soc0=0.95,
     )  # fmt: skip
     v = sim.v_V[0] + np.random.default_rng(0).normal(0.0, 1e-3, n)
@@ -54,11 +57,13 @@ def synthetic_dst(tmp: Path, n: int = 8250) -> tuple[Path, Path]:
 
 
 def physics_config(tmp: Path) -> Path:
+    """``bmsid fit-ocv`` of the physics OCV test (chemistry NMC), saved as a cell config."""
     cfg = tmp / "dfn_fitted.toml"
-    with contextlib.redirect_stdout(io.StringIO()):
-        rc = main(["fit-ocv", str(PHYSICS_OCV), "--out", str(cfg), "--chemistry", "NMC"])
-    if rc != 0:
-        raise SystemExit(f"fit-ocv failed on {PHYSICS_OCV}")
+    try:
+        fit = fit_ocv_files([PHYSICS_OCV], OcvFitSpec(cfg.stem, chemistry="NMC"))
+    except UserError as exc:
+        raise SystemExit(f"fit-ocv failed on {PHYSICS_OCV}: {exc}") from None
+    save_cell_config(fit.config, cfg)
     return cfg
 
 
@@ -82,14 +87,12 @@ def main_bench() -> None:
               f"{'RMSE mV':>8}")  # fmt: skip
         for variant in VARIANTS:
             out = tmp / variant
-            argv = ["identify", str(src), "--out", str(out), "--algorithm", variant,
-                    "--cell-config", str(cfg)]  # fmt: skip
             t0 = time.perf_counter()
-            with contextlib.redirect_stdout(io.StringIO()):
-                rc = main(argv)
+            try:
+                identify_file(src, IdentifySpec(cell=load_config(cfg), variant=variant), out)
+            except UserError as exc:
+                raise SystemExit(f"identify failed for {variant}: {exc}") from None
             wall = time.perf_counter() - t0
-            if rc != 0:
-                raise SystemExit(f"identify failed for {variant}")
             doc = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
             n = int(doc["n_input_samples"])
             print(

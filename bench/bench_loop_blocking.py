@@ -30,8 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_daemon
-from bmsid.cli.demo import _start_mosquitto
 from bmsid.daemon.core import SWITCH_INTERVAL_S
+from bmsid.daemon.local_broker import start_mosquitto
 
 SLOW_S = 0.001
 _walls: list[float] = []
@@ -80,7 +80,7 @@ def main() -> int:
     realtime: dict[str, Any] = {}
     if args.realtime_s is not None:
         scenario = f"real time 10 Hz for {args.realtime_s:g} s"
-        broker = _start_mosquitto(tmp)
+        broker = start_mosquitto(tmp)
         n_ticks = int(args.realtime_s * 10)
         frames = bench_daemon._pack_frames(args.cells, n_ticks, 10.0, 0.0)
         port = broker[1] if broker else None
@@ -93,7 +93,7 @@ def main() -> int:
         settings = bench_daemon._settings("loop-blocking", args.cells, None, tmp / "state")
     else:
         scenario = f"{args.replay_hours:g} h replay"
-        broker = _start_mosquitto(tmp)
+        broker = start_mosquitto(tmp)
         n_ticks = int(args.replay_hours * 3600)
         frames = bench_daemon._pack_frames(args.cells, n_ticks, 1.0, 1.7e9)
         port = broker[1] if broker else None

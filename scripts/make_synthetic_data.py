@@ -17,14 +17,14 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.config.cell import paper_cell, save_cell_config
-from bmsid.model.ocv import OcvModel
+from bmsid.config.engine import ocv_model
 from bmsid.model.simulator import simulate
 from bmsid.profiles import dst_current
 from bmsid.synthetic import TRUTH, dst_run_length_s
 
 FloatArray = npt.NDArray[np.float64]
 CELL = paper_cell(M_V=0.015, gamma=30.0)
-OCV = OcvModel.from_cell(CELL)
+OCV = ocv_model(CELL)
 PEAK_A = 140.0  # DST 100 % = 2C of the 70 Ah cell
 V_NOISE_V, I_NOISE_A = 1e-3, 0.05
 

@@ -1,10 +1,13 @@
-"""The README's generated tables: the CAN contract (read from the DBC by cantools) and the
-configuration reference (walked from the pydantic settings model and its field docstrings).
+"""Generated documentation: the README's tables -- the CAN contract (read from the DBC by
+cantools) and the configuration reference (walked from the pydantic settings model and its field
+docstrings) -- and the MQTT cell schema (built from ``estimate/fields.py``'s ``CELL_FIELDS``).
 
-    python -m bmsid.docgen            # rewrite the generated blocks of README.md
-    python -m bmsid.docgen --check    # exit 1 when README.md is not current (tests run this)
+    python -m bmsid.docgen            # rewrite the README's blocks and the generated files
+    python -m bmsid.docgen --check    # exit 1 when any of them is not current (tests run this)
 
-A block lies between ``<!-- generated:NAME -->`` and ``<!-- end generated:NAME -->``.
+A block lies between ``<!-- generated:NAME -->`` and ``<!-- end generated:NAME -->``. The schema
+is written whole, to ``publish/schemas/cell.json`` (shipped in the package) and to its copy in
+``docs/mqtt-schemas/`` beside the README.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
 from bmsid.config.settings import Settings
+from bmsid.publish import payloads
 
 PACKAGE_DBC = Path(__file__).resolve().parent / "dbc" / "bmsid.dbc"
 
@@ -171,22 +175,51 @@ def render(readme: str) -> str:
     return readme
 
 
+# ---------------------------------------------------------------------- whole files
+def generated_files(repo: Path) -> dict[Path, str]:
+    """Path -> content of every file generated whole; ``repo`` is the README's directory."""
+    cell = payloads.schema_text(payloads.cell_schema())
+    out = {payloads.CELL_SCHEMA_PATH: cell}
+    docs = repo / "docs" / "mqtt-schemas"
+    if docs.is_dir():  # a source checkout; an installed package has no docs/
+        out[docs / "cell.json"] = cell
+    return out
+
+
+def stale_files(repo: Path) -> dict[Path, str]:
+    """The generated files whose content on disk is not current (path -> what it should be)."""
+    return {
+        path: text
+        for path, text in generated_files(repo).items()
+        if not path.is_file() or path.read_text(encoding="utf-8") != text
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--readme", type=Path, default=Path("README.md"))
-    ap.add_argument("--check", action="store_true", help="exit 1 if the README is not current")
+    ap.add_argument(
+        "--check", action="store_true", help="exit 1 if anything generated is not current"
+    )
     args = ap.parse_args(argv)
     text = args.readme.read_text(encoding="utf-8")
     new = render(text)
+    stale = stale_files(args.readme.resolve().parent)
     if args.check:
+        for path in stale:
+            print(f"{path}: stale; run: python -m bmsid.docgen")
         if new != text:
             print(f"{args.readme}: generated tables are stale; run: python -m bmsid.docgen")
+        if stale or new != text:
             return 1
         print(f"{args.readme}: generated tables are current")
         return 0
     if new != text:
         args.readme.write_text(new, encoding="utf-8")
         print(f"updated {args.readme}")
+    for path, content in stale.items():
+        path.write_text(content, encoding="utf-8")
+        print(f"updated {path}")
     return 0
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig, paper_cell
-from bmsid.model.ocv import OcvModel
+from bmsid.config.engine import ocv_model
 from bmsid.model.simulator import simulate
 from bmsid.profiles import DST_STEPS, cycle_mean, dst_current
 
@@ -60,7 +60,7 @@ def paper_dst_case(
     mult = np.ones(1) if r0_spread is None else np.asarray(r0_spread, dtype=np.float64)
     r0 = TRUTH["R0_ohm"] * mult[:, None] * (1.0 + r0_ramp * t / max(t[-1], 1.0))[None, :]
     sim = simulate(
-        t, i, OcvModel.from_cell(cell), capacity_Ah=cell.capacity_Ah, R0_ohm=r0,
+        t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah, R0_ohm=r0,
         R1_ohm=TRUTH["R1_ohm"], tau1_s=TRUTH["tau1_s"], R2_ohm=TRUTH["R2_ohm"],
         tau2_s=TRUTH["tau2_s"], gamma=cell.hysteresis.gamma, soc0=soc0, n_sets=mult.shape[0],
     )  # fmt: skip

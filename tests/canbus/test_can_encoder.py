@@ -37,7 +37,8 @@ def estimates(n: int = 3, **over: float) -> Estimates:
     fields = {k: arr(v) for k, v in base.items()}
     fields["C1_F"] = fields["tau1_s"] / fields["R1_ohm"]
     fields["C2_F"] = fields["tau2_s"] / fields["R2_ohm"]
-    return Estimates(t_s=5.0, current_A=1.0, quality=np.full(n, 1, dtype=np.int64), **fields)
+    fields["v_error_V"] = fields["v_meas_V"] - fields["v_model_V"]
+    return Estimates(t_s=5.0, current_A=1.0, cells=fields, quality=np.full(n, 1, dtype=np.int64))
 
 
 EXPECT = {
@@ -100,7 +101,7 @@ def test_pack_frame() -> None:
     enc = ParameterEncoder()
     est = estimates(4)
     r0 = np.array([1e-3, 3e-3, np.nan, 2e-3])
-    est = Estimates(**{**{f: getattr(est, f) for f in est.__dataclass_fields__}, "R0_ohm": r0})
+    est = Estimates(est.t_s, est.current_A, {**est.cells, "R0_ohm": r0}, est.quality)
     d = enc.decode(enc.pack_frame(est, health=2))
     assert d is not None
     assert d["R0_min_ohm"] == pytest.approx(1e-3) and d["R0_max_ohm"] == pytest.approx(3e-3)

@@ -20,11 +20,12 @@ from bmsid.canbus.encoder import CLASSIC_PAGES
 from bmsid.canbus.frames_to_samples import FrameToSamples
 from bmsid.canbus.logs import read_log
 from bmsid.canbus.mapping import default_mapping
+from bmsid.config.engine import build_bank
 from bmsid.config.settings import Settings
 from bmsid.daemon.core import Daemon
 from bmsid.daemon.demo_data import DEMO_LOG, N_CELLS
-from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.types import Estimates
+from bmsid.samples import SampleBlock
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "service" / "bmsid" / "publish" / "schemas"
 #: Short swarm windows so the LPSO fusion runs within a few hundred seconds of data.
@@ -97,23 +98,20 @@ def make_settings(tmp_path: Path, port: int | None, **sections: Any) -> Settings
 
 
 def offline_estimates(frames: list[can.Message], settings: Settings) -> dict[float, Estimates]:
-    """What the bank computes from the same frames, offline: sample time -> estimates."""
+    """What the bank computes from the same frames, offline: tick time -> estimates."""
     f2s = FrameToSamples(default_mapping(), settings.can.n_cells, settings.can.staleness_s)
     est_cfg = settings.estimator
-    bank = EstimatorBank(
+    bank = build_bank(
         est_cfg.load_cell(),
         settings.can.n_cells,
         est_cfg.variant,
         est_cfg.tuning,
         soc0=est_cfg.soc0,
     )
-    out: dict[float, Estimates] = {}
-    for m in frames:
-        for s in f2s.feed(m):
-            e = bank.update(s.t_s, s.current_A, s.cell_voltages_V)
-            if e is not None:
-                out[e.t_s] = e
-    return out
+    samples = [s for m in frames for s in f2s.feed(m)]
+    if not samples:
+        return {}
+    return {e.t_s: e for e in bank.update_block(SampleBlock.from_samples(samples)).rows()}
 
 
 class MqttCapture:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import subprocess
 import sys
@@ -12,11 +13,19 @@ import numpy as np
 import pytest
 
 from bmsid.config.cell import paper_cell
-from bmsid.daemon.bank_worker import SEQ_BLOCK, BankHost, BankSpec, BankWorker, Isolation
+from bmsid.config.engine import build_bank
+from bmsid.daemon.bank_worker import (
+    SEQ_BLOCK,
+    BankHost,
+    BankSpec,
+    BankWorker,
+    Isolation,
+    samples_per_tick,
+    tick_samples,
+)
 from bmsid.daemon.checkpoint import CheckpointKey
-from bmsid.daemon.sample_queue import SampleBlock
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.samples import Sample
+from bmsid.samples import Sample, SampleBlock
 
 N_CELLS = 4
 TUNING = EstimatorTuning(min_window_s=60.0, window_s=120.0, swarm_period_s=40.0)
@@ -74,6 +83,82 @@ def test_process_and_thread_isolation_publish_identical_messages(tmp_path: Path)
     assert json.loads(a[-1])["seq"] == len(a) - 1
 
 
+def _block_10hz(seconds: int) -> SampleBlock:
+    """``seconds`` of 10 Hz samples, twice: the time base jumps back (beyond ``gap_s``) to its
+    start halfway, so tick times repeat within the block; every sample has its own mono time."""
+    rng = np.random.default_rng(3)
+    n = 10 * seconds
+    t = np.tile(1000.0 + 0.1 * np.arange(n), 2)
+    i = 60.0 * np.sin(t / 9.0) + 30.0 * np.sign(np.sin(t / 37.0))
+    v = 3.7 - 0.002 * i[:, None] + rng.normal(0.0, 5e-4, (2 * n, N_CELLS))
+    return SampleBlock(
+        t, i, v, t_complete_mono=np.asarray(5000.0 + 1e-3 * np.arange(t.size), np.float64)
+    )
+
+
+def test_each_tick_publishes_with_the_completion_time_of_its_own_sample(tmp_path: Path) -> None:
+    seconds = 45  # > gap_s (30 s): the jump back is one, not a run of rejected samples
+    block = _block_10hz(seconds)
+    mono = block.t_complete_mono
+    assert mono is not None
+    # Reference: the sample at which a bank fed one sample at a time returns each tick.
+    ref = build_bank(paper_cell(), N_CELLS, "hy-affrls-lpso", TUNING, soc0=0.8)
+    completing = [
+        k
+        for k in range(len(block))
+        if ref.update(float(block.t_s[k]), float(block.current_A[k]), block.cell_voltages_V[k])
+        is not None
+    ]
+    assert len(completing) > 2 * seconds - 5  # about one tick per 10 samples
+    spec = _spec(tmp_path, restore=False, keep_all_estimates=True)
+    assert samples_per_tick(block.t_s, spec.tuning.id_period_s) == 10  # fed in many chunks
+    host = BankHost(spec)
+    host.start()
+    result = host.update(block)
+    assert result.counters["time_jumps_back"] == 1
+    times = [e.t_s for e in result.estimates]
+    assert len(set(times)) < len(times)  # tick times do repeat
+    assert times == [float(block.t_s[k]) for k in completing]
+    want = [float(mono[k]) for k in completing for _ in range(N_CELLS + 1)]
+    assert [m.t_sample_mono for m in result.messages] == want
+    # How the daemon happens to batch the samples changes nothing.
+    other = BankHost(_spec(tmp_path / "b", restore=False, keep_all_estimates=True))
+    other.start()
+    cuts = [*range(0, len(block), 37), len(block)]
+    msgs = [
+        m for a, b in itertools.pairwise(cuts) for m in other.update(block.slice(a, b)).messages
+    ]
+    assert [(m.payload, m.t_sample_mono) for m in msgs] == [
+        (m.payload, m.t_sample_mono) for m in result.messages
+    ]
+
+
+def test_only_the_newest_estimate_returns_unless_all_are_kept(tmp_path: Path) -> None:
+    host = BankHost(_spec(tmp_path, restore=False))
+    host.start()
+    result = host.update(_samples(0.0, 20))
+    assert [e.t_s for e in result.estimates] == [19.0]
+    assert len(result.messages) == 20 * (N_CELLS + 1)
+
+
+def test_tick_samples_walks_forward_over_repeated_times() -> None:
+    t = np.array([0.0, 1.0, 2.0, 0.0, 1.0, 2.0, np.nan])
+    assert tick_samples(t, np.array([1.0, 2.0, 0.0, 2.0])).tolist() == [1, 2, 3, 5]
+    assert tick_samples(t, np.zeros(0)).tolist() == []
+    with pytest.raises(ValueError, match="matches no sample"):
+        tick_samples(t, np.array([2.0, 1.5]))
+
+
+def test_chunks_span_one_tick() -> None:
+    assert samples_per_tick(np.asarray(1.7e9 + 0.1 * np.arange(50), np.float64), 1.0) == 10
+    assert samples_per_tick(np.arange(50.0), 1.0) == 1
+    assert samples_per_tick(np.arange(50.0), 2.0) == 2
+    assert samples_per_tick(np.array([5.0]), 1.0) == 1
+    # gaps, a jump back and a missing time do not move the median sample period
+    t = np.r_[0.1 * np.arange(30), 100.0 + 0.1 * np.arange(30), 0.1 * np.arange(30), np.nan]
+    assert samples_per_tick(t, 1.0) == 10
+
+
 def test_sequence_continues_after_clean_stop_and_jumps_after_crash(tmp_path: Path) -> None:
     spec = _spec(tmp_path)
     host = BankHost(spec)
@@ -86,6 +171,7 @@ def test_sequence_continues_after_clean_stop_and_jumps_after_crash(tmp_path: Pat
     again = BankHost(spec)
     info = again.start()
     assert info.restored and info.seq == used
+    assert info.t_s == 19.0  # the newest sample: where a restarted replay resumes
     again.update(_samples(20.0, 10))
     crashed_at = again.seq
     again.checkpoint(clean=False)  # periodic checkpoint, then "kill -9"

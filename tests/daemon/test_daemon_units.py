@@ -17,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.config.cell import paper_cell
+from bmsid.config.engine import build_bank
 from bmsid.daemon.canout import CellCycler, frame_bits, frames_budget, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
 from bmsid.daemon.sdnotify import SdNotifier
@@ -24,7 +25,7 @@ from bmsid.errors import UserError
 from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
-from bmsid.publish.discovery import SENSORS, discovery_messages
+from bmsid.publish.discovery import cell_sensor_keys, discovery_messages
 from bmsid.publish.outbox import Outbox, OutMessage
 
 KEY = CheckpointKey("p1", 3, "abc")
@@ -44,14 +45,14 @@ def _run_bank(bank: EstimatorBank, t: np.ndarray, seed: int = 0) -> list[Estimat
 
 def test_checkpoint_round_trip_continues_identically(tmp_path: Path) -> None:
     cell = paper_cell()
-    a = EstimatorBank(cell, 3)
+    a = build_bank(cell, 3)
     _run_bank(a, np.arange(0.0, 400.0))
     path = tmp_path / "c.npz"
     save_checkpoint(path, KEY, a.state_dict(), extra={"seq": 7})
     assert [p.name for p in tmp_path.iterdir()] == ["c.npz"]  # no temp file left behind
     ck = load_checkpoint(path, KEY)
     assert ck is not None and ck.extra["seq"] == 7
-    b = EstimatorBank(cell, 3)
+    b = build_bank(cell, 3)
     b.load_state_dict(ck.state)
     ea = _run_bank(a, np.arange(400.0, 450.0), seed=1)
     eb = _run_bank(b, np.arange(400.0, 450.0), seed=1)
@@ -83,24 +84,29 @@ def _estimates(n: int, rng: np.random.Generator) -> Estimates:
     def r(lo: float, hi: float) -> np.ndarray:
         return rng.uniform(lo, hi, n)
 
+    v_model, v_meas = r(2.5, 4.2), np.where(rng.random(n) < 0.2, np.nan, r(2.5, 4.2))
+    cells = {
+        "R0_ohm": r(1e-4, 0.1),
+        "R1_ohm": r(1e-4, 0.1),
+        "C1_F": r(10, 1e6),
+        "R2_ohm": r(1e-4, 0.1),
+        "C2_F": r(10, 1e6),
+        "tau1_s": r(0.5, 200),
+        "tau2_s": r(20, 8000),
+        "lambda_": r(0.9, 1.0),
+        "h": r(-1, 1),
+        "soc": r(0, 1),
+        "v_model_V": v_model,
+        "v_meas_V": v_meas,
+        "v_error_V": v_meas - v_model,
+        "M_V": r(0, 0.05),
+        "ocv_offset_V": r(-0.1, 0.1),
+        "arx_error_V": r(-0.01, 0.01),
+    }
     return Estimates(
         t_s=1.7e9 + rng.uniform(0, 1e5),
         current_A=float(rng.uniform(-300, 300)),
-        R0_ohm=r(1e-4, 0.1),
-        R1_ohm=r(1e-4, 0.1),
-        C1_F=r(10, 1e6),
-        R2_ohm=r(1e-4, 0.1),
-        C2_F=r(10, 1e6),
-        tau1_s=r(0.5, 200),
-        tau2_s=r(20, 8000),
-        M_V=r(0, 0.05),
-        ocv_offset_V=r(-0.1, 0.1),
-        lambda_=r(0.9, 1.0),
-        h=r(-1, 1),
-        soc=r(0, 1),
-        v_model_V=r(2.5, 4.2),
-        v_meas_V=np.where(rng.random(n) < 0.2, np.nan, r(2.5, 4.2)),
-        arx_error_V=r(-0.01, 0.01),
+        cells=cells,
         quality=rng.integers(0, 4, n).astype(np.int64),
     )
 
@@ -181,7 +187,7 @@ def test_cell_cycler_wraps() -> None:
 
 def test_discovery_messages() -> None:
     msgs = discovery_messages("homeassistant", "bmsid", "p-1", 2, "0.1.0")
-    assert len(msgs) == 2 * len(SENSORS) + 3
+    assert len(msgs) == 2 * len(cell_sensor_keys()) + 3
     ids = set()
     for topic, payload in msgs:
         cfg = json.loads(payload)

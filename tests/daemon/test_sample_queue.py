@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bmsid.daemon.sample_queue import SampleBlock, SampleQueue
-from bmsid.samples import Sample
+from bmsid.daemon.sample_queue import SampleQueue
+from bmsid.samples import Sample, SampleBlock
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 voltage = st.floats(allow_infinity=False, width=64)  # NaN = a missing cell
@@ -46,6 +46,7 @@ def test_blocks_carry_every_sample_exactly_and_in_order(
     for k, s in enumerate(flat):
         assert block.t_s[k] == s.t_s and block.current_A[k] == s.current_A
         np.testing.assert_array_equal(block.cell_voltages_V[k], s.cell_voltages_V)
+    assert block.t_complete_mono is not None
     assert block.t_complete_mono.tolist() == [float(k) for c in samples for k in range(len(c))]
 
 

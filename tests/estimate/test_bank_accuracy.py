@@ -9,10 +9,9 @@ import numpy.typing as npt
 import pytest
 
 from bmsid.config.cell import paper_cell
-from bmsid.estimate.bank import EstimatorBank
+from bmsid.config.engine import build_bank, ocv_model
 from bmsid.estimate.tuning import Variant
 from bmsid.metrics import voltage_metrics
-from bmsid.model.ocv import OcvModel
 from bmsid.model.simulator import simulate
 from bmsid.profiles import dst_current
 from bmsid.synthetic import SyntheticRun, paper_dst_case
@@ -28,7 +27,7 @@ def _case(ramp: float) -> SyntheticRun:
 @cache
 def _run(variant: Variant, ramp: float = 0.0) -> dict[str, Arr]:
     run = _case(ramp)
-    bank = EstimatorBank(run.cell, 1, variant, soc0=0.98)
+    bank = build_bank(run.cell, 1, variant, soc0=0.98)
     keys = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "v_model_V", "v_meas_V", "lambda_")
     out: dict[str, list[float]] = {k: [] for k in keys}
     for k in range(run.t_s.shape[0]):
@@ -85,11 +84,11 @@ def test_sample_periods_from_10_ms_to_10_s_identify_the_same_cell(
     cell = paper_cell(M_V=0.015, gamma=30.0)
     t = np.arange(0.0, duration_s, dt_s)
     i = dst_current(t, 140.0)
-    sim = simulate(t, i, OcvModel.from_cell(cell), capacity_Ah=70.0, R0_ohm=1.2e-3,
+    sim = simulate(t, i, ocv_model(cell), capacity_Ah=70.0, R0_ohm=1.2e-3,
                    R1_ohm=0.8e-3, tau1_s=32.0, R2_ohm=1.0e-3, tau2_s=600.0, gamma=30.0,
                    soc0=0.98)  # fmt: skip
     v = sim.v_V[0] + np.random.default_rng(0).normal(0.0, 1e-3, t.size)
-    bank = EstimatorBank(cell, 1, "hy-affrls-lpso", soc0=0.98)
+    bank = build_bank(cell, 1, "hy-affrls-lpso", soc0=0.98)
     last = None
     for k in range(t.size):
         est = bank.update(t[k], i[k], v[k : k + 1])

@@ -7,14 +7,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.config.cell import paper_cell
-from bmsid.estimate.bank import EstimatorBank
+from bmsid.config.engine import build_bank, ocv_model
 from bmsid.estimate.tuning import VARIANTS_T, EstimatorTuning
 from bmsid.estimate.types import Estimates
-from bmsid.model.ocv import OcvModel
 from bmsid.model.simulator import simulate
 
 CELL = paper_cell()
-OCV = OcvModel.from_cell(CELL)
+OCV = ocv_model(CELL)
 # Short windows so that swarms run within the few hundred samples hypothesis can afford.
 FAST = EstimatorTuning(window_s=240.0, min_window_s=60.0, swarm_period_s=90.0, n_iter=4,
                        n_iter_first=5, n_particles=6, excitation_C=0.0)  # fmt: skip
@@ -79,7 +78,7 @@ def test_hostile_profiles_stay_finite_and_bounded(
     v[nan_mask] = np.nan
     i_in = i.copy()
     i_in[nan_mask & (rng.random(t.shape[0]) < 0.5)] = np.nan
-    bank = EstimatorBank(CELL, 1, variant, FAST, soc0=0.6)  # type: ignore[arg-type]
+    bank = build_bank(CELL, 1, variant, FAST, soc0=0.6)  # type: ignore[arg-type]
     for k in range(t.shape[0]):
         est = bank.update(float(t[k]), float(i_in[k]), v[k : k + 1])
         if est is not None:
@@ -87,7 +86,7 @@ def test_hostile_profiles_stay_finite_and_bounded(
 
 
 def test_time_going_backwards_is_dropped_and_counted() -> None:
-    bank = EstimatorBank(CELL, 2, "hy-affrls-lpso", soc0=0.5)
+    bank = build_bank(CELL, 2, "hy-affrls-lpso", soc0=0.5)
     assert bank.update(10.0, 1.0, [3.7, 3.7]) is not None
     assert bank.update(9.0, 1.0, [3.7, 3.7]) is None
     assert bank.update(10.0, 1.0, [3.7, 3.7]) is None
@@ -97,10 +96,11 @@ def test_time_going_backwards_is_dropped_and_counted() -> None:
 def test_time_base_restart_starts_a_new_segment_keeping_the_state() -> None:
     """A clock set back (replay from the start, gateway without RTC after a restart from a
     checkpoint) must not stall the bank: every later sample would look 'non-increasing'."""
-    bank = EstimatorBank(CELL, 2, "hy-affrls-lpso", FAST, soc0=0.6)
+    bank = build_bank(CELL, 2, "hy-affrls-lpso", FAST, soc0=0.6)
     for k in range(600):
-        bank.update(1000.0 + k, 40.0 * np.sin(k / 9.0), [3.7, 3.71])
-    soc, r0 = bank.z.copy(), np.asarray(bank.state_dict()["R0"]).copy()
+        last = bank.update(1000.0 + k, 40.0 * np.sin(k / 9.0), [3.7, 3.71])
+    assert last is not None
+    soc, r0 = last.soc.copy(), last.R0_ohm.copy()
     ests = []
     for k in range(300):
         est = bank.update(10.0 + k, 40.0 * np.sin(k / 9.0), [3.7, 3.71])
@@ -119,10 +119,10 @@ def test_checkpoint_round_trip_continues_identically() -> None:
     i = 50 * np.sin(t / 20.0)
     sim = simulate(t, i, OCV, capacity_Ah=70, R0_ohm=1.2e-3, R1_ohm=0.8e-3, tau1_s=32,
                    R2_ohm=1e-3, tau2_s=600, gamma=30, soc0=0.6)  # fmt: skip
-    a = EstimatorBank(CELL, 1, "hy-affrls", FAST, soc0=0.6)
+    a = build_bank(CELL, 1, "hy-affrls", FAST, soc0=0.6)
     for k in range(500):
         a.update(t[k], i[k], sim.v_V[0, k : k + 1])
-    b = EstimatorBank(CELL, 1, "hy-affrls", FAST, soc0=0.1)
+    b = build_bank(CELL, 1, "hy-affrls", FAST, soc0=0.1)
     b.load_state_dict(a.state_dict())
     for k in range(500, 900):
         ea = a.update(t[k], i[k], sim.v_V[0, k : k + 1])

@@ -7,12 +7,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.config.cell import paper_cell
-from bmsid.model.hysteresis import hysteresis_step
-from bmsid.model.ocv import OcvModel
+from bmsid.config.engine import ocv_model
+from bmsid.model.ecm import hysteresis_step
 from bmsid.model.simulator import simulate
 
 CELL = paper_cell(M_V=0.015, gamma=30.0)
-OCV = OcvModel.from_cell(CELL)
+OCV = ocv_model(CELL)
 
 
 def test_step_response_matches_the_analytic_solution() -> None:

@@ -13,8 +13,8 @@ import pytest
 
 from bmsid.config.cell import load_cell_config
 from bmsid.estimate.tuning import Variant
-from bmsid.offline.csvio import read_tester_csv
-from bmsid.offline.identify import EvalWindow, run_tester, score
+from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.offline.scoring import EvalWindow, score
 
 REPO = Path(__file__).resolve().parents[2]
 CELLS = REPO / "configs" / "cells"
@@ -25,7 +25,8 @@ SOC_15_95 = EvalWindow(skip_fraction=0.0, soc_lo=0.15, soc_hi=0.95)
 def _rmse(
     path: Path, cfg: Path, variant: Variant, window: EvalWindow, soc0: float | None = None
 ) -> float:
-    res = run_tester(read_tester_csv(path), load_cell_config(cfg), variant, None, soc0)
+    spec = IdentifySpec(cell=load_cell_config(cfg), variant=variant, soc0=soc0)
+    res = identify_file(path, spec)
     return score(res.trace, window).window.rmse_V
 
 

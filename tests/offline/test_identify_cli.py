@@ -16,12 +16,15 @@ from hypothesis import strategies as st
 
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell, save_cell_config
-from bmsid.model.ocv import OcvModel
+from bmsid.config.engine import ocv_model
+from bmsid.estimate.fields import FIELD_NAMES
+from bmsid.estimate.types import EstimateBlock
 from bmsid.model.simulator import simulate
-from bmsid.offline.identify import CELL_FIELDS, EvalWindow, Trace
+from bmsid.offline.scoring import EvalWindow
 
 PARAMS_HEADER = (
-    "t_s,cell,R0_ohm,R1_ohm,C1_F,R2_ohm,C2_F,tau1_s,tau2_s,lambda,h,soc,v_model_V,v_meas_V,quality"
+    "t_s,cell,R0_ohm,R1_ohm,C1_F,R2_ohm,C2_F,tau1_s,tau2_s,lambda,h,soc,v_model_V,v_meas_V,"
+    "v_error_V,M_V,ocv_offset_V,arx_error_V,quality"
 )
 METRIC_KEYS = ("algorithm", "n_samples", "max_abs_error_V", "rmse_V", "mape_pct", "runtime_s")
 TRUTH = {"R0_ohm": 1.2e-3, "R1_ohm": 0.8e-3, "tau1_s": 30.0, "R2_ohm": 1.0e-3, "tau2_s": 600.0}
@@ -42,7 +45,7 @@ def synthetic_columns(
     cols: dict[str, np.ndarray] = {"t_s": t, "current_A": i}
     for c in range(n_cells):
         sim = simulate(
-            t, i, OcvModel.from_cell(cell), capacity_Ah=cell.capacity_Ah, gamma=30.0,
+            t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah, gamma=30.0,
             soc0=0.95, **{**TRUTH, "R0_ohm": TRUTH["R0_ohm"] * (1 + 0.1 * c)},
         )  # fmt: skip
         name = "voltage_V" if n_cells == 1 else f"v_cell_{c + 1:02d}"
@@ -119,7 +122,7 @@ def test_fitted_config_matches_the_true_ocv(dst_csv: Path, lpso_run: Path, tmp_p
     current = np.concatenate([rest, np.full(n_cc, i_A), rest, np.full(n_cc, -i_A), rest])
     t = np.arange(current.size) * dt
     sim = simulate(
-        t, current, OcvModel.from_cell(cell), capacity_Ah=cell.capacity_Ah, gamma=30.0,
+        t, current, ocv_model(cell), capacity_Ah=cell.capacity_Ah, gamma=30.0,
         soc0=0.985, **TRUTH,
     )  # fmt: skip
     v = sim.v_V[0] + np.random.default_rng(5).normal(0.0, 1e-3, current.size)
@@ -251,11 +254,11 @@ def test_bad_input_is_one_line_exit_2(
     assert needle in err
 
 
-def _trace(soc: np.ndarray) -> Trace:
+def _trace(soc: np.ndarray) -> EstimateBlock:
     n, nc = soc.shape
-    cells = {k: np.zeros((n, nc)) for k in CELL_FIELDS}
+    cells = {k: np.zeros((n, nc)) for k in FIELD_NAMES}
     cells["soc"] = soc
-    return Trace(t_s=np.arange(float(n)), current_A=np.zeros(n), cells=cells,
+    return EstimateBlock(t_s=np.arange(float(n)), current_A=np.zeros(n), cells=cells,
                  quality=np.zeros((n, nc), dtype=np.int64))  # fmt: skip
 
 

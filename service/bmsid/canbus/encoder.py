@@ -1,16 +1,17 @@
 """Estimates -> bmsid's output frames (per-cell parameters multiplexed by cell index, pack summary).
 
 Classic CAN: three 8-byte frames per cell (``CellR``, ``CellTau``, ``CellState``); CAN FD: one
-48-byte ``CellParamsFD`` frame per cell. Values outside a signal's range are clamped and their
-bits set in the cell's ``Saturated`` mask (``dbcgen.SATURATION_BITS``); NaN is sent as the signal's
-not-available value. Ids are 29-bit by default, keeping bmsid out of the 11-bit space most BMSs
-use; ``extended_id=False`` selects the ``*_11bit`` twins.
+48-byte ``CellParamsFD`` frame per cell. The values sent are the ``CELL_FIELDS`` entries with a
+``can_signal`` (those with ``can_classic=False`` only in CAN FD). Values outside a signal's range
+are clamped and their bits set in the cell's ``Saturated`` mask (``dbcgen.SATURATION_BITS``); NaN
+is sent as the signal's not-available value. Ids are 29-bit by default, keeping bmsid out of the
+11-bit space most BMSs use; ``extended_id=False`` selects the ``*_11bit`` twins.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import can
@@ -21,22 +22,14 @@ from bmsid.canbus.codec import decode_raw, encode_saturating
 from bmsid.canbus.dbcgen import SATURATION_BITS
 from bmsid.canbus.mapping import DEFAULT_DBC_PATH, load_dbc
 from bmsid.errors import UserError
+from bmsid.estimate import fields
 from bmsid.estimate.types import Estimates
 
-#: DBC signal name -> key of :meth:`ParameterEncoder.decode` (SI units in the key).
+#: DBC signal name -> key of :meth:`ParameterEncoder.decode` (SI units in the key): the cell
+#: fields' signals as ``CELL_FIELDS`` names them (their MQTT keys), then the frames' own signals.
 DECODED_NAMES: dict[str, str] = {
     "CellIndex": "cell",
-    "R0": "R0_ohm",
-    "R1": "R1_ohm",
-    "R2": "R2_ohm",
-    "Tau1": "tau1_s",
-    "Tau2": "tau2_s",
-    "C1": "C1_F",
-    "C2": "C2_F",
-    "Lambda": "lambda",
-    "H": "h",
-    "SOC": "soc",
-    "VError": "v_error_V",
+    **{s.can_signal: s.out_key for s in fields.CELL_FIELDS if s.can_signal is not None},
     "Quality": "quality",
     "Saturated": "saturated_mask",
     "R0Min": "R0_min_ohm",
@@ -44,20 +37,6 @@ DECODED_NAMES: dict[str, str] = {
     "R0Max": "R0_max_ohm",
     "WeakestCell": "weakest_cell",
     "Health": "health",
-}
-
-_CELL_VALUES: dict[str, Callable[[Estimates, int], float]] = {
-    "R0": lambda e, i: float(e.R0_ohm[i]),
-    "R1": lambda e, i: float(e.R1_ohm[i]),
-    "R2": lambda e, i: float(e.R2_ohm[i]),
-    "Tau1": lambda e, i: float(e.tau1_s[i]),
-    "Tau2": lambda e, i: float(e.tau2_s[i]),
-    "C1": lambda e, i: float(e.C1_F[i]),
-    "C2": lambda e, i: float(e.C2_F[i]),
-    "Lambda": lambda e, i: float(e.lambda_[i]),
-    "H": lambda e, i: float(e.h[i]),
-    "SOC": lambda e, i: float(e.soc[i]),
-    "VError": lambda e, i: float(e.v_meas_V[i] - e.v_model_V[i]),
 }
 
 CLASSIC_PAGES = ("CellR", "CellTau", "CellState")
@@ -86,11 +65,31 @@ class ParameterEncoder:
             raise UserError(f"output DBC {path} lacks message {exc}") from None
         self.extended_id = extended_id
         self.fd = fd
+        #: per page: (DBC signal, Estimates field) of the cell fields it carries
+        self._page_fields = self._cell_signals(path)
         self._by_key = {
             (int(m.frame_id), bool(m.is_extended_frame)): m
             for m in db.messages
             if m.name.startswith("BMSID_") and m.senders == ["BMSID"]
         }
+
+    def _cell_signals(self, path: Path) -> list[list[tuple[str, str]]]:
+        """Map every ``CELL_FIELDS`` entry with a CAN signal (read now, at construction) to the
+        page carrying it; a signal that no page has is an error, never a silent drop."""
+        wanted = [
+            (s.can_signal, s.name)
+            for s in fields.CELL_FIELDS
+            if s.can_signal is not None and (self.fd or s.can_classic)
+        ]
+        names = [{sig.name for sig in page.signals} for page in self._pages]
+        missing = [sig for sig, _ in wanted if not any(sig in n for n in names)]
+        if missing:
+            pages = ", ".join(page.name for page in self._pages)
+            raise UserError(
+                f"output DBC {path} lacks cell signal(s) {', '.join(missing)} in {pages} "
+                "(CELL_FIELDS in estimate/fields.py sends them)"
+            )
+        return [[(sig, name) for sig, name in wanted if sig in n] for n in names]
 
     def _frame(self, msg: cantools.database.can.Message, data: bytes, t_s: float) -> can.Message:
         return can.Message(
@@ -107,12 +106,10 @@ class ParameterEncoder:
         for i in cells:
             if not 0 <= i < est.n_cells:
                 raise ValueError(f"cell {i} not in estimates of {est.n_cells} cells")
-            values = {name: get(est, i) for name, get in _CELL_VALUES.items()}
             mask = 0
             encoded: list[tuple[cantools.database.can.Message, dict[str, float]]] = []
-            for page in self._pages:
-                names = {s.name for s in page.signals}
-                page_values = {k: v for k, v in values.items() if k in names}
+            for page, page_fields in zip(self._pages, self._page_fields, strict=True):
+                page_values = {sig: float(est.cells[name][i]) for sig, name in page_fields}
                 page_values["CellIndex"] = float(i)
                 _, saturated = encode_saturating(page, page_values)
                 for s in saturated:

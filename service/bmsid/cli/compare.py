@@ -29,14 +29,18 @@ from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import Variant
 from bmsid.estimate.types import VARIANTS
-from bmsid.offline.csvio import read_tester_csv
-from bmsid.offline.identify import (
-    IdentifyResult,
-    metrics_document,
-    parameter_medians,
-    parameter_trajectories,
+from bmsid.offline.identify import IdentifySpec, identify_source
+from bmsid.offline.inputs import (
+    LoadedInput,
+    check_soc0,
+    load_config,
+    parse_tuning,
+    parse_window,
+    read_csv_input,
+    tuning_overrides,
 )
-from bmsid.offline.plots import plot_consistency, plot_parameters, plot_rmse_bars, plot_voltage
+from bmsid.offline.outputs import OutputSpec, ocv_range_warning, soc_init_text
+from bmsid.offline.plots import plot_consistency, plot_rmse_bars
 from bmsid.offline.report import (
     Consistency,
     DatasetLabel,
@@ -49,18 +53,14 @@ from bmsid.offline.report import (
     table2_markdown,
     unique_displays,
 )
-
-from .identify import (
-    add_model_options,
-    check_soc0,
-    identify_one,
-    load_config,
-    ocv_range_warning,
-    parse_tuning,
-    parse_window,
-    soc_init_text,
-    write_params_csv,
+from bmsid.offline.scoring import (
+    IdentifyResult,
+    metrics_document,
+    parameter_medians,
+    parameter_trajectories,
 )
+
+from .identify import add_model_options, progress_bar
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -123,7 +123,7 @@ def _variants(text: str) -> list[Variant]:
     for name in (x.strip() for x in text.split(",") if x.strip()):
         if name not in VARIANTS:
             raise UserError(f"--algorithms: unknown {name!r}; choose from {', '.join(VARIANTS)}")
-        out.append(name)  # type: ignore[arg-type]  # checked against VARIANTS just above
+        out.append(name)  # narrowed to a Variant by the check above
     if not out:
         raise UserError("--algorithms is empty")
     return out
@@ -146,7 +146,9 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory")
     # Read everything first: a bad file fails before hours of identification.
-    data = [read_tester_csv(p, charge_positive=args.charge_positive) for p in args.datasets]
+    data: list[LoadedInput] = [
+        read_csv_input(p, charge_positive=args.charge_positive) for p in args.datasets
+    ]
     labels = [
         label_dataset(p, float(np.median(d.temperature_C)) if d.temperature_C is not None else None)
         for p, d in zip(args.datasets, data, strict=True)
@@ -162,21 +164,23 @@ def run(args: argparse.Namespace) -> int:
         data, labels, displays, configs, soc0s, strict=True
     ):
         for variant in variants:
-            res: IdentifyResult = identify_one(
-                d.t_s, d.current_A, d.cell_voltages_V, list(d.cell_names), cell, variant,
-                tuning, soc0, f"{shown} {variant}",
-            )  # fmt: skip
+            spec = IdentifySpec(
+                cell=cell,
+                variant=variant,
+                tuning=tuning,
+                soc0=soc0,
+                window=window,
+                charge_positive=args.charge_positive,
+                output=OutputSpec(
+                    params_csv=args.params_csv,
+                    plots="first",  # Table 2 pools the cells; the figures show the first
+                    title=f"{shown} - {variant}",
+                    metadata={"input": d.source, "cell_config": cfg_path},
+                ),
+            )
+            with progress_bar(d.n_samples, f"{shown} {variant}") as bar:
+                res: IdentifyResult = identify_source(d, spec, out / lb.stem / variant, bar)
             doc = metrics_document(res, window)
-            doc.update({"input": d.source, "cell_config": cfg_path})
-            sub = out / lb.stem / variant
-            sub.mkdir(parents=True, exist_ok=True)
-            (sub / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-            if args.params_csv:
-                write_params_csv(res, sub / "params.csv")
-            if res.trace.n_ticks:
-                title = f"{shown} - {variant}"
-                plot_parameters(res.trace, [0], res.cell_names, sub / "parameters.png", title)
-                plot_voltage(res.trace, 0, res.cell_names[0], sub / "voltage.png", title)
             rows.append(
                 Table2Row(
                     dataset=shown,
@@ -241,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     (out / "consistency.csv").write_text(consistency_csv(cons), encoding="utf-8")
     summary = {
         "evaluation_window": window.as_dict(),
-        "tuning_overrides": dict(item.partition("=")[::2] for item in args.tuning),
+        "tuning_overrides": tuning_overrides(args.tuning),
         "runs": runs,
     }
     (out / "compare.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")

@@ -12,9 +12,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import importlib
-import shutil
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -26,13 +23,13 @@ import numpy as np
 
 from bmsid.config.settings import Settings
 from bmsid.daemon import demo_data
+from bmsid.daemon.local_broker import start_mosquitto
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates, Quality
 
 if TYPE_CHECKING:
     from bmsid.daemon.core import Daemon
 
-SBIN = ("/usr/local/sbin", "/usr/sbin", "/sbin")
 REFRESH_S = 0.25
 
 
@@ -71,35 +68,6 @@ class History:
         self.tau1_s.append(e.tau1_s)
         self.tau2_s.append(e.tau2_s)
         self.soc.append(e.soc)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-def _start_mosquitto(workdir: Path) -> tuple[subprocess.Popen[bytes], int] | None:
-    exe = shutil.which("mosquitto") or shutil.which("mosquitto", path=":".join(SBIN))
-    if exe is None:
-        return None
-    port = _free_port()
-    conf = workdir / "mosquitto.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n")
-    log = (workdir / "mosquitto.log").open("wb")
-    proc = subprocess.Popen([exe, "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 10.0
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            return None
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-            return proc, port
-        except OSError:
-            time.sleep(0.05)
-    proc.terminate()
-    return None
 
 
 def _live_view(out: TextIO, e: Estimates, daemon: Daemon, first: bool) -> None:
@@ -192,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"the bundled demo log is missing: {demo_data.DEMO_LOG}")
     out_dir = args.out or Path(tempfile.mkdtemp(prefix="bmsid-demo-"))
     out_dir.mkdir(parents=True, exist_ok=True)
-    broker = None if args.no_mqtt else _start_mosquitto(out_dir)
+    broker = None if args.no_mqtt else start_mosquitto(out_dir)
     if broker is None:
         why = "--no-mqtt" if args.no_mqtt else "no mosquitto installed (apt install mosquitto)"
         print(f"MQTT disabled: {why}; CAN output and the live view still run.")

@@ -34,13 +34,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
+import numpy as np
+import numpy.typing as npt
+
 from bmsid.config.cell import CellConfig
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
-from bmsid.daemon.sample_queue import SampleBlock
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
 from bmsid.publish.outbox import OutMessage
+from bmsid.samples import SampleBlock
 
 if TYPE_CHECKING:
     # Imported where the bank is built: with process isolation the daemon itself never loads
@@ -50,10 +53,60 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Isolation = Literal["process", "thread"]
+FloatArray = npt.NDArray[np.float64]
+IntpArray = npt.NDArray[np.intp]
 #: Sequence numbers reserved per write of the ``.seq`` file.
 SEQ_BLOCK = 100_000
 #: How often the worker checks that the daemon still lives, s.
 PARENT_POLL_S = 0.5
+
+
+def samples_per_tick(t_s: FloatArray, id_period_s: float) -> int:
+    """Samples per chunk fed to the bank: as many as one identification tick spans (>= 1).
+
+    Args:
+        t_s: the block's sample times, s, shape (n,).
+        id_period_s: the bank's tick period, s.
+
+    A tick (milliseconds for a large pack with swarms) is what holds the interpreter lock; the
+    loop got it back after every tick when the bank was fed sample by sample, and chunks of one
+    tick keep that cadence (at 10 Hz and 1 s ticks: 10 samples). The bank closes a tick half a
+    sample early, so it ticks every ``round(id_period_s / dt)`` samples; the median sample
+    period ``dt`` ignores gaps and jumps.
+    """
+    dt = np.diff(t_s)
+    dt = dt[dt > 0]  # NaN and non-increasing times compare False
+    if dt.size == 0:
+        return 1
+    return max(1, round(id_period_s / float(np.median(dt))))
+
+
+def tick_samples(t_s: FloatArray, tick_t_s: FloatArray) -> IntpArray:
+    """Index of the sample that completed each tick, shape (n_ticks,).
+
+    Args:
+        t_s: the sample times fed to the bank, s, shape (n,).
+        tick_t_s: the times of the ticks it emitted, s, in order, shape (n_ticks,).
+
+    A tick is emitted at a sample and carries its time; ticks come in sample order, so a
+    pointer walks forward to the next sample of that time. A time base that jumps back repeats
+    times later in the block, but a jump starts a new segment with a tick at the jump's sample,
+    so the pointer is past every earlier sample of a repeated time when it looks for it.
+
+    Raises:
+        ValueError: a tick time matches no later sample (the bank broke its contract).
+    """
+    times = t_s.tolist()
+    out = np.empty(tick_t_s.shape[0], dtype=np.intp)
+    j = 0
+    for k, t in enumerate(tick_t_s.tolist()):
+        while j < len(times) and times[j] != t:
+            j += 1
+        if j == len(times):
+            raise ValueError(f"tick at t={t!r} s matches no sample after the previous tick")
+        out[k] = j
+        j += 1
+    return out
 
 
 @dataclass(frozen=True)
@@ -113,10 +166,10 @@ class BankHost:
         self.counters = {"checkpoints": 0, "checkpoint_errors": 0, "seq_file_errors": 0}
 
     def _fresh_bank(self) -> EstimatorBank:
-        from bmsid.estimate.bank import EstimatorBank  # noqa: PLC0415 (see TYPE_CHECKING)
+        from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
 
         s = self.spec
-        return EstimatorBank(s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0)
+        return build_bank(s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0)
 
     # ------------------------------------------------------------------ start
     def start(self) -> StartInfo:
@@ -182,27 +235,22 @@ class BankHost:
 
     # ------------------------------------------------------------------ samples
     def update(self, block: SampleBlock) -> BatchResult:
-        """Feed a block of samples to the bank, in order."""
+        """Feed a block of samples to the bank, in order, in chunks of about one tick."""
         estimates: list[Estimates] = []
         messages: list[OutMessage] = []
-        volts = block.cell_voltages_V
-        for k, (t_s, current_A, t_mono) in enumerate(
-            zip(
-                block.t_s.tolist(),
-                block.current_A.tolist(),
-                block.t_complete_mono.tolist(),
-                strict=True,
-            )
-        ):
-            est = self.bank.update(t_s, current_A, volts[k])
-            if est is None:
-                continue
-            if self.spec.keep_all_estimates or not estimates:
-                estimates.append(est)
-            else:
-                estimates[0] = est
-            messages += self._messages(est, t_mono)
-            # In thread isolation, hand the GIL to the event loop between samples: otherwise the
+        step = samples_per_tick(block.t_s, self.spec.tuning.id_period_s)
+        for start in range(0, len(block), step):
+            chunk = block.slice(start, start + step)
+            ticks = self.bank.update_block(chunk)
+            rows = ticks.rows()
+            if rows and not self.spec.keep_all_estimates:
+                estimates[:] = rows[-1:]
+            elif rows:
+                estimates += rows
+            mono = chunk.t_complete_mono
+            for est, k in zip(rows, tick_samples(chunk.t_s, ticks.t_s).tolist(), strict=True):
+                messages += self._messages(est, None if mono is None else float(mono[k]))
+            # In thread isolation, hand the GIL to the event loop between chunks: otherwise the
             # loop waits a whole switch interval for every GIL release it makes (convoy effect).
             time.sleep(0)
         return BatchResult(estimates, messages, self._counters(), self.seq)
@@ -210,7 +258,7 @@ class BankHost:
     def _counters(self) -> dict[str, int]:
         return {**self.bank.counters, **self.counters}
 
-    def _messages(self, est: Estimates, t_mono: float) -> list[OutMessage]:
+    def _messages(self, est: Estimates, t_mono: float | None) -> list[OutMessage]:
         s = self.spec
         if not s.mqtt_enabled:
             return []
@@ -233,12 +281,11 @@ class BankHost:
     def checkpoint(self, clean: bool = False) -> dict[str, int]:
         """Atomic checkpoint of the whole bank; ``clean`` (shutdown) also pins the exact seq."""
         state = self.bank.state_dict()
+        # The newest sample time (s, None before the first): a restarted replay resumes after it.
+        t_s = self.bank.last_sample_t_s
         try:
             save_checkpoint(
-                self.spec.ckpt_path,
-                self.spec.ckpt_key,
-                state,
-                extra={"seq": self.seq, "t_s": state.get("_t_raw")},
+                self.spec.ckpt_path, self.spec.ckpt_key, state, extra={"seq": self.seq, "t_s": t_s}
             )
         except OSError as exc:
             self.counters["checkpoint_errors"] += 1

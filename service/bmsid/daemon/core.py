@@ -8,7 +8,7 @@
     FrameToSamples (canbus)  --samples-->  SampleQueue of columnar blocks   [sample_queue.py]
                                                 | batches (pickled)
                                                 v
-                         bank worker process: EstimatorBank.update, MQTT JSON,
+                         bank worker process: EstimatorBank.update_block, MQTT JSON,
                          checkpoints, sequence numbers               [bank_worker.py]
                                                 | Estimates + encoded messages
                      +--------------------------+---------------------------+
@@ -45,7 +45,7 @@ from bmsid.config.settings import Settings
 from bmsid.daemon.bank_worker import BankSpec, BankWorker
 from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey
-from bmsid.daemon.sample_queue import SampleBlock, SampleQueue
+from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
 from bmsid.errors import UserError
@@ -54,7 +54,7 @@ from bmsid.publish import payloads
 from bmsid.publish.discovery import discovery_messages
 from bmsid.publish.mqtt import MqttPublisher
 from bmsid.publish.outbox import Outbox, OutMessage
-from bmsid.samples import Sample
+from bmsid.samples import Sample, SampleBlock
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ import numpy as np
 from bmsid.canbus.logs import csv_to_messages, write_log
 from bmsid.canbus.mapping import default_mapping
 from bmsid.config.cell import paper_cell
-from bmsid.model.ocv import OcvModel
+from bmsid.config.engine import ocv_model
 from bmsid.model.simulator import simulate
 from bmsid.profiles import dst_current
 
@@ -52,7 +52,7 @@ def demo_arrays(seed: int = 7) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     sim = simulate(
         t,
         i,
-        OcvModel.from_cell(cell),
+        ocv_model(cell),
         capacity_Ah=cell.capacity_Ah,
         R0_ohm=R0_OHM,
         R1_ohm=R1_OHM,

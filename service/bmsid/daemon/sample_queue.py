@@ -11,62 +11,10 @@ are not tracked), one small object per block, and they pickle to the worker in o
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
-from dataclasses import dataclass
 
-import numpy as np
+from bmsid.samples import SampleBlock
 
-from bmsid.samples import FloatArray, Sample
-
-
-@dataclass(frozen=True, slots=True)
-class SampleBlock:
-    """Consecutive pack samples as columns: what the bank worker consumes.
-
-    Only what the estimator bank reads crosses over; temperatures, the bus counter and the
-    decoder's flags stay with the decoder's counters.
-
-    Attributes:
-        t_s: sample times in seconds, shape (n,).
-        current_A: pack current in amperes, positive = discharge, shape (n,).
-        cell_voltages_V: cell terminal voltages in volts, NaN where missing, shape (n, n_cells).
-        t_complete_mono: monotonic time in seconds at which each sample was complete (the
-            start of the publish latency), shape (n,).
-    """
-
-    t_s: FloatArray
-    current_A: FloatArray
-    cell_voltages_V: FloatArray
-    t_complete_mono: FloatArray
-
-    def __len__(self) -> int:
-        return int(self.t_s.shape[0])
-
-    @classmethod
-    def from_samples(
-        cls, samples: Sequence[Sample], t_complete_mono: Sequence[float]
-    ) -> SampleBlock:
-        if len(samples) != len(t_complete_mono) or not samples:
-            raise ValueError("a block needs one completion time per sample, and a sample")
-        return cls(
-            t_s=np.fromiter((s.t_s for s in samples), np.float64, len(samples)),
-            current_A=np.fromiter((s.current_A for s in samples), np.float64, len(samples)),
-            cell_voltages_V=np.stack([s.cell_voltages_V for s in samples]).astype(
-                np.float64, copy=False
-            ),
-            t_complete_mono=np.asarray(t_complete_mono, dtype=np.float64),
-        )
-
-    @classmethod
-    def concat(cls, blocks: Sequence[SampleBlock]) -> SampleBlock:
-        if len(blocks) == 1:
-            return blocks[0]
-        return cls(
-            t_s=np.concatenate([b.t_s for b in blocks]),
-            current_A=np.concatenate([b.current_A for b in blocks]),
-            cell_voltages_V=np.concatenate([b.cell_voltages_V for b in blocks]),
-            t_complete_mono=np.concatenate([b.t_complete_mono for b in blocks]),
-        )
+__all__ = ["SampleBlock", "SampleQueue"]
 
 
 class SampleQueue(asyncio.Queue[SampleBlock]):

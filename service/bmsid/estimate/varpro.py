@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import lfilter
+
+from bmsid.model.ecm import rc_decay, rc_filter
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -48,11 +49,6 @@ class LinearFit:
     cov: FloatArray
 
 
-def unit_filter(current_A: FloatArray, a: float) -> FloatArray:
-    """x_k = a x_(k-1) + (1 - a) i_(k-1), x_0 = 0 (exact ZOH branch state per ohm)."""
-    return np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], current_A), dtype=np.float64)
-
-
 def fit_linear(
     w: Window,
     tau1_s: FloatArray,
@@ -73,16 +69,16 @@ def fit_linear(
     n_w = w.current_A.shape[0]
     p = tau1_s.shape[0]
     k = np.arange(n_w, dtype=np.float64)
-    a1 = np.exp(-w.dt_s / tau1_s)
-    a2 = np.exp(-w.dt_s / tau2_s)
+    a1 = rc_decay(w.dt_s, tau1_s)
+    a2 = rc_decay(w.dt_s, tau2_s)
     active = np.array([True, True, True, w.use_hysteresis, w.use_offset, True, True])
     s_full = np.concatenate([scale, [1.0, 1.0]])[active]
     n_a = int(active.sum())
     A = np.empty((p, n_w, n_a))
     A[:, :, 0] = -w.current_A * s_full[0]
     for j in range(p):
-        A[j, :, 1] = unit_filter(w.current_A, float(a1[j])) * -s_full[1]
-        A[j, :, 2] = unit_filter(w.current_A, float(a2[j])) * -s_full[2]
+        A[j, :, 1] = rc_filter(w.current_A, float(a1[j])) * -s_full[1]
+        A[j, :, 2] = rc_filter(w.current_A, float(a2[j])) * -s_full[2]
     col = 3
     if w.use_hysteresis:
         A[:, :, col] = w.hm_V * s_full[col]

@@ -12,8 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.config.cell import CellConfig
-
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -44,19 +42,27 @@ class OcvModel:
     _inv_z: FloatArray
 
     @classmethod
-    def from_cell(cls, cell: CellConfig) -> OcvModel:
-        coeffs = np.asarray(cell.ocv.mean, dtype=np.float64)
-        lo, hi = cell.ocv.soc_min, cell.ocv.soc_max
-        grid = np.linspace(lo, hi, 2001)
+    def from_coeffs(
+        cls,
+        mean: FloatArray | list[float],
+        soc_min: float,
+        soc_max: float,
+        m_soc: FloatArray | list[float],
+        m_V: FloatArray | list[float],
+    ) -> OcvModel:
+        """From the Eq. 4 coefficients (V) valid on [soc_min, soc_max] and the M(z) table
+        (SOC fractions, half-gap V; Eq. 32)."""
+        coeffs = np.asarray(mean, dtype=np.float64)
+        grid = np.linspace(soc_min, soc_max, 2001)
         v = eval_ocv(coeffs, grid)
         # Force monotonicity for the inverse: a fitted curve may wiggle on flat (LFP) plateaus.
         v_mono = np.maximum.accumulate(v)
         return cls(
             coeffs=coeffs,
-            soc_min=lo,
-            soc_max=hi,
-            m_soc=np.asarray(cell.hysteresis.soc, dtype=np.float64),
-            m_V=np.asarray(cell.hysteresis.M_V, dtype=np.float64),
+            soc_min=soc_min,
+            soc_max=soc_max,
+            m_soc=np.asarray(m_soc, dtype=np.float64),
+            m_V=np.asarray(m_V, dtype=np.float64),
             _inv_v=v_mono,
             _inv_z=grid,
         )

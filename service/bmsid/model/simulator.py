@@ -1,4 +1,5 @@
-"""Exact zero-order-hold simulator of the full hysteresis 2RC model (Eq. 2, 7-9).
+"""Exact zero-order-hold simulator of the full hysteresis 2RC model (Eq. 2, 7-9), stepping
+``model.ecm``.
 
 States per parameter set: SOC z, branch voltages U1, U2 (V) and hysteresis h. The current i_k is
 held over [t_k, t_k+1). The output at k is Eq. 9 with Plett's sign:
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.model.hysteresis import hysteresis_step
+from bmsid.model.ecm import hysteresis_kappa, hysteresis_step, rc_decay, rc_step, soc_delta
 from bmsid.model.ocv import OcvModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -38,8 +39,7 @@ def coulomb_count(
     current_A: FloatArray, dt_s: FloatArray, soc0: float, capacity_Ah: float, eta: float
 ) -> FloatArray:
     """SOC after each sample (Eq. 2): z_k+1 = z_k - eta_k i_k dt / Q, eta applied on charge only."""
-    eff = np.where(current_A < 0, eta, 1.0)
-    dz = -eff * current_A * dt_s / (capacity_Ah * 3600.0)
+    dz = soc_delta(current_A, dt_s, capacity_Ah * 3600.0, eta)
     return np.asarray(soc0 + np.concatenate(([0.0], np.cumsum(dz[:-1]))), dtype=np.float64)
 
 
@@ -82,10 +82,9 @@ def simulate(
     soc = coulomb_count(i, dt, soc0, capacity_Ah, eta)
     z, clamped = ocv.clamp(soc)
     r0, r1, r2 = _col(R0_ohm, p, n), _col(R1_ohm, p, n), _col(R2_ohm, p, n)
-    a1 = np.exp(-dt[None, :] / _col(tau1_s, p, n))
-    a2 = np.exp(-dt[None, :] / _col(tau2_s, p, n))
-    kappa = _col(gamma, p, n) / (capacity_Ah * 3600.0)
-    kappa = kappa * np.where(i < 0, eta, 1.0)[None, :]
+    a1 = rc_decay(dt[None, :], _col(tau1_s, p, n))
+    a2 = rc_decay(dt[None, :], _col(tau2_s, p, n))
+    kappa = hysteresis_kappa(_col(gamma, p, n), capacity_Ah * 3600.0, eta, i[None, :])
     u1 = np.zeros((p, n))
     u2 = np.zeros((p, n))
     h = np.zeros((p, n))
@@ -94,8 +93,8 @@ def simulate(
     u2k = np.zeros(p)
     for k in range(n):
         u1[:, k], u2[:, k], h[:, k] = u1k, u2k, hk
-        u1k = a1[:, k] * u1k + r1[:, k] * (1.0 - a1[:, k]) * i[k]
-        u2k = a2[:, k] * u2k + r2[:, k] * (1.0 - a2[:, k]) * i[k]
+        u1k = rc_step(u1k, a1[:, k], i[k], gain=r1[:, k])
+        u2k = rc_step(u2k, a2[:, k], i[k], gain=r2[:, k])
         hk = hysteresis_step(hk, i[k], dt[k], kappa[:, k])
     m = _col(M_scale, p, n) * ocv.hysteresis_M(z)[None, :]
     v = ocv.ocv(z)[None, :] + m * h - u1 - u2 - r0 * i[None, :]

@@ -14,7 +14,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.offline.identify import Trace
+from bmsid.estimate.types import EstimateBlock
 
 matplotlib.use("Agg")
 
@@ -32,7 +32,7 @@ _PARAMS = (
 
 
 def plot_parameters(
-    trace: Trace, cells: Sequence[int], names: Sequence[str], path: Path, title: str
+    trace: EstimateBlock, cells: Sequence[int], names: Sequence[str], path: Path, title: str
 ) -> None:
     """Fig. 10: R0, R1, C1, R2, C2 and the forgetting factor over time (h), one line per cell."""
     fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
@@ -54,7 +54,7 @@ def plot_parameters(
     plt.close(fig)
 
 
-def plot_voltage(trace: Trace, cell: int, name: str, path: Path, title: str) -> None:
+def plot_voltage(trace: EstimateBlock, cell: int, name: str, path: Path, title: str) -> None:
     """Fig. 11: measured and model voltage (V) over time, and the error (mV) below."""
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(11, 7), sharex=True,
                                    gridspec_kw={"height_ratios": [2, 1]})  # fmt: skip

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bmsid.estimate import fields
+from bmsid.estimate.fields import FieldSpec
 from bmsid.estimate.types import Estimates, Quality
 
 SCHEMA_VERSION = 1
@@ -22,23 +25,6 @@ HEALTH_CONVERGING = 1  #: at least one cell still converging
 HEALTH_POORLY_EXCITED = 2  #: the current carries too little information
 HEALTH_OUT_OF_BOUNDS = 4  #: at least one cell was clamped to its bounds
 HEALTH_INPUT_STALE = 8  #: no sample within the staleness window (set by the daemon)
-
-_CELL_FIELDS: tuple[tuple[str, str], ...] = (
-    ("R0_ohm", "R0_ohm"),
-    ("R1_ohm", "R1_ohm"),
-    ("R2_ohm", "R2_ohm"),
-    ("C1_F", "C1_F"),
-    ("C2_F", "C2_F"),
-    ("tau1_s", "tau1_s"),
-    ("tau2_s", "tau2_s"),
-    ("M_V", "M_V"),
-    ("ocv_offset_V", "ocv_offset_V"),
-    ("lambda", "lambda_"),
-    ("h", "h"),
-    ("soc", "soc"),
-    ("v_model_V", "v_model_V"),
-    ("v_meas_V", "v_meas_V"),
-)
 
 
 def topic(prefix: str, pack_id: str, *levels: str | int) -> str:
@@ -50,7 +36,8 @@ def _num(x: float) -> float | None:
 
 
 def cell_payload(est: Estimates, i: int, pack_id: str, seq: int) -> dict[str, Any]:
-    """Everything identified for cell ``i`` at ``est.t_s`` (sample time, s)."""
+    """Everything identified for cell ``i`` at ``est.t_s`` (sample time, s): every field of
+    ``CELL_FIELDS`` published on MQTT, under its ``out_key`` (units in the key), then quality."""
     out: dict[str, Any] = {
         "schema": SCHEMA_VERSION,
         "pack_id": pack_id,
@@ -58,13 +45,84 @@ def cell_payload(est: Estimates, i: int, pack_id: str, seq: int) -> dict[str, An
         "seq": seq,
         "t_s": float(est.t_s),
     }
-    for key, attr in _CELL_FIELDS:
-        out[key] = _num(float(getattr(est, attr)[i]))
-    out["v_error_V"] = _num(float(est.v_meas_V[i] - est.v_model_V[i]))
+    for spec in fields.CELL_FIELDS:  # read at call time: the table is the one list
+        if spec.mqtt:
+            out[spec.out_key] = _num(float(est.cells[spec.name][i]))
     q = int(est.quality[i])
     out["quality"] = q
     out["quality_name"] = Quality(q).name.lower() if q in Quality._value2member_map_ else "unknown"
     return out
+
+
+#: The cell schema as shipped (``python -m bmsid.docgen`` rewrites it from :func:`cell_schema`).
+CELL_SCHEMA_PATH = Path(__file__).resolve().parent / "schemas" / "cell.json"
+
+#: Cell-schema entries that are not fields of the table: they come before the fields.
+_CELL_SCHEMA_HEAD: dict[str, dict[str, Any]] = {
+    "schema": {"const": SCHEMA_VERSION},
+    "pack_id": {"type": "string", "pattern": "^[A-Za-z0-9_.-]{1,64}$"},
+    "cell": {
+        "type": "integer",
+        "minimum": 0,
+        "maximum": 511,
+        "description": "0-based cell index (CAN CellIndex)",
+    },
+    "seq": {
+        "type": "integer",
+        "minimum": 0,
+        "description": "sequence number over all data messages (cell and pack) of the pack; "
+        "contiguous unless the outbox overflowed",
+    },
+    "t_s": {
+        "type": "number",
+        "description": "sample time, s (the CAN frames' clock: Unix time on SocketCAN)",
+    },
+}
+
+
+def _json_number(x: float) -> float | int:
+    """``1`` rather than ``1.0`` in the schema file, as written by hand before it was generated."""
+    return int(x) if float(x).is_integer() else float(x)
+
+
+def field_schema(spec: FieldSpec) -> dict[str, Any]:
+    """JSON-schema entry of one table field: a number (or null where ``spec.nullable``) within
+    the spec's bounds, described with its unit."""
+    entry: dict[str, Any] = {"type": ["number", "null"] if spec.nullable else "number"}
+    if spec.positive:
+        entry["exclusiveMinimum"] = 0
+    if spec.lo is not None:
+        entry["minimum"] = _json_number(spec.lo)
+    if spec.hi is not None:
+        entry["maximum"] = _json_number(spec.hi)
+    entry["description"] = f"{spec.description} [{spec.unit}]" if spec.unit else spec.description
+    return entry
+
+
+def cell_schema() -> dict[str, Any]:
+    """The JSON schema (draft 2020-12) of :func:`cell_payload`, built from ``CELL_FIELDS``."""
+    props: dict[str, Any] = dict(_CELL_SCHEMA_HEAD)
+    props |= {s.out_key: field_schema(s) for s in fields.CELL_FIELDS if s.mqtt}
+    props["quality"] = {
+        "type": "integer",
+        "enum": [int(q) for q in Quality],
+        "description": ", ".join(f"{int(q)} {q.name.lower().replace('_', ' ')}" for q in Quality),
+    }
+    props["quality_name"] = {"enum": [q.name.lower() for q in Quality] + ["unknown"]}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": "https://bmsid.invalid/schemas/cell.json",
+        "title": "bmsid cell parameters: <prefix>/<pack_id>/cell/<n>",
+        "type": "object",
+        "properties": props,
+        "required": list(props),
+        "additionalProperties": False,
+    }
+
+
+def schema_text(schema: dict[str, Any]) -> str:
+    """A schema as its file holds it (2-space indent, trailing newline)."""
+    return json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
 
 
 def health_bits(est: Estimates) -> int:

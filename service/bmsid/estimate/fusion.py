@@ -1,0 +1,353 @@
+"""The AFFRLS-LPSO fusion stage (the paper's hysteresis AFFRLS-LPSO, redesigned; see bank.py).
+
+Every tick, the AFFRLS (Eq. 17-21) tracks the parameters the voltage is linear in, with the
+time constants in force: ``v = OCV(z) + phi . theta`` with ``phi = [-i, -x1, -x2, M(z) h, 1]``
+and theta = (R0, R1, R2, M scale, OCV offset) in normalised units. Every ``swarm_period_s`` per
+cell, an LPSO swarm (Eq. 24-30) searches ln tau1, ln tau2 over the buffered window, each
+particle's fitness the window RMSE with the linear parameters solved exactly (variable
+projection); a finished swarm sets the poles and re-seeds theta, P and x1, x2 from the weighted
+window solution, i.e. what the AFFRLS would hold had it run with those poles.
+
+LPSO owns the poles, where recursive ARX identification is ill-conditioned (it divides by
+1 - th1 - th2 ~ 5e-5: the paper's "filter saturation"); AFFRLS owns what is linear.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.estimate import lpso
+from bmsid.estimate.affrls import reset_covariance, rls_update
+from bmsid.estimate.cellmodel import BOUNDED, CellModel
+from bmsid.estimate.stage import (
+    BoolArray,
+    FloatArray,
+    Forgetting,
+    TickContext,
+    adapt_innovation,
+    is_excited,
+    is_quiet,
+)
+from bmsid.estimate.statedict import load_arrays
+from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
+from bmsid.estimate.tuning import EstimatorTuning
+from bmsid.estimate.varpro import Window, fit_linear
+from bmsid.model.ecm import rc_decay, rc_step
+
+#: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
+_LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
+
+
+def fusion_covariance(P: FloatArray) -> FloatArray:
+    """Zero the OCV offset's rows and columns of P: the AFFRLS leaves the offset alone.
+
+    Under a steady mean current the offset is collinear with R2 x2; tracked per tick it drifts
+    along that unobservable direction. It is refit with each swarm window instead, under the
+    prior ``ocv_offset_prior_V``.
+    """
+    P = P.copy()
+    P[..., 4, :] = 0.0
+    P[..., :, 4] = 0.0
+    return P
+
+
+class FusionStage:
+    """AFFRLS-LPSO over every cell (see the module docstring).
+
+    Args:
+        model: per-cell start values, bounds and capacity.
+        tuning: estimator constants.
+        cell_ids: global index of each cell (seeds its swarm, staggers its schedule).
+        n_stagger: the number of cells the swarm schedule is spread over.
+    """
+
+    name = "params"
+
+    def __init__(
+        self,
+        model: CellModel,
+        tuning: EstimatorTuning,
+        cell_ids: npt.NDArray[np.int64],
+        n_stagger: int,
+    ) -> None:
+        self.model = model
+        self.tuning = tuning
+        self.n = n = model.n_cells
+        self.cell_ids = cell_ids
+        self.counters: dict[str, int] = {"swarms": 0, "clamped": 0}
+        cols = [BOUNDED.index(name) for name in _LINEAR_BOUNDS]
+        self._lin_lo = model.lo[:, cols]
+        self._lin_hi = model.hi[:, cols]
+        r0, r1, r2 = model.start("R0_ohm"), model.start("R1_ohm"), model.start("R2_ohm")
+        # Normalisation of the linear parameters (R0, R1, R2, M scale, offset).
+        self.scale = np.stack([r0, r1, r2, np.ones(n), np.full(n, 0.05)], axis=1)
+        self._theta0 = np.stack([r0, r1, r2, np.ones(n), np.zeros(n)], axis=1) / self.scale
+        self._phi = np.ones((n, 5))  # regressor, refilled every tick (column 4: the offset's 1)
+        size = int(np.ceil(tuning.window_s / tuning.id_period_s)) + 1
+        self.buffer = WindowBuffer(size=size, n_cells=n)
+        self.schedule = SwarmSchedule(
+            n, (cell_ids % n_stagger) / n_stagger, tuning.swarm_period_s, tuning.min_window_s
+        )
+        self.fused = np.zeros(n, dtype=bool)
+        self.clamped = np.zeros(n, dtype=bool)
+        self.lam_exp = 1.0
+        self.v_model = np.zeros(n)
+        self._m_table = np.zeros(n)
+        self._excited = np.zeros(n, dtype=bool)
+        self._period_s = tuning.id_period_s
+        self._start_values()
+
+    def _start_values(self) -> None:
+        m, n = self.model, self.n
+        self.x1 = np.zeros(n)
+        self.x2 = np.zeros(n)
+        self.tau1 = np.clip(m.start("tau1_s"), *m.bound("tau1_s"))
+        self.tau2 = np.clip(m.start("tau2_s"), *m.bound("tau2_s"))
+        self.theta = self._theta0.copy()
+        self.P = fusion_covariance(reset_covariance(n, 5, self.tuning.p0))
+        self.lam = np.ones(n)
+        self.sig_e = np.full(n, self.tuning.e_floor_V)
+        self.arx_err = np.zeros(n)
+        self._publish_linear()
+
+    @property
+    def converged(self) -> BoolArray:
+        return self.fused
+
+    # ------------------------------------------------------------------ every tick
+    def step(self, ctx: TickContext) -> None:
+        tick, tun = ctx.tick, self.tuning
+        if tick.new_segment:
+            self.buffer.clear()
+            self.schedule.new_segment(tick.t_s)
+        dt, ip, i = tick.dt_s, tick.i_prev_A, tick.current_A
+        if dt > 0:
+            self.x1 = rc_step(self.x1, rc_decay(dt, self.tau1), ip)
+            self.x2 = rc_step(self.x2, rc_decay(dt, self.tau2), ip)
+        forget = Forgetting.for_tick(tick, tun)
+        self.lam_exp = forget.per_second_exp
+        self._period_s = tick.period_s
+        self._excited = is_excited(tick, self.model, tun)
+        self.clamped[:] = False
+        self._m_table = ctx.m_table_V
+        ok, v, ocv_v, hm = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V
+        use_h = 1.0 if tun.identify_hysteresis_scale else 0.0
+        phi = self._phi
+        phi[:, 0] = -i
+        phi[:, 1] = -self.x1
+        phi[:, 2] = -self.x2
+        phi[:, 3] = hm
+        v_model = ocv_v + (phi * (self.theta * self.scale)).sum(axis=1)
+        e = v - v_model
+        self.arx_err = np.where(ok, e, 0.0)
+        quiet = is_quiet(tick, self.model, tun)
+        e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, ok, quiet, dt, forget, tun)
+        # The OCV offset is not tracked per tick (see fusion_covariance): column zeroed.
+        phi_n = phi * (self.scale * np.array([1.0, 1.0, 1.0, use_h, 0.0]))
+        theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, ok, tun.trace_max)
+        self.theta = self._clamp_linear(self._project_linear(theta, self.P))
+        self.buffer.push(i, v - ocv_v, hm, ok)
+        self._run_swarms(tick.t_s)
+        self._publish_linear()
+        self.v_model = np.asarray(v_model, dtype=np.float64)
+
+    def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> FloatArray:
+        """Project an estimate that left the bounds back onto them in the metric of P.
+
+        Clipping one coordinate alone leaves the coordinates correlated with it carrying a step
+        that assumed it had moved; the error then grows and the next updates push further the
+        wrong way. Moving coordinate j onto its bound by d shifts the others by P[:, j] d /
+        P[j, j] (the least-squares estimate conditioned on theta_j at the bound). P is kept, so
+        the parameter can leave the bound again when the data say so. Coordinates are taken one
+        at a time, in a fixed order; the final clip removes what is left.
+        """
+        sc, lo, hi = self.scale, self._lin_lo, self._lin_hi
+        th = theta_n * sc
+        if not ((th < lo) | (th > hi)).any():
+            return theta_n
+        theta_n = theta_n.copy()
+        for j in range(5):  # fixed order, whatever the other cells do (bank == single)
+            th_j = theta_n[:, j] * sc[:, j]
+            d_n = (np.minimum(np.maximum(th_j, lo[:, j]), hi[:, j]) - th_j) / sc[:, j]
+            pjj = P[:, j, j]
+            gain = np.where(
+                pjj[:, None] > 0, P[:, :, j] / np.where(pjj > 0, pjj, 1.0)[:, None], 0.0
+            )
+            theta_n += gain * d_n[:, None]
+        return theta_n
+
+    def _clamp_linear(self, theta_n: FloatArray, rows: slice = slice(None)) -> FloatArray:
+        """theta (normalised) of the cells ``rows`` clipped to the bounds; flags the moved."""
+        sc = self.scale[rows]
+        th = theta_n * sc
+        cl = np.minimum(np.maximum(th, self._lin_lo[rows]), self._lin_hi[rows])
+        if not self.tuning.identify_hysteresis_scale:
+            cl[:, 3] = 1.0
+        if not self.tuning.identify_ocv_offset:
+            cl[:, 4] = 0.0
+        moved = np.any(np.abs(cl - th) > 1e-12 * np.abs(sc), axis=1)
+        self.clamped[rows] |= moved
+        self.counters["clamped"] += int(moved.sum())
+        return np.asarray(cl / sc)
+
+    def _publish_linear(self) -> None:
+        th = self.theta * self.scale
+        self.R0, self.R1, self.R2 = th[:, 0].copy(), th[:, 1].copy(), th[:, 2].copy()
+        self.Ms, self.off = th[:, 3].copy(), th[:, 4].copy()
+
+    # ------------------------------------------------------------------ swarms
+    def _run_swarms(self, t: float) -> None:
+        tun, sched = self.tuning, self.schedule
+        span = self.buffer.count * self._period_s
+        for c in sched.due(t):
+            if span >= tun.min_window_s and self._excited[c]:
+                self._start_swarm(c)
+        if sched.n_running() == 0:
+            return
+        for c, cs in enumerate(sched.running):
+            if cs is None:
+                continue
+            self._swarm_fits(c, cs, tun.fits_per_update)
+            if cs.swarm.done:
+                self._apply_swarm(c, cs)
+                sched.running[c] = None
+
+    def _window(self, c: int) -> tuple[Window, FloatArray]:
+        tun = self.tuning
+        return self.buffer.window(
+            c, self._period_s, tun.window_s, tun.identify_hysteresis_scale, tun.identify_ocv_offset
+        )
+
+    def _tau_box(self, c: int) -> tuple[FloatArray, FloatArray]:
+        """(lo, hi) of (tau1, tau2) of cell ``c``, s."""
+        m = self.model
+        lo1, hi1 = m.bound("tau1_s")
+        lo2, hi2 = m.bound("tau2_s")
+        return np.array([lo1[c], lo2[c]]), np.array([hi1[c], hi2[c]])
+
+    def _start_swarm(self, c: int) -> None:
+        tun, sched = self.tuning, self.schedule
+        rng = np.random.default_rng([tun.seed, int(self.cell_ids[c]), int(sched.swarm_count[c])])
+        lo, hi = (np.log(b) for b in self._tau_box(c))
+        first = not self.fused[c]
+        seed = np.clip(np.log([[self.tau1[c], self.tau2[c]]]), lo, hi)
+        sw = lpso.swarm_init(
+            lo, hi, tun.n_particles, tun.n_iter_first if first else tun.n_iter, rng,
+            seeds=seed, spread=tun.init_spread_log,
+        )  # fmt: skip
+        window, weights = self._window(c)
+        sched.running[c] = CellSwarm(
+            swarm=sw, window=window, weights=weights, rng=rng, fitness=np.zeros(tun.n_particles)
+        )
+        sched.swarm_count[c] += 1
+        self.counters["swarms"] += 1
+
+    def _offset_prior(self, c: int) -> float:
+        """Ridge for the offset in normalised units: (noise std / prior std)^2."""
+        sig = max(float(self.sig_e[c]), self.tuning.e_floor_V)
+        return float((sig * self.scale[c, 4] / self.tuning.ocv_offset_prior_V) ** 2)
+
+    def _fitness(self, c: int, window: Window, weights: FloatArray, taus: FloatArray) -> FloatArray:
+        tun, sc = self.tuning, self.scale[c]
+        t_lo = np.minimum(taus[:, 0], taus[:, 1])
+        t_hi = np.maximum(taus[:, 0], taus[:, 1])
+        th = fit_linear(window, t_lo, t_hi, sc, weights, self._offset_prior(c))
+        viol = (
+            np.maximum(self._lin_lo[c] - th.theta, 0.0)
+            + np.maximum(th.theta - self._lin_hi[c], 0.0)
+        ) / np.abs(sc)
+        viol_r = np.maximum(tun.tau_ratio_min / (t_hi / t_lo) - 1.0, 0.0)
+        return np.asarray(th.rmse_V * (1.0 + 10.0 * (viol.sum(axis=1) + viol_r)))
+
+    def _swarm_fits(self, c: int, cs: CellSwarm, budget: int) -> None:
+        """Evaluate up to ``budget`` particles; when all are evaluated, move the swarm."""
+        tun = self.tuning
+        n_p = cs.swarm.x.shape[0]
+        j0, j1 = cs.done_fits, min(cs.done_fits + budget, n_p)
+        cs.fitness[j0:j1] = self._fitness(c, cs.window, cs.weights, np.exp(cs.swarm.x[j0:j1]))
+        cs.done_fits = j1
+        if j1 < n_p:
+            return
+        params = lpso.SwarmParams(
+            c1=tun.c1, c2=tun.c2, w_max=tun.w_max, w_min=tun.w_min, shape=tun.inertia_shape,
+            vmax_frac=tun.velocity_max_frac,
+        )  # fmt: skip
+        cs.swarm = lpso.swarm_tell(cs.swarm, cs.fitness, cs.rng, params)
+        cs.done_fits = 0
+
+    def _apply_swarm(self, c: int, cs: CellSwarm) -> None:
+        """Feed the swarm optimum back: poles, then theta/P/x as the AFFRLS would hold them."""
+        tun = self.tuning
+        taus = np.clip(np.sort(np.exp(cs.swarm.gbest)), *self._tau_box(c))  # exp(log) may miss
+        if not np.isfinite(cs.swarm.gbest_f):
+            return
+        window, valid = self._window(c)  # data up to now, not just the snapshot
+        n_w = window.current_A.shape[0]
+        age = (n_w - 1 - np.arange(n_w)) * window.dt_s
+        weights = valid * tun.lambda_max**age
+        sc = self.scale[c]
+        fit = fit_linear(
+            window, taus[:1], taus[1:], sc, weights, self._offset_prior(c), with_cov=True
+        )
+        self.tau1[c], self.tau2[c] = taus
+        self.theta[c] = self._clamp_linear((fit.theta[0] / sc)[None, :], slice(c, c + 1))[0]
+        P = fit.cov[0]
+        if not tun.identify_hysteresis_scale:
+            P[3, 3] = tun.p0
+        if not tun.identify_ocv_offset:
+            P[4, 4] = tun.p0
+        tr = float(np.trace(P))
+        if not np.all(np.isfinite(P)) or tr <= 0:
+            P = np.eye(5) * tun.p0
+        elif tr > tun.trace_max:
+            P = P * (tun.trace_max / tr)
+        self.P[c] = fusion_covariance(P)
+        self.x1[c], self.x2[c] = fit.x_last[0]
+        self.fused[c] = True
+
+    # ------------------------------------------------------------------ protocol
+    def outputs(self) -> dict[str, FloatArray]:
+        return {
+            "R0_ohm": self.R0.copy(),
+            "R1_ohm": self.R1.copy(),
+            "C1_F": self.tau1 / self.R1,
+            "R2_ohm": self.R2.copy(),
+            "C2_F": self.tau2 / self.R2,
+            "tau1_s": self.tau1.copy(),
+            "tau2_s": self.tau2.copy(),
+            "lambda_": self.lam**self.lam_exp,  # per second: in [lambda_min, 1]
+            "M_V": np.asarray(self.Ms * self._m_table * 1.0),
+            "ocv_offset_V": self.off.copy(),
+            "arx_error_V": self.arx_err.copy(),
+            "v_model_V": self.v_model.copy(),
+        }
+
+    _PER_CELL = ("x1", "x2", "tau1", "tau2", "theta", "P", "lam", "sig_e", "arx_err")
+
+    def reset(self, mask: BoolArray) -> None:
+        """The masked cells restart from their start values; their running swarm ends."""
+        mask = np.asarray(mask, dtype=bool)
+        old = {k: getattr(self, k) for k in self._PER_CELL}
+        self._start_values()
+        for k, cur in old.items():
+            new = getattr(self, k)
+            setattr(self, k, np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, cur))
+        self.fused &= ~mask
+        self.schedule.reset(mask)
+        self._publish_linear()
+
+    def state_dict(self) -> dict[str, Any]:
+        st: dict[str, Any] = {k: np.array(getattr(self, k)) for k in self._PER_CELL}
+        st["fused"] = self.fused.copy()
+        st["schedule"] = self.schedule.state_dict()
+        st["buffer"] = self.buffer.state_dict()
+        return st
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        load_arrays(self, st, (*self._PER_CELL, "fused"), self.name)
+        self.schedule.load_state_dict(st["schedule"])
+        self.buffer.load_state_dict(st["buffer"])
+        self._publish_linear()

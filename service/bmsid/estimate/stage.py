@@ -1,0 +1,137 @@
+"""The protocol every estimation stage follows, and what the stages of one tick share.
+
+A tick runs through the stages in order: the state stage (SOC and hysteresis; it owns z and h
+and evaluates OCV(z) and M(z) into the :class:`TickContext`), then one parameter stage (the
+AFFRLS on the ARX model, or the AFFRLS-LPSO fusion), which reads the state from the context. A
+variant of the paper is a composition of stages (``bank.VARIANT_STAGES``), not a string the code
+compares. Every stage keeps its state in plain per-cell arrays, so a checkpoint nests one
+``state_dict`` per stage and a compiled kernel can later replace a stage's ``step`` unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.estimate.affrls import adaptive_lambda
+from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.ticks import Tick
+from bmsid.estimate.tuning import EstimatorTuning
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(slots=True)
+class TickContext:
+    """One tick and what the state stage derived from it for the parameter stages.
+
+    Attributes:
+        tick: the assembled tick.
+        soc_clamped: SOC clamped to the OCV curve's range, shape (n,).
+        ocv_V: OCV(z) of Eq. 4, V.
+        m_table_V: hysteresis half-gap M(z) of Eq. 32, V.
+        hm_V: hysteresis voltage h M(z), V (Eq. 9).
+        v_safe_V: measured voltage, or OCV(z) where a cell has none (the update skips it), V.
+    """
+
+    tick: Tick
+    soc_clamped: FloatArray = field(default_factory=lambda: np.zeros(0))
+    ocv_V: FloatArray = field(default_factory=lambda: np.zeros(0))
+    m_table_V: FloatArray = field(default_factory=lambda: np.zeros(0))
+    hm_V: FloatArray = field(default_factory=lambda: np.zeros(0))
+    v_safe_V: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+
+class Stage(Protocol):
+    """A step of the estimator bank over per-cell state arrays."""
+
+    #: key of the stage's state in a checkpoint
+    name: str
+    #: event counts, merged into the bank's counters (keys unique across stages)
+    counters: dict[str, int]
+
+    def step(self, ctx: TickContext) -> None:
+        """Advance the stage's state by one tick (may fill ``ctx`` for later stages)."""
+
+    def outputs(self) -> dict[str, FloatArray]:
+        """Per-cell output fields (names of ``fields.CELL_FIELDS``) after the last step."""
+        ...
+
+    def reset(self, mask: BoolArray) -> None:
+        """Re-initialise the masked cells to their start values."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """Plain arrays and numbers (nested dicts allowed) that restore the stage exactly."""
+        ...
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        """Restore ``state_dict`` output; ValueError/KeyError when it does not fit."""
+
+
+class ParameterStage(Stage, Protocol):
+    """A stage that identifies R0, R1, tau1, R2, tau2 (and reports the model voltage)."""
+
+    @property
+    def converged(self) -> BoolArray:
+        """Cells whose estimate has converged once (quality CONVERGING until then)."""
+        ...
+
+    #: cells clamped to a bound at the last step (quality OUT_OF_BOUNDS)
+    clamped: BoolArray
+
+
+def is_quiet(tick: Tick, model: CellModel, tuning: EstimatorTuning) -> BoolArray:
+    """Cells at rest with no current change this tick: no forgetting (lambda = 1), since a
+    resting cell carries no new information about R0 and P must not grow."""
+    lim = tuning.rest_current_C * model.capacity_Ah
+    return np.asarray(
+        (abs(tick.current_A) < lim) & (abs(tick.current_A - tick.i_prev_A) < lim), dtype=bool
+    )
+
+
+def is_excited(tick: Tick, model: CellModel, tuning: EstimatorTuning) -> BoolArray:
+    """Cells whose current varies enough (RMS >= ``excitation_C`` x capacity) to identify."""
+    return np.asarray(tick.current_std_A >= tuning.excitation_C * model.capacity_Ah, dtype=bool)
+
+
+@dataclass(frozen=True, slots=True)
+class Forgetting:
+    """Per-tick forgetting limits (Eq. 21 with per-second constants raised to the tick's data
+    time) and the exponent that reports a per-tick lambda per second."""
+
+    lam_lo: float
+    lam_hi: float
+    per_second_exp: float
+
+    @classmethod
+    def for_tick(cls, tick: Tick, tuning: EstimatorTuning) -> Forgetting:
+        # Forgetting is per second of *data*: a gap carries none, so it forgets no more than a tick.
+        dt_f = min(tick.dt_s, tick.period_s) if tick.dt_s > 0 else tuning.id_period_s
+        return cls(tuning.lambda_min**dt_f, tuning.lambda_max**dt_f, 1.0 / dt_f)
+
+
+def adapt_innovation(
+    e: FloatArray,
+    sig_e: FloatArray,
+    ok: BoolArray,
+    quiet: BoolArray,
+    dt_s: float,
+    forgetting: Forgetting,
+    tuning: EstimatorTuning,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Spike clipping, running innovation RMS and the forgetting factor (Eq. 21).
+
+    Returns (clipped error V, new innovation RMS V, lambda per tick), each shape (n,).
+    """
+    sig = np.maximum(sig_e, tuning.e_floor_V)
+    lim = tuning.innovation_clip_sigmas * sig
+    e_c = np.minimum(np.maximum(e, -lim), lim)
+    g = 1.0 - np.exp(-max(dt_s, 1e-9) / tuning.innovation_scale_s)
+    sig_new = np.where(ok, np.sqrt(sig_e**2 + g * (e_c**2 - sig_e**2)), sig_e)
+    e_base = np.maximum(tuning.e_base_sigmas * sig, tuning.e_floor_V)
+    lam = adaptive_lambda(e_c, e_base, forgetting.lam_lo, forgetting.lam_hi, tuning.forgetting_base)
+    return np.asarray(e_c), np.asarray(sig_new), np.asarray(np.where(quiet, 1.0, lam))

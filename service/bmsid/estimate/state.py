@@ -1,0 +1,108 @@
+"""The state stage: SOC by coulomb counting (Eq. 2) and the hysteresis state (Eq. 5-6).
+
+It runs first in every tick, owns z and h, and leaves OCV(z), M(z) and h M(z) in the tick
+context for the parameter stages. (A SOC observer that corrects z from the voltage through the
+identified model replaces this stage behind the same protocol.)
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
+from bmsid.estimate.statedict import load_arrays
+from bmsid.estimate.ticks import Tick
+from bmsid.model.ecm import hysteresis_kappa, hysteresis_step, soc_step
+
+
+class CoulombState:
+    """SOC z (fraction) and hysteresis h in [-1, 1] of every cell; no correction from voltage.
+
+    Args:
+        model: per-cell capacity (Ah), coulombic efficiency, hysteresis rate, OCV curve.
+        soc0: start SOC (fraction, scalar or per cell); None applies ``model.soc_start``.
+    """
+
+    name = "state"
+
+    def __init__(self, model: CellModel, soc0: float | FloatArray | None = None) -> None:
+        self.model = model
+        self.n = model.n_cells
+        self.soc0 = soc0
+        self.counters: dict[str, int] = {}
+        self.z = np.full(self.n, 0.5)
+        self.h = np.zeros(self.n)
+        self.soc_init_method = "pending"
+        self._capacity_As = model.capacity_As
+        self._pending = np.ones(self.n, dtype=bool)  # cells whose SOC starts at the next tick
+
+    def step(self, ctx: TickContext) -> None:
+        tick = ctx.tick
+        m = self.model
+        if self._pending.any():
+            self._start(tick, self._pending)
+        for i, dt in zip(tick.coulomb_i_A.tolist(), tick.coulomb_dt_s.tolist(), strict=True):
+            self.z = soc_step(self.z, i, dt, self._capacity_As, m.efficiency)
+        ip = tick.i_prev_A
+        if tick.dt_s > 0:
+            kappa = hysteresis_kappa(m.gamma, self._capacity_As, m.efficiency, ip)
+            self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
+        ocv = m.ocv
+        zc = np.minimum(np.maximum(self.z, ocv.soc_min), ocv.soc_max)
+        ctx.soc_clamped = zc
+        ctx.ocv_V = ocv.ocv(zc)
+        ctx.m_table_V = ocv.hysteresis_M(zc)
+        ctx.hm_V = self.h * ctx.m_table_V
+        ctx.v_safe_V = np.where(tick.ok, tick.v_V, ctx.ocv_V)
+
+    def _start(self, tick: Tick, cells: BoolArray) -> None:
+        """SOC of ``cells`` from the caller's soc0, else the voltage at rest, else a default."""
+        si = self.model.soc_start
+        fallback = si.soc0 if si.soc0 is not None else 0.5
+        if self.soc0 is not None:
+            z = np.broadcast_to(np.asarray(self.soc0, dtype=float), (self.n,)).copy()
+            method = "given"
+        else:
+            rest = abs(tick.current_A) <= si.rest_current_C * self.model.capacity_Ah
+            from_ocv = self.model.ocv.soc_from_ocv(
+                np.where(np.isfinite(tick.v_V), tick.v_V, np.nan)
+            )
+            use_ocv = (si.policy == "ocv_at_rest") & rest
+            z = np.where(use_ocv, np.where(np.isfinite(from_ocv), from_ocv, fallback), fallback)
+            if use_ocv[cells].all():
+                method = "ocv_at_rest"
+            elif si.soc0 is not None:
+                method = "config"
+            else:
+                method = "default_0.5"
+        self.z = np.where(cells, z, self.z)
+        self.h = np.where(cells, 0.0, self.h)
+        if cells.all() or self.soc_init_method == "pending":
+            self.soc_init_method = method
+        self._pending = np.zeros(self.n, dtype=bool)
+
+    def outputs(self) -> dict[str, FloatArray]:
+        return {"soc": self.z.copy(), "h": self.h.copy()}
+
+    def reset(self, mask: BoolArray) -> None:
+        """The masked cells start again at the next tick (SOC by the start policy, h = 0)."""
+        self._pending = self._pending | np.asarray(mask, dtype=bool)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "z": self.z.copy(),
+            "h": self.h.copy(),
+            "pending": self._pending.copy(),
+            "soc_init_method": self.soc_init_method,
+        }
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        load_arrays(self, st, ("z", "h"), self.name)
+        pend = np.asarray(st.get("pending", np.zeros(self.n, dtype=bool)), dtype=bool)
+        if pend.shape != (self.n,):
+            raise ValueError(f"checkpoint field state/pending has shape {pend.shape}")
+        self._pending = pend.copy()
+        self.soc_init_method = str(st["soc_init_method"])

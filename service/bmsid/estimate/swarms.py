@@ -1,0 +1,166 @@
+"""The swarm side of the fusion: the window of recent ticks and when each cell's swarm runs.
+
+Each cell gets an LPSO swarm (``estimate/lpso.py``) every ``swarm_period_s``, staggered across
+the bank by its cell index so few cells run at once; a running swarm evaluates
+``fits_per_update`` particles per tick (each one a variable-projection window fit,
+``estimate/varpro.py``), so its cost is spread over many ticks. The fusion stage decides what a
+fit costs and what a finished swarm changes; this module only buffers and schedules.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.estimate import lpso
+from bmsid.estimate.varpro import Window
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass
+class CellSwarm:
+    """A running swarm of one cell and the window snapshot it fits."""
+
+    swarm: lpso.Swarm
+    window: Window
+    weights: FloatArray
+    rng: np.random.Generator
+    fitness: FloatArray  # of the current positions, filled a few particles per tick
+    done_fits: int = 0
+
+
+@dataclass
+class WindowBuffer:
+    """Ring buffer of identification ticks (shared current A; per-cell V - OCV, h M, valid)."""
+
+    size: int
+    n_cells: int
+    current_A: FloatArray = field(init=False)
+    y_V: FloatArray = field(init=False)
+    hm_V: FloatArray = field(init=False)
+    valid: BoolArray = field(init=False)
+    head: int = 0
+    count: int = 0
+
+    def __post_init__(self) -> None:
+        self.current_A = np.zeros(self.size)
+        self.y_V = np.zeros((self.n_cells, self.size))
+        self.hm_V = np.zeros((self.n_cells, self.size))
+        self.valid = np.zeros((self.n_cells, self.size), dtype=bool)
+
+    def push(self, i: float, y: FloatArray, hm: FloatArray, valid: BoolArray) -> None:
+        j = self.head
+        self.current_A[j] = i
+        self.y_V[:, j] = y
+        self.hm_V[:, j] = hm
+        self.valid[:, j] = valid
+        self.head = (j + 1) % self.size
+        self.count = min(self.count + 1, self.size)
+
+    def order(self) -> npt.NDArray[np.intp]:
+        """Indices of the buffered ticks, oldest first."""
+        start = (self.head - self.count) % self.size
+        return (start + np.arange(self.count)) % self.size
+
+    def clear(self) -> None:
+        self.count = 0
+
+    def window(
+        self, c: int, dt_s: float, window_s: float, use_hysteresis: bool, use_offset: bool
+    ) -> tuple[Window, FloatArray]:
+        """Cell ``c``'s last ``window_s`` of ticks (period ``dt_s``) and its validity weights."""
+        idx = self.order()[-(int(window_s / dt_s) + 1) :]
+        w = Window(
+            current_A=self.current_A[idx].copy(),
+            y_V=np.where(self.valid[c, idx], self.y_V[c, idx], 0.0),
+            hm_V=self.hm_V[c, idx].copy(),
+            dt_s=dt_s,
+            use_hysteresis=use_hysteresis,
+            use_offset=use_offset,
+        )
+        return w, self.valid[c, idx].astype(np.float64)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "current_A": self.current_A.copy(), "y_V": self.y_V.copy(), "hm_V": self.hm_V.copy(),
+            "valid": self.valid.copy(), "head": self.head, "count": self.count,
+        }  # fmt: skip
+
+    def load_state_dict(self, st: dict[str, Any]) -> bool:
+        """Restore a buffer of the same size; False (buffer left empty) for another size."""
+        if np.shape(st["y_V"]) != self.y_V.shape:
+            self.clear()
+            return False
+        self.current_A[:] = st["current_A"]
+        self.y_V[:] = st["y_V"]
+        self.hm_V[:] = st["hm_V"]
+        self.valid[:] = st["valid"]
+        self.head = int(st["head"])
+        self.count = int(st["count"])
+        return True
+
+
+class SwarmSchedule:
+    """When each cell's next swarm is due, and the swarms running now.
+
+    Args:
+        n_cells: cells of the bank.
+        phase: each cell's offset in [0, 1) of ``period_s`` (staggering across the bank).
+        period_s: a swarm starts this often per cell.
+        min_window_s: the first swarm of a segment waits for this much data.
+    """
+
+    def __init__(
+        self, n_cells: int, phase: FloatArray, period_s: float, min_window_s: float
+    ) -> None:
+        self.n = n_cells
+        self.phase = phase
+        self.period_s = period_s
+        self.min_window_s = min_window_s
+        self.next_swarm = np.zeros(n_cells)
+        self.swarm_count = np.zeros(n_cells, dtype=np.int64)
+        self.running: list[CellSwarm | None] = [None] * n_cells
+
+    def new_segment(self, t_s: float) -> None:
+        """Histories restart at ``t_s``: running swarms end, the first is due after min_window."""
+        self.running = [None] * self.n
+        self.next_swarm = t_s + self.min_window_s + self.phase * self.period_s
+
+    def due(self, t_s: float) -> list[int]:
+        """Cells whose swarm is due at ``t_s`` (and not running); their next time moves on by
+        whole periods (a long stall does not queue up missed swarms)."""
+        if t_s < self.next_swarm.min():
+            return []
+        idle = np.array([s is None for s in self.running])
+        due = np.flatnonzero((t_s >= self.next_swarm) & idle)
+        for c in due:
+            self.next_swarm[c] += self.period_s * max(
+                1.0, np.ceil((t_s - self.next_swarm[c]) / self.period_s)
+            )
+        return [int(c) for c in due]
+
+    def n_running(self) -> int:
+        return sum(s is not None for s in self.running)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Running swarms are not saved: after a restore they start again at their next time."""
+        return {"next_swarm": self.next_swarm.copy(), "swarm_count": self.swarm_count.copy()}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        for k in ("next_swarm", "swarm_count"):
+            cur = getattr(self, k)
+            arr = np.asarray(st[k], dtype=cur.dtype)
+            if arr.shape != cur.shape:
+                raise ValueError(f"checkpoint field swarms/{k} has shape {arr.shape}")
+            setattr(self, k, arr.copy())
+        self.running = [None] * self.n
+
+    def reset(self, mask: BoolArray) -> None:
+        """The masked cells drop a running swarm (their next one starts on schedule)."""
+        for c in np.flatnonzero(mask):
+            self.running[int(c)] = None

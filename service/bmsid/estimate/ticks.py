@@ -1,0 +1,234 @@
+"""Tick assembly: raw samples -> identification ticks (the first stage of the bank).
+
+Samples are averaged into ``id_period_s`` bins; a tick is emitted at the sample that completes a
+bin and carries everything later stages need about the time base, so none of them looks at raw
+samples:
+
+* a time step longer than ``gap_s`` is a gap: a tick with ``new_segment`` whose propagation
+  current ``i_prev_A`` is 0 (the pack is assumed to have rested; histories restart);
+* a step back by more than ``gap_s`` is a restarted time base (a replay from its start, a clock
+  set back): a new segment with nothing propagated across it (``dt_s`` = 0);
+* any other non-increasing time is dropped and counted;
+* a NaN current holds the previous current; a NaN voltage is left out of its cell's bin mean
+  (``ok`` False when a cell has no valid voltage in the bin);
+* SOC is coulomb-counted at the raw rate: the tick lists the raw (current, interval) steps since
+  the previous tick, which the state stage applies in order (Eq. 2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.estimate.statedict import load_arrays
+from bmsid.estimate.tuning import EstimatorTuning
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+_NO_STEPS = np.zeros(0)
+
+
+@dataclass(frozen=True, slots=True)
+class Tick:
+    """One identification tick (times s, currents A with + = discharge, voltages V).
+
+    Attributes:
+        t_s: time of the sample that completed the tick.
+        current_A: mean pack current over the bin.
+        i_prev_A: current held since the previous tick (what the ZOH propagation uses; 0 over
+            a gap).
+        dt_s: time since the previous tick (0 at the first sample and after a time jump back).
+        period_s: nominal tick period (running mean of the tick steps, >= ``id_period_s``).
+        v_V: per-cell mean voltage over the bin, NaN where no valid voltage, shape (n,).
+        ok: cells with a valid voltage in the bin, shape (n,).
+        coulomb_i_A, coulomb_dt_s: the raw held-current steps since the previous tick, in order.
+        current_std_A: running RMS variation of the current (time constant
+            ``excitation_window_s``): the excitation measure.
+        first: the first sample of the run (SOC starts here).
+        new_segment: histories restart here (first sample, gap, time jump).
+    """
+
+    t_s: float
+    current_A: float
+    i_prev_A: float
+    dt_s: float
+    period_s: float
+    v_V: FloatArray
+    ok: BoolArray
+    coulomb_i_A: FloatArray
+    coulomb_dt_s: FloatArray
+    current_std_A: float
+    first: bool
+    new_segment: bool
+
+
+class TickAssembler:
+    """Bins raw samples into ticks; owns the raw and tick clocks and the excitation measure."""
+
+    name = "ticks"
+
+    def __init__(self, n_cells: int, tuning: EstimatorTuning) -> None:
+        self.n = n_cells
+        self.tuning = tuning
+        self.counters: dict[str, int] = {
+            "samples": 0,
+            "ticks": 0,
+            "non_increasing_time": 0,
+            "time_jumps_back": 0,
+            "nan_current": 0,
+            "nan_voltage": 0,
+            "gaps": 0,
+        }
+        self.t_raw: float | None = None
+        self.i_raw = 0.0
+        self.t_tick = 0.0
+        self.i_tick = 0.0
+        self.bin_i = 0.0
+        self.bin_n = 0
+        self.bin_v = np.zeros(n_cells)
+        self.bin_vn = np.zeros(n_cells, dtype=np.int64)
+        self.i_mean = 0.0
+        self.i_var = 0.0
+        self.dt_nom = 0.0
+        self._steps_i: list[float] = []
+        self._steps_dt: list[float] = []
+
+    @property
+    def period_s(self) -> float:
+        """Nominal time between ticks, s (ticks are ``id_period_s`` apart or more)."""
+        return max(self.dt_nom, self.tuning.id_period_s)
+
+    def push(self, t_s: float, current_A: float, v: FloatArray) -> Tick | None:
+        """One raw sample (s, A, V of shape (n,)); the tick it completes, else None."""
+        tun = self.tuning
+        self.counters["samples"] += 1
+        if not np.isfinite(t_s):
+            self.counters["non_increasing_time"] += 1
+            return None
+        if not np.isfinite(current_A):
+            self.counters["nan_current"] += 1
+            current_A = self.i_raw
+        bad_v = ~np.isfinite(v)
+        n_bad = int(bad_v.sum())
+        v_raw = v
+        if n_bad:
+            self.counters["nan_voltage"] += n_bad
+            v = np.where(bad_v, 0.0, v)  # summed into the bin, excluded by the count
+        if self.t_raw is None:
+            self.t_raw = t_s
+            self.i_raw = current_A
+            self.t_tick = t_s
+            self.i_tick = current_A
+            return self._tick(t_s, current_A, v_raw, ~bad_v, 0.0, first=True, new_segment=True)
+        dt = t_s - self.t_raw
+        if dt < -tun.gap_s:
+            self.counters["time_jumps_back"] += 1
+            return self._gap(t_s, current_A, v_raw, ~bad_v, elapsed_s=0.0)
+        if dt <= 0:
+            self.counters["non_increasing_time"] += 1
+            return None
+        if dt > tun.gap_s:
+            return self._gap(t_s, current_A, v_raw, ~bad_v, elapsed_s=t_s - self.t_tick)
+        self._steps_i.append(self.i_raw)
+        self._steps_dt.append(dt)
+        self.t_raw = t_s
+        self.i_raw = current_A
+        self.bin_i += current_A
+        self.bin_n += 1
+        self.bin_v += v
+        self.bin_vn += ~bad_v
+        if t_s - self.t_tick < tun.id_period_s - 0.5 * dt:
+            return None
+        i_avg = self.bin_i / self.bin_n
+        has_v = self.bin_vn > 0
+        v_avg = np.where(has_v, self.bin_v / np.maximum(self.bin_vn, 1), np.nan)
+        dt_tick = t_s - self.t_tick
+        self._clear_bin()
+        return self._tick(t_s, i_avg, v_avg, has_v, dt_tick, first=False, new_segment=False)
+
+    def _clear_bin(self) -> None:
+        self.bin_i = 0.0
+        self.bin_n = 0
+        self.bin_v[:] = 0.0
+        self.bin_vn[:] = 0
+
+    def _gap(
+        self, t_s: float, current_A: float, v: FloatArray, ok: BoolArray, elapsed_s: float
+    ) -> Tick:
+        """A new segment after ``elapsed_s`` of unknown current (assumed rest)."""
+        self.counters["gaps"] += 1
+        self._clear_bin()  # the raw steps before the gap still count: they go with this tick
+        self.t_raw = t_s
+        self.i_raw = current_A
+        self.i_tick = 0.0  # unknown current during the gap: assume the pack rested
+        return self._tick(t_s, current_A, v, ok, elapsed_s, first=False, new_segment=True)
+
+    def _tick(
+        self,
+        t: float,
+        i: float,
+        v: FloatArray,
+        ok: BoolArray,
+        dt: float,
+        *,
+        first: bool,
+        new_segment: bool,
+    ) -> Tick:
+        tun = self.tuning
+        self.counters["ticks"] += 1
+        if 0 < dt <= tun.gap_s:
+            self.dt_nom = dt if self.dt_nom == 0.0 else self.dt_nom + 0.05 * (dt - self.dt_nom)
+        # Excitation: running variance of the current (time constant excitation_window_s).
+        g = 1.0 - np.exp(-max(dt, 0.0) / tun.excitation_window_s) if dt > 0 else 0.0
+        self.i_mean += g * (i - self.i_mean)
+        self.i_var += g * ((i - self.i_mean) ** 2 - self.i_var)
+        if self._steps_i:
+            steps_i, steps_dt = np.array(self._steps_i), np.array(self._steps_dt)
+            self._steps_i.clear()
+            self._steps_dt.clear()
+        else:
+            steps_i = steps_dt = _NO_STEPS
+        tick = Tick(
+            t_s=t,
+            current_A=i,
+            i_prev_A=self.i_tick,
+            dt_s=dt,
+            period_s=self.period_s,
+            v_V=v,
+            ok=ok,
+            coulomb_i_A=steps_i,
+            coulomb_dt_s=steps_dt,
+            current_std_A=float(np.sqrt(self.i_var)),
+            first=first,
+            new_segment=new_segment,
+        )
+        self.t_tick = t
+        self.i_tick = i
+        return tick
+
+    # ------------------------------------------------------------------ checkpoints
+    _ARRAYS = ("bin_v", "bin_vn")
+    _SCALARS = (
+        "t_raw", "i_raw", "t_tick", "i_tick", "bin_i", "bin_n", "i_mean", "i_var", "dt_nom",
+    )  # fmt: skip
+
+    def state_dict(self) -> dict[str, Any]:
+        st: dict[str, Any] = {k: getattr(self, k).copy() for k in self._ARRAYS}
+        st.update({k: getattr(self, k) for k in self._SCALARS})
+        st["steps_i"] = np.array(self._steps_i)
+        st["steps_dt"] = np.array(self._steps_dt)
+        return st
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        load_arrays(self, st, self._ARRAYS, self.name)
+        for k in self._SCALARS:
+            if k != "t_raw":
+                setattr(self, k, float(st[k]))
+        self.t_raw = None if st["t_raw"] is None else float(st["t_raw"])
+        self.bin_n = int(st["bin_n"])
+        self._steps_i = [float(x) for x in np.asarray(st.get("steps_i", []), dtype=float)]
+        self._steps_dt = [float(x) for x in np.asarray(st.get("steps_dt", []), dtype=float)]

@@ -1,0 +1,73 @@
+"""The zero-order-hold step of the hysteresis 2RC model (Eq. 2, 5-8): written once, used by the
+simulator, the estimators' state propagation and the swarm's window fits.
+
+States: SOC z (fraction), the RC branch states and Plett's hysteresis state h in [-1, 1]. Over an
+interval dt the current i is held (ZOH), which makes each step exact for any dt:
+
+* SOC (Eq. 2): ``z+ = z - eta i dt / Q`` with eta applied on charge (i < 0) only, Q in A s;
+* RC branch (Eq. 7-8): ``u+ = a u + g (1 - a) i`` with ``a = exp(-dt / tau)``; ``g`` = R gives the
+  branch voltage (V), ``g`` = 1 the unit-gain state x (A) that the estimators use (U = R x);
+* hysteresis (Eq. 5-6, Plett's sign): ``h+ = exp(-|kappa i| dt) h - (1 - exp(-|kappa i| dt))
+  sgn(i)``, kappa = eta gamma / Q in 1/(A s): discharge drives h to -1, charge to +1.
+
+Positive current = discharge throughout.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+from scipy.signal import lfilter
+
+FloatArray = npt.NDArray[np.float64]
+Num = float | FloatArray
+
+
+def charge_efficiency(current_A: Num, eta: Num) -> FloatArray:
+    """Coulombic efficiency that applies to ``current_A``: ``eta`` on charge, 1 on discharge."""
+    return np.asarray(np.where(np.asarray(current_A) < 0, eta, 1.0), dtype=np.float64)
+
+
+def soc_delta(current_A: Num, dt_s: Num, capacity_As: Num, eta: Num) -> FloatArray:
+    """Change of SOC (fraction) over ``dt_s`` at the held ``current_A`` (Eq. 2)."""
+    return np.asarray(
+        -charge_efficiency(current_A, eta) * current_A * dt_s / capacity_As, dtype=np.float64
+    )
+
+
+def soc_step(z: Num, current_A: Num, dt_s: Num, capacity_As: Num, eta: Num) -> FloatArray:
+    """SOC after ``dt_s`` at the held ``current_A`` (Eq. 2); not clamped (see ``OcvModel``)."""
+    return np.asarray(z + soc_delta(current_A, dt_s, capacity_As, eta), dtype=np.float64)
+
+
+def rc_decay(dt_s: Num, tau_s: Num) -> FloatArray:
+    """ZOH pole ``a = exp(-dt / tau)`` of an RC branch (Eq. 7)."""
+    return np.asarray(np.exp(-np.asarray(dt_s) / tau_s), dtype=np.float64)
+
+
+def rc_step(u: Num, a: Num, current_A: Num, gain: Num = 1.0) -> FloatArray:
+    """One exact ZOH step of an RC branch (Eq. 8): ``a u + gain (1 - a) i``.
+
+    ``gain`` = R (ohm) steps the branch voltage in V; the default 1 steps the unit-gain state
+    (A), whose voltage is R x: the form the estimators use, linear in R.
+    """
+    return np.asarray(a * u + gain * (1.0 - a) * current_A, dtype=np.float64)
+
+
+def rc_filter(current_A: FloatArray, a: float) -> FloatArray:
+    """``rc_step`` with unit gain iterated over a whole window from x_0 = 0: ``x_k = a x_(k-1) +
+    (1 - a) i_(k-1)`` for k = 0..W-1 (state *before* sample k's current acts). One C-level
+    recursion per window, what the swarm's window fits need; equal to the loop to rounding."""
+    return np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], current_A), dtype=np.float64)
+
+
+def hysteresis_kappa(gamma: Num, capacity_As: Num, eta: Num, current_A: Num) -> FloatArray:
+    """The paper's decay factor kappa in 1/(A s) (Eq. 6) from Plett's dimensionless rate gamma:
+    ``kappa = eta gamma / Q`` with eta applied on charge only."""
+    return np.asarray(gamma / capacity_As * charge_efficiency(current_A, eta), dtype=np.float64)
+
+
+def hysteresis_step(h: Num, current_A: Num, dt_s: Num, kappa: Num) -> FloatArray:
+    """Advance the hysteresis state over ``dt_s`` with the current held (Eq. 8, last row)."""
+    decay = np.exp(-np.abs(np.asarray(kappa) * current_A) * dt_s)
+    return np.asarray(decay * h - (1.0 - decay) * np.sign(current_A), dtype=np.float64)
