@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates the cell configs in this folder from the measured data in shared/data/real
 # (see README.md for the method). Run from the repository root: bash configs/cells/regenerate.sh
+# Each fit also writes its report (ocv_fit.txt/.json/.png) to <config>_report/ beside it.
 set -euo pipefail
 DATA=${BMSID_REAL_DATA:-../shared/data/real}
 OUT=configs/cells
@@ -9,29 +10,21 @@ BMSID=${BMSID:-bmsid}
 A=$DATA/a123_lfp_25C
 $BMSID fit-ocv "$A"/a123_25C_OCV_S1.csv.gz "$A"/a123_25C_OCV_S2.csv.gz \
     "$A"/a123_25C_OCV_S3.csv.gz "$A"/a123_25C_OCV_S4.csv.gz \
-    --name a123-lfp-25C --chemistry LFP \
-    --initial R0_ohm=0.010,R1_ohm=0.003,tau1_s=10,R2_ohm=0.003,tau2_s=300 \
-    --bound R0_ohm=0.002:0.1 --bound R1_ohm=0.0001:0.1 --bound R2_ohm=0.0001:0.1 \
-    --out $OUT/a123_lfp_25C.toml
+    --name a123-lfp-25C --chemistry LFP --out $OUT/a123_lfp_25C.toml
 
 P=$DATA/calce_inr18650-20r/ocv_points
-CALCE_OPTS=(--chemistry NMC --capacity-ah 2.0 --points --soc-anchor full
-    --bound R0_ohm=0.01:0.3 --bound R1_ohm=0.0005:0.2 --bound R2_ohm=0.0005:0.2)
+CALCE_OPTS=(--chemistry NMC --capacity-ah 2.0 --points --soc-anchor full)
 $BMSID fit-ocv "$P"/derived_ocvpts_25C_SP20-1_discharge_and_charge.csv \
     "$P"/derived_ocvpts_25C_SP20-3_discharge_and_charge.csv \
-    "${CALCE_OPTS[@]}" --name calce-inr18650-20r-25C \
-    --initial R0_ohm=0.072,R1_ohm=0.02,tau1_s=10,R2_ohm=0.02,tau2_s=300 \
-    --out $OUT/calce_inr18650_20r_25C.toml
+    "${CALCE_OPTS[@]}" --name calce-inr18650-20r-25C --out $OUT/calce_inr18650_20r_25C.toml
 for T in 0 45; do
-    case $T in 0) R0=0.102 ;; 45) R0=0.077 ;; esac
     $BMSID fit-ocv "$P"/derived_ocvpts_${T}C_SP20-1_discharge.csv \
         "$P"/derived_ocvpts_${T}C_SP20-3_discharge.csv \
         "${CALCE_OPTS[@]}" --branch discharge --name calce-inr18650-20r-${T}C \
-        --hysteresis-from $OUT/calce_inr18650_20r_25C.toml \
-        --initial R0_ohm=$R0,R1_ohm=0.02,tau1_s=10,R2_ohm=0.02,tau2_s=300 \
-        --out $OUT/calce_inr18650_20r_${T}C.toml
+        --hysteresis-from $OUT/calce_inr18650_20r_25C.toml --out $OUT/calce_inr18650_20r_${T}C.toml
 done
 
 # The physics reference data's cell (PyBaMM DFN, LG M50), from its shipped C/20 test.
+# No [initial] and no [bounds] anywhere: identify and the daemon measure them on the record.
 $BMSID fit-ocv data/physics/dfn_nmc_ocv_c20_25C.csv.gz --chemistry NMC --name dfn-nmc-lgm50-25C \
     --out $OUT/dfn_nmc_lgm50_25C.toml

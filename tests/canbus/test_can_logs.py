@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 from can_helpers import frames, synthetic
 
-from bmsid.canbus.logs import read_log, samples_from_log, write_log
+from bmsid.canbus.logs import (
+    csv_to_messages,
+    read_log,
+    samples_from_log,
+    summarize_log,
+    write_log,
+)
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.errors import UserError
 
@@ -111,3 +117,61 @@ def test_real_a123_profile_survives_the_log(tmp_path: Path, real_data_dir: Path)
     np.testing.assert_allclose([s.current_A for s in samples], i, atol=5e-4 + 1e-9)
     np.testing.assert_allclose([s.cell_voltages_V[0] for s in samples], v, atol=5e-4 + 1e-9)
     np.testing.assert_allclose([s.t_s - 1.7e9 for s in samples], t, atol=2e-6)
+
+
+# ----------------------------------------------------------------------------- what a log holds
+DEMO_LOG = REPO / "service" / "bmsid" / "data" / "demo_pack.log"
+
+
+def _two_channel_log(path: Path, n: int = 400) -> Path:
+    """can0 carries a 3-cell pack, can1 a 2-cell pack, interleaved by time as candump -l
+    writes a capture of both buses."""
+    mapping = default_mapping()
+    t, i, v = synthetic(n, 3)
+    lines: list[str] = []
+    for name, cells, scale in (("can0", 3, 1.0), ("can1", 2, 0.5)):
+        part = path.with_suffix(f".{name}")
+        write_log(part, csv_to_messages(t, scale * i, v[:, :cells], mapping, t0_s=1.7e9), name)
+        lines += part.read_text().splitlines()
+    lines.sort(key=lambda line: float(line[1 : line.index(")")]))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_summary_counts_channels_ids_and_cells(tmp_path: Path) -> None:
+    s = summarize_log(_two_channel_log(tmp_path / "two.log"), default_mapping())
+    assert s.mapped_channels == ["can0", "can1"]
+    can0, can1 = s.channels["can0"], s.channels["can1"]
+    assert (can0.frames, can1.frames) == (800, 800)
+    assert can0.ids == {(0x100, False): 400, (0x110, False): 400}
+    assert (can0.n_cells, can1.n_cells) == (3, 2)  # padding slots are not-available: no cell
+    text = s.text()
+    assert text.startswith("two.log holds can0: 800 frames, 2 id(s) (0x100 x400, 0x110 x400)")
+    assert "can1: 800 frames" in text and "2 cell(s)" in text
+
+
+def test_two_channels_are_refused_unless_one_is_chosen(tmp_path: Path) -> None:
+    log = _two_channel_log(tmp_path / "two.log")
+    with pytest.raises(UserError) as err:
+        samples_from_log(log, default_mapping(), 2)
+    msg = str(err.value)
+    assert "on 2 CAN channels (can0: 800, can1: 800)" in msg and "pass --channel NAME" in msg
+    one = samples_from_log(log, default_mapping(), 2, channel="can1")
+    assert len(one) == 400  # not 800 (or more) samples of two buses interleaved
+    _, i, _ = synthetic(400, 3)
+    np.testing.assert_allclose([s.current_A for s in one], 0.5 * i, atol=1e-3)
+    with pytest.raises(UserError, match="on channel 'can7'"):
+        samples_from_log(log, default_mapping(), 2, channel="can7")
+
+
+def test_bundled_demo_log_carries_eight_cells() -> None:
+    s = summarize_log(DEMO_LOG, default_mapping())
+    assert list(s.channels) == ["can0"]
+    assert s.channels["can0"].n_cells == 8
+    assert s.channels["can0"].cells == list(range(8))
+
+
+def test_listed_layout_cells_are_counted(tmp_path: Path) -> None:
+    mapping = load_mapping(REPO / "dbc" / "example_bms_mapping.toml")
+    write_log(tmp_path / "x.log", frames(mapping, n=30, n_cells=6))
+    assert summarize_log(tmp_path / "x.log", mapping).channels["can0"].n_cells == 6

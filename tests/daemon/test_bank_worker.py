@@ -237,3 +237,34 @@ print(sorted(m for m in sys.modules if m.split(".")[0] == "scipy" or m == "bmsid
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
     )
     assert out.stdout.strip() == "[]", out.stdout[:300]
+
+
+def test_a_config_without_start_values_measures_them_on_the_first_samples(
+    tmp_path: Path,
+) -> None:
+    """No [initial] and no [bounds]: the worker holds the first samples until their current
+    steps give R0 (-dV/dI), then starts the bank from it and feeds what it held; a restart
+    from the checkpoint rebuilds the same bank (its normalisation depends on them)."""
+    cell = paper_cell().model_copy(update={"initial": None, "bounds": None})
+    spec = _spec(tmp_path, cell=cell, keep_all_estimates=True)
+    host = BankHost(spec)
+    host.start()
+    first = host.update(SampleBlock.from_samples([_sample_at(0.0, 0.0)]))
+    assert first.estimates == [] and host.start_values is None  # one sample: no step yet
+    pulses = [_sample_at(float(t), 40.0 * ((t // 10) % 2)) for t in range(1, 61)]
+    result = host.update(SampleBlock.from_samples(pulses))  # 5 steps of 40 A
+    assert host.start_values is not None
+    assert host.start_values.R0_ohm == pytest.approx(2e-3, rel=0.05)  # the -0.002 V/A above
+    assert result.estimates and result.estimates[0].t_s == 0.0  # the held sample fed too
+    r0 = host.bank.model.start("R0_ohm")
+    np.testing.assert_allclose(r0, host.start_values.R0_ohm)
+    host.checkpoint(clean=True)
+    again = BankHost(spec)
+    assert again.start().restored
+    assert again.start_values == host.start_values
+    a, b = host.update(_samples(61.0, 20)), again.update(_samples(61.0, 20))
+    np.testing.assert_array_equal(a.estimates[-1].R0_ohm, b.estimates[-1].R0_ohm)
+
+
+def _sample_at(t: float, i: float) -> Sample:
+    return Sample(t_s=t, current_A=i, cell_voltages_V=np.full(N_CELLS, 3.7 - 0.002 * i))

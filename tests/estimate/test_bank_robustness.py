@@ -20,7 +20,7 @@ FAST = EstimatorTuning(window_s=240.0, min_window_s=60.0, swarm_period_s=90.0, n
 
 
 def _check(est: Estimates) -> None:
-    b = CELL.bounds
+    b = CELL.parameter_bounds()
     for name in ("R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F", "tau1_s", "tau2_s", "M_V",
                  "ocv_offset_V", "lambda_", "h", "soc", "v_model_V", "arx_error_V"):  # fmt: skip
         assert np.all(np.isfinite(getattr(est, name))), name

@@ -1,5 +1,5 @@
-"""``bmsid compare``: Table 2 and consistency files from short synthetic runs; the pure report
-functions (labels, tables, consistency) on known numbers."""
+"""``bmsid compare``: Table 2, SOC-band and consistency files from short synthetic runs; the pure
+report functions (labels, tables, consistency) on known numbers."""
 
 from __future__ import annotations
 
@@ -22,6 +22,9 @@ from bmsid.offline.report import (
     Table2Row,
     consistency,
     label_dataset,
+    soc_band_rows,
+    soc_bands_csv,
+    soc_bands_markdown,
     table2_csv,
     table2_markdown,
     unique_displays,
@@ -29,14 +32,23 @@ from bmsid.offline.report import (
 
 
 @pytest.fixture(scope="module")
-def compare_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def dst_bus_csvs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """A DST and a BBDST file of the paper's cell at 25 C, and that cell's config."""
     tmp = tmp_path_factory.mktemp("cmp")
     cfg = tmp / "cell.toml"
     save_cell_config(paper_cell(), cfg)
     dst = write_csv(tmp / "syn_dst_25C.csv", synthetic_columns(1500, seed=1))
     cols = synthetic_columns(1500, seed=2, bus=True)
     bus = write_csv(tmp / "syn_bbdst_25C.csv.gz", cols)
-    out = tmp / "out"
+    return dst, bus, cfg
+
+
+@pytest.fixture(scope="module")
+def compare_out(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path_factory: pytest.TempPathFactory
+) -> Path:
+    dst, bus, cfg = dst_bus_csvs
+    out = tmp_path_factory.mktemp("cmp_out") / "out"
     argv = ["compare", str(dst), str(bus), "--cell-config", str(cfg), "--out", str(out)]
     assert main(argv) == 0
     return out
@@ -50,17 +62,76 @@ def test_compare_writes_table2(compare_out: Path) -> None:
     assert {r["algorithm"] for r in rows} == set(VARIANTS)
     for r in rows:
         assert r["temperature_C"] == "25.0"
-        for key in ("max_abs_error_V", "rmse_V", "mape_pct", "runtime_s"):
+        for key in (
+            "max_abs_error_V", "rmse_V", "mape_pct", "runtime_s", "rmse_whole_V",
+            "rmse_startup_V", "rmse_after_startup_V",
+        ):  # fmt: skip
             assert math.isfinite(float(r[key])) and float(r[key]) >= 0
-        assert int(r["n_samples"]) == 1500 - 150
+        assert int(r["n_samples"]) == 1500  # default window: the whole record
+        assert r["rmse_V"] == r["rmse_whole_V"]
     md = (compare_out / "table2.md").read_text(encoding="utf-8")
     assert "| hy-affrls-lpso (paper) | 21.4 | 28.4 |" in md  # the paper's 25 C DST / BBDST
+    assert "| RMSE whole / mV | RMSE first 10 % / mV | RMSE after 10 % / mV |" in md
+    assert "| RMSE in window / mV |" in md and "evaluation window (all ticks)" in md
     assert (compare_out / "rmse.png").read_bytes()[:4] == b"\x89PNG"
     for stem in ("syn_dst_25C", "syn_bbdst_25C"):
         for variant in VARIANTS:
             doc = json.loads((compare_out / stem / variant / "metrics.json").read_text())
             assert doc["algorithm"] == variant
             assert (compare_out / stem / variant / "voltage.png").exists()
+
+
+def test_compare_writes_soc_bands(compare_out: Path) -> None:
+    with (compare_out / "soc_bands.csv").open(encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    runs = {(r["dataset"], r["algorithm"]) for r in rows}
+    assert runs == {(d, v) for d in ("DST 25C", "BBDST 25C") for v in VARIANTS}
+    for d, v in runs:
+        mine = [r for r in rows if (r["dataset"], r["algorithm"]) == (d, v)]
+        assert sum(int(r["n_samples"]) for r in mine) == 1500  # the bands hold every tick
+        assert all(math.isfinite(float(r["rmse_V"])) for r in mine)
+    md = (compare_out / "soc_bands.md").read_text(encoding="utf-8")
+    assert "per 10 % SOC band" in md and "SOC: the estimator's" in md
+    assert "| DST 25C | hy-affrls-lpso |" in md and "| 90-100 % |" in md
+
+
+def test_compare_scores_on_a_coulomb_count_from_a_known_start(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    """--score-soc0: the window and the bands on the count from 95 %, not on the estimator's
+    SOC (started here at a wrong 60 %)."""
+    dst, _, cfg = dst_bus_csvs
+    out = tmp_path / "out"
+    argv = [
+        "compare", str(dst), "--cell-config", str(cfg), "--out", str(out), "--algorithms",
+        "non-hy-affrls", "--soc0", "0.6", "--score-soc0", "0.95", "--soc-window", "0.2,0.9",
+    ]  # fmt: skip
+    assert main(argv) == 0
+    soc_true = synthetic_columns(1500, seed=1)["soc_true"]
+    with (out / "table2.csv").open(encoding="utf-8") as fh:
+        (row,) = list(csv.DictReader(fh))
+    # The count from 95 % is the simulation's SOC (to the tick mean current).
+    assert abs(int(row["n_samples"]) - int(np.sum((soc_true >= 0.2) & (soc_true <= 0.9)))) <= 2
+    assert int(row["n_samples"]) < 1500
+    summary = json.loads((out / "compare.json").read_text(encoding="utf-8"))
+    (run,) = summary["runs"]
+    assert run["scoring_soc"]["source"] == "coulomb_count"
+    assert run["scoring_soc"]["soc0"] == 0.95
+    assert "coulomb count" in (out / "table2.md").read_text(encoding="utf-8")
+    assert "coulomb count" in (out / "soc_bands.md").read_text(encoding="utf-8")
+
+
+def test_compare_bad_score_soc0_is_one_line(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    dst, _, cfg = dst_bus_csvs
+    argv = ["compare", str(dst), "--cell-config", str(cfg), "--out", str(tmp_path / "o")]
+    assert main([*argv, "--score-soc0", "95"]) == 2
+    assert main([*argv, "--score-soc0", "0.9", "--score-soc0", "0.8"]) == 2
+    errs = capsys.readouterr().err.strip().splitlines()
+    assert len(errs) == 2
+    assert errs[0].endswith("error: --score-soc0 is a fraction in [0, 1], got 95")
+    assert errs[1].endswith("error: 2 --score-soc0 for 1 datasets: give 1 or 1")
 
 
 def test_compare_writes_consistency(compare_out: Path) -> None:
@@ -125,8 +196,33 @@ def test_table2_formats() -> None:
     assert text.splitlines()[0].startswith("dataset,profile,temperature_C,algorithm")
     assert len(text.splitlines()) == 4
     md = table2_markdown(rows, "all ticks")
-    assert "| DST 15C | DST | 15 | hy-affrls-lpso | 30.0 | 3.00 | 0.100 | 2.0 |" in md
+    # whole, first 10 % and the rest not given: "-"; then the window's max, RMSE, MAPE, run time
+    assert "| DST 15C | DST | 15 | hy-affrls-lpso | - | - | - | 30.0 | 3.00 | 0.100 | 2.0 |" in md
     assert "| hy-affrls-lpso (paper) | 11.8 |" in md
+    full = Table2Row("DST 15C", "DST", 15.0, "hy-affrls", 90, 0.02, 0.002, 0.1, 2.0,
+                     0.004, 0.009, 0.002)  # fmt: skip
+    assert "| hy-affrls | 4.00 | 9.00 | 2.00 | 20.0 | 2.00 | 0.100 | 2.0 |" in table2_markdown(
+        [full], "all ticks"
+    )
+    assert "rmse_whole_V,rmse_startup_V,rmse_after_startup_V" in table2_csv([full])
+
+
+def test_soc_band_tables() -> None:
+    bands = [
+        {"band": b, "soc_lo": lo, "soc_hi": hi, "n_samples": n, "max_abs_error_V": 0.01,
+         "rmse_V": r, "mape_pct": 0.1}
+        for b, lo, hi, n, r in [("90-100 %", 0.9, 1.0, 5, 0.004), ("<0 %", None, 0.0, 2, 0.5)]
+    ]  # fmt: skip
+    rows = soc_band_rows("DST 15C", "DST", 15.0, "hy-affrls", bands)
+    rows += soc_band_rows("DST 15C", "DST", 15.0, "non-hy-affrls", bands[:1])
+    md = soc_bands_markdown(rows, "the estimator's")
+    assert "| dataset | algorithm | <0 % | 90-100 % |" in md  # in SOC order
+    assert "| DST 15C | hy-affrls | 500.00 (2) | 4.00 (5) |" in md
+    assert "| DST 15C | non-hy-affrls | - | 4.00 (5) |" in md
+    text = soc_bands_csv(rows)
+    assert text.splitlines()[0].startswith("dataset,profile,temperature_C,algorithm,band,soc_lo")
+    assert "DST 15C,DST,15.0,hy-affrls,<0 %,,0.0,2," in text
+    assert "No tick was scored" in soc_bands_markdown([], "x")
 
 
 @settings(max_examples=50, deadline=None)

@@ -11,7 +11,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.errors import UserError
-from bmsid.offline.csvio import TesterData, read_ocv_points, read_tester_csv, write_tester_csv
+from bmsid.offline.csvio import (
+    MAX_TIME_RESTARTS,
+    RESTART_GAP_S,
+    ColumnMap,
+    TesterData,
+    read_ocv_points,
+    read_tester_csv,
+    write_tester_csv,
+)
 
 
 def _write(path: Path, text: str) -> Path:
@@ -83,7 +91,7 @@ def test_gzip_is_read(tmp_path: Path) -> None:
         ("t_s,current_A,voltage_V\n0,1,3.3\n1,nan,3.3\n2,1,\n3,1,3.3\n", "line(s) 3"),
         ("t_s,current_A,voltage_V\n0,1,3.3\n1,1,3.3\n2,1,x\n", "'voltage_V' has empty"),
         ("t_s,current_A,voltage_V\n0,1,3.3\n\n2,1,3.3\n", "line(s) 3 are empty"),
-        ("t_s,current_A,voltage_V\n0,1,3.3\n2,1,3.3\n2,1,3.3\n", "not increasing at line 4"),
+        ("t_s,current_A,voltage_V\n0,1,3.3\n2,1,3.3\n1.5,1,3.3\n", "not increasing at line 4"),
         ("t_s,current_A,voltage_V\n0,1,3300\n1,1,3301\n", "millivolts"),
         ("t_s,current_A,voltage_V\n0,5000,3.3\n1,1,3.3\n", "milliamperes"),
     ],
@@ -119,3 +127,107 @@ def test_ocv_points_pairs_and_percent(tmp_path: Path) -> None:
     assert (d.branch, c.branch) == ("discharge", "charge")
     np.testing.assert_allclose(d.soc, [0.1, 0.5, 0.9])
     np.testing.assert_allclose(c.ocv_V, [3.62, 3.95])
+
+
+# ----------------------------------------------------------------------------- what testers write
+def _rows(path: Path, header: str, rows: list[tuple[float, ...]]) -> Path:
+    body = "\n".join(",".join(f"{x:g}" for x in r) for r in rows)
+    return _write(path, header + "\n" + body + "\n")
+
+
+def test_repeated_timestamps_are_merged_keeping_the_last(tmp_path: Path) -> None:
+    # A tester logs the end of the old step and the start of the new one at the same time.
+    rows = [(0, 0, 3.60, 25, 0.1), (1, 0, 3.60, 25, 0.2), (1, 5, 3.55, 25, 0.3),
+            (2, 5, 3.54, 25, 0.4), (3, 5, 3.53, 25, 0.5), (3, 0, 3.57, 25, 0.6),
+            (3, -2, 3.58, 25, 0.7), (4, -2, 3.58, 25, 0.8)]  # fmt: skip
+    p = _rows(tmp_path / "r.csv", "t_s,current_A,voltage_V,temperature_C,step", rows)
+    d = read_tester_csv(p)
+    assert d.merged_repeats == 3
+    np.testing.assert_array_equal(d.t_s, [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(d.current_A, [0, 5, 5, -2, -2])  # the new step's current
+    np.testing.assert_array_equal(d.cell_voltages_V[:, 0], [3.60, 3.55, 3.54, 3.58, 3.58])
+    np.testing.assert_array_equal(d.extra["step"], [0.1, 0.3, 0.4, 0.7, 0.8])
+    assert d.temperature_C is not None and d.temperature_C.shape == (5,)
+    clean = _write(tmp_path / "c.csv", "t_s,current_A,voltage_V\n0,0,3\n1,0,3\n")
+    assert read_tester_csv(clean).merged_repeats == 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    steps=st.lists(st.sampled_from([0.0, 0.0, 0.5, 1.0, 7.25, 45.0]), min_size=1, max_size=60),
+    seed=st.integers(0, 2**31),
+)
+def test_merging_keeps_every_distinct_time_in_order(
+    tmp_path_factory: pytest.TempPathFactory, steps: list[float], seed: int
+) -> None:
+    t = np.concatenate([[100.0], 100.0 + np.cumsum(steps)])
+    rng = np.random.default_rng(seed)
+    i = np.round(rng.normal(0, 5, t.size), 3)
+    v = np.round(rng.uniform(3.0, 4.0, t.size), 4)
+    p = tmp_path_factory.mktemp("m") / "m.csv"
+    _rows(p, "t_s,current_A,voltage_V", list(zip(t, i, v, strict=True)))
+    d = read_tester_csv(p)
+    distinct = np.unique(t)
+    np.testing.assert_array_equal(d.t_s, distinct)  # none lost, strictly increasing
+    assert d.merged_repeats == t.size - distinct.size
+    last = [int(np.flatnonzero(t == x)[-1]) for x in distinct]
+    np.testing.assert_array_equal(d.current_A, i[last])
+    np.testing.assert_array_equal(d.cell_voltages_V[:, 0], v[last])
+
+
+def test_gaps_and_rate_changes_load_unchanged(tmp_path: Path) -> None:
+    t = np.concatenate([np.arange(0, 10.0), 10 + 0.1 * np.arange(50), 3600 + np.arange(5.0)])
+    p = _rows(tmp_path / "g.csv", "t_s,current_A,voltage_V",
+              [(x, 1.0, 3.5) for x in t])  # fmt: skip
+    d = read_tester_csv(p)
+    np.testing.assert_allclose(d.t_s, t)
+    assert d.merged_repeats == 0 and d.time_restarts == ()
+
+
+def test_clock_restart_is_stitched_on_after_a_gap(tmp_path: Path) -> None:
+    # Two records appended: the second's clock starts at 0 again (line 2 + 200 = 202).
+    t = np.concatenate([np.arange(200.0), np.arange(100.0)])
+    p = _rows(tmp_path / "s.csv", "t_s,current_A,voltage_V", [(x, 1.0, 3.5) for x in t])
+    d = read_tester_csv(p)
+    assert d.time_restarts == (202,)
+    assert np.all(np.diff(d.t_s) > 0)
+    assert d.t_s[200] - d.t_s[199] == pytest.approx(RESTART_GAP_S)
+    np.testing.assert_allclose(d.t_s[201:] - d.t_s[200], np.arange(1.0, 100.0))
+
+
+def test_per_step_time_column_is_refused(tmp_path: Path) -> None:
+    t = np.concatenate([np.arange(100.0)] * (MAX_TIME_RESTARTS + 2))
+    p = _rows(tmp_path / "s.csv", "t_s,current_A,voltage_V", [(x, 1.0, 3.5) for x in t])
+    with pytest.raises(UserError, match=r"restarts 4 times \(line\(s\) 102, 202, 302, 402\): "
+                       r"a per-step time column\?"):  # fmt: skip
+        read_tester_csv(p)
+
+
+def test_step_back_that_is_no_restart_names_its_line(tmp_path: Path) -> None:
+    t = [0.0, 100.0, 200.0, 150.0, 300.0]  # back to 150 s, not to the start
+    p = _rows(tmp_path / "b.csv", "t_s,current_A,voltage_V", [(x, 1.0, 3.5) for x in t])
+    with pytest.raises(UserError, match=r"not increasing at line 5 \(150 s after 200 s\)"):
+        read_tester_csv(p)
+
+
+def test_foreign_export_loads_with_a_column_map(tmp_path: Path) -> None:
+    # Arbin-like names, time in ms, current in mA, a semicolon export with quoted names.
+    p = _write(
+        tmp_path / "arbin.csv",
+        '"Data_Point";"Test_Time(ms)";"Current(mA)";"Voltage(V)";"t_s"\n'
+        "1;0;0;3.61;7\n2;1000;-500;3.66;7\n3;2000;1500;3.55;7\n",
+    )
+    cols = {
+        "t_s": ColumnMap("Test_Time(ms)", 0.001),
+        "current_A": ColumnMap("current(ma)", 0.001),  # names match case-insensitively
+        "voltage_V": ColumnMap("Voltage(V)"),
+    }
+    d = read_tester_csv(p, columns=cols, charge_positive=True)
+    np.testing.assert_allclose(d.t_s, [0, 1, 2])
+    np.testing.assert_allclose(d.current_A, [0, 0.5, -1.5])
+    np.testing.assert_allclose(d.cell_voltages_V[:, 0], [3.61, 3.66, 3.55])
+    assert set(d.extra) == {"Data_Point", "t_s_unmapped"}  # the file's own t_s gave way
+    with pytest.raises(UserError, match=r"no column 'Time' \(mapped to t_s\); found: Data_Point"):
+        read_tester_csv(p, columns={"t_s": ColumnMap("Time")})
+    with pytest.raises(UserError, match="other names: --columns"):
+        read_tester_csv(p)

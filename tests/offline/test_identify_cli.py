@@ -97,13 +97,35 @@ def test_identify_writes_params_metrics_and_plots(lpso_run: Path) -> None:
         assert key in doc["cells"]["voltage_V"]
     assert doc["algorithm"] == "hy-affrls-lpso"
     assert all(math.isfinite(doc[k]) for k in METRIC_KEYS[2:])
-    assert doc["n_samples"] == 2400 - 240  # default window: first 10 % of the ticks skipped
-    assert "10 %" in doc["evaluation_window"]["description"]
+    for part in (doc, doc["cells"]["voltage_V"]):  # the whole record, its start-up, the rest
+        assert part["overall"]["n_samples"] == 2400
+        assert part["startup"]["n_samples"] == part["startup"]["n_ticks"] == 240
+        assert part["after_startup"]["n_samples"] == 2400 - 240
+        assert sum(b["n_samples"] for b in part["soc_bands"]) == 2400
+    assert doc["scoring_soc"]["source"] == "estimator"
     assert doc["soc_init_method"] == "ocv_at_rest"
-    # The model is the generator with 1 mV noise: the fusion must track it closely.
-    assert doc["rmse_V"] < 3e-3
+    # The model is the generator with 1 mV noise: the fusion must track it closely, start-up
+    # included.
+    assert doc["overall"]["rmse_V"] < 3e-3
     for png in ("parameters.png", "voltage.png"):
         assert (lpso_run / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_default_window_is_the_whole_record(
+    lpso_run: Path, dst_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = json.loads((lpso_run / "metrics.json").read_text(encoding="utf-8"))
+    assert doc["evaluation_window"]["description"] == "all ticks"
+    assert doc["n_samples"] == 2400
+    assert doc["rmse_V"] == doc["overall"]["rmse_V"]
+    out = tmp_path / "skip"
+    argv = ["identify", str(dst_csv), "--out", str(out), "--algorithm", "non-hy-affrls"]
+    assert main([*argv, "--skip-fraction", "0.1"]) == 0
+    skipped = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    assert skipped["rmse_V"] == skipped["after_startup"]["rmse_V"]
+    line = capsys.readouterr().out.splitlines()[-2]
+    assert line.startswith("non-hy-affrls: RMSE ") and " mV over all 2400 ticks (max " in line
+    assert "; first 10 % " in line and "; window (first 10 % of the ticks skipped) " in line
 
 
 def test_identify_recovers_the_generating_parameters(lpso_run: Path) -> None:

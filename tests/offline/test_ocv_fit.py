@@ -10,11 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.cli.main import main
-from bmsid.config.cell import PAPER_OCV_MEAN, load_cell_config
-from bmsid.model.ocv import eval_ocv
+from bmsid.config.cell import PAPER_OCV_MEAN, CellConfig, OcvCurve, load_cell_config
+from bmsid.config.engine import ocv_model
+from bmsid.model.ocv import OcvModel, eval_ocv
+from bmsid.model.simulator import simulate
 from bmsid.offline.csvio import TesterData, read_tester_csv, write_tester_csv
 from bmsid.offline.ocv_fit import (
     OcvTestPart,
+    build_cell_config,
     extract_branches,
     fit_eq4,
     fit_ocv_test,
@@ -81,7 +84,7 @@ def _synthetic_ocv_test(
     z = np.clip(1.0 - q_Ah / cap_Ah, 0.005, 0.995)
     branch = np.where(np.arange(current.size) < 60 + n_cc + 60, -1.0, 1.0)
     v = eval_ocv(PAPER, z) + m_V * branch - current * r_ohm
-    t = np.arange(current.size) * dt
+    t = np.arange(current.size, dtype=np.float64) * dt
     return TesterData(
         t_s=t, current_A=current, cell_voltages_V=v[:, None], cell_names=["voltage_V"]
     )
@@ -89,16 +92,115 @@ def _synthetic_ocv_test(
 
 def test_synthetic_test_recovers_capacity_resistance_and_m() -> None:
     data = _synthetic_ocv_test(r_ohm=0.040, m_V=0.010)
-    br = extract_branches([OcvTestPart(data.t_s, data.current_A, data.cell_voltages_V[:, 0])])
+    part = OcvTestPart(data.t_s, data.current_A, data.cell_voltages_V[:, 0])
+    br = extract_branches([part], gamma=1e4)  # its branches switch at once: a very fast h
     assert br.capacity_Ah == pytest.approx(2.0, rel=2e-3)
-    assert br.resistance_ohm == pytest.approx(0.040, rel=1e-6)
+    # Pure IR drop: the rests relax by nothing, the jump is R0.
+    assert br.polarisation.r_total_ohm == pytest.approx(0.040, rel=0.02)
     res = fit_ocv_test(br)
     assert res.half_gap_V is not None and res.half_gap_raw_V is not None
     # The raw half-gap overstates M by I R = 80 mA x 40 mOhm = 3.2 mV; the corrected one does not.
     assert np.median(res.half_gap_raw_V) == pytest.approx(0.0132, abs=3e-4)
-    np.testing.assert_allclose(res.m_V, 0.010, atol=5e-4)
+    inner = (res.m_soc > 0.0) & (res.m_soc < 1.0)
+    np.testing.assert_allclose(res.m_V[inner], 0.010, atol=5e-4)
     grid = np.linspace(res.soc_min, res.soc_max, 200)
     assert np.max(np.abs(eval_ocv(res.mean.coeffs, grid) - eval_ocv(PAPER, grid))) < 2e-3
+
+
+def _c20_test(
+    ocv: OcvModel,
+    *,
+    cap: float = 5.0,
+    m_V: float = 0.015,
+    r: tuple[float, float, float, float, float] = (0.04, 0.02, 30.0, 0.03, 600.0),
+    charge_gain: float = 1.0,
+    charge_to: float = 1.0,
+    seed: int = 1,
+) -> OcvTestPart:
+    """C/20 test from the full model (2RC + one-state hysteresis, gamma 30), 10 s samples, 1 mV
+    noise: 1 h rest full (after a charge: h = +1), discharge to empty, 2 h rest, charge to
+    ``charge_to``, 1 h rest. The tester reads charge current times ``charge_gain``."""
+    dt, i = 10.0, cap / 20.0
+    n = round(cap * 3600 / i / dt)
+    cur = np.concatenate(
+        [np.zeros(360), np.full(n, i), np.zeros(720), np.full(round(charge_to * n), -i),
+         np.zeros(360)]
+    )  # fmt: skip
+    t = np.arange(cur.size, dtype=np.float64) * dt
+    r0, r1, t1, r2, t2 = r
+    sim = simulate(
+        t, cur, ocv, capacity_Ah=cap, R0_ohm=r0, R1_ohm=r1, tau1_s=t1, R2_ohm=r2, tau2_s=t2,
+        gamma=30.0, soc0=1.0, h0=1.0,
+    )  # fmt: skip
+    rng = np.random.default_rng(seed)
+    v = sim.v_V[0] + rng.normal(0.0, 1e-3, cur.size)
+    meas = np.where(cur < 0, cur * charge_gain, cur) + rng.normal(0.0, 1e-3, cur.size)
+    return OcvTestPart(t, meas, v)
+
+
+NMC = OcvModel.from_coeffs(PAPER, 0.02, 0.98, [0.0, 1.0], [0.015, 0.015],
+                           v_empty_V=3.0, v_full_V=4.2)  # fmt: skip
+LFP = OcvModel.from_coeffs(
+    [3.544655696, -0.372057763, 0.129794717, -0.005095261, 0.129556318, -0.027847578],
+    0.02, 0.98, [0.0, 1.0], [0.015, 0.015], v_empty_V=2.6, v_full_V=3.55,
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("ocv", "cap", "r"),
+    [(NMC, 5.0, (0.04, 0.02, 30.0, 0.03, 600.0)), (LFP, 2.0, (0.01, 0.005, 20.0, 0.01, 800.0))],
+    ids=["nmc", "lfp"],
+)
+def test_c20_test_recovers_a_15_mV_half_gap_with_polarisation(
+    ocv: OcvModel, cap: float, r: tuple[float, float, float, float, float]
+) -> None:
+    res = fit_ocv_test(extract_branches([_c20_test(ocv, cap=cap, r=r)]))
+    assert res.m_fit_V is not None and res.m_ci95_V is not None
+    assert res.half_gap_raw_V is not None
+    inner = (res.m_soc > 0.0) & (res.m_soc < 1.0)
+    # The polarisation is a real part of the raw gap (issue 11: one IR drop zeroed M).
+    assert np.median(res.half_gap_raw_V) > 0.017
+    np.testing.assert_allclose(res.m_fit_V[inner], 0.015, atol=0.003)
+    assert np.all(res.m_ci95_V[inner] < 0.005)
+    assert np.all(np.abs(res.m_fit_V[inner] - 0.015) <= res.m_ci95_V[inner] + 1e-3)
+    # The rested voltages at both ends are found and the extended curve reaches them.
+    assert res.v_empty_V is not None and res.v_full_V is not None
+    # The rested voltages lie M off the mean (h = +1 full, -1 empty); the curve reaches them.
+    v_full = float(ocv.ocv(np.array([1.0]))[0]) + 0.015
+    v_empty = float(ocv.ocv(np.array([0.0]))[0]) - 0.015
+    assert res.v_full_V == pytest.approx(v_full, abs=0.002)
+    assert res.v_empty_V == pytest.approx(v_empty, abs=0.02)  # still relaxing after 2 h
+    model = res.ocv_model()
+    assert float(model.ocv(np.array([1.0]))[0]) == pytest.approx(res.v_full_V, abs=1e-9)
+    assert float(model.ocv(np.array([0.0]))[0]) == pytest.approx(res.v_empty_V, abs=1e-9)
+    assert float(model.soc_from_ocv(res.v_full_V)) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_throughput_mismatch_is_normalised_not_a_fake_hysteresis() -> None:
+    # The tester counts charge 13 % low; the cell still returns to the same rested voltage.
+    br = extract_branches([_c20_test(NMC, charge_gain=0.87)])
+    tp = br.throughput
+    assert tp.method == "normalised"
+    assert tp.mismatch_pct == pytest.approx(-13.0, abs=0.3)
+    assert br.coulombic_efficiency == pytest.approx(1 / 0.87, rel=5e-3)
+    res = fit_ocv_test(br)
+    assert res.m_fit_V is not None
+    inner = (res.m_soc > 0.0) & (res.m_soc < 1.0)
+    np.testing.assert_allclose(res.m_fit_V[inner], 0.015, atol=0.003)
+    assert res.soc_max >= 0.97
+    # The config takes the measured counting factor (> 1) as it is.
+    cfg = build_cell_config(res, name="x", capacity_Ah=br.capacity_Ah,
+                            coulombic_efficiency=br.coulombic_efficiency)  # fmt: skip
+    assert cfg.coulombic_efficiency > 1.1
+    with pytest.raises(ValueError, match="less than or equal to 2"):
+        CellConfig(capacity_Ah=5.0, coulombic_efficiency=99.5, ocv=OcvCurve(mean=PAPER_OCV_MEAN))
+
+
+def test_a_charge_that_ends_short_is_counted() -> None:
+    br = extract_branches([_c20_test(NMC, charge_to=0.93)])
+    assert br.throughput.method == "counted"
+    assert br.coulombic_efficiency == 1.0
+    assert float(np.max(br.charge.z)) == pytest.approx(0.93, abs=0.005)
 
 
 def test_a123_c30_test_fits_with_r2_above_099(real_data_dir: Path) -> None:
@@ -109,15 +211,23 @@ def test_a123_c30_test_fits_with_r2_above_099(real_data_dir: Path) -> None:
     br = extract_branches(parts)
     assert br.capacity_Ah == pytest.approx(2.07, abs=0.02)
     assert 0.99 <= br.coulombic_efficiency <= 1.0
+    assert br.throughput.method == "normalised"
     res = fit_ocv_test(br)
     assert res.discharge is not None and res.charge is not None
     for fit in (res.discharge, res.charge, res.mean):
         assert fit.r2 >= 0.99
-    # M is positive and below half the raw gap (the IR drop is taken out).
-    assert res.half_gap_raw_V is not None
-    _, raw_m = fit_piecewise_linear(res.gap_soc, res.half_gap_raw_V, res.m_soc)
-    assert np.all(res.m_V > 0)
-    assert np.all(res.m_V < raw_m)
+    # M is positive where measured, below the raw half-gap, with a CI; 0 at the rested ends.
+    assert res.half_gap_raw_V is not None and res.gap_soc is not None and res.m_ci95_V is not None
+    inner = (res.m_soc > 0.0) & (res.m_soc < 1.0)
+    _, raw_m = fit_piecewise_linear(res.gap_soc, res.half_gap_raw_V, res.m_soc[inner].tolist())
+    assert np.all(res.m_V[inner] > res.m_ci95_V[inner] / 2)
+    # Mid knots: below the raw half-gap (the polarisation is out); the end knots may exceed it,
+    # where h is still turning at a branch start and the gap is divided by less than 2.
+    assert np.all(res.m_V[inner][1:-1] < raw_m[1:-1])
+    assert res.v_full_V == pytest.approx(3.584, abs=0.002)
+    assert res.v_empty_V is not None and res.v_empty_V < 2.5
+    model = res.ocv_model()
+    assert float(model.soc_from_ocv(3.575)) > 0.99  # a full cell at rest reads full
     assert monotonicity_violation_V(res.mean.coeffs, res.soc_min, res.soc_max) < 1e-3
 
 
@@ -138,7 +248,14 @@ def test_committed_cell_configs_load_and_are_monotone(name: str) -> None:
         monotonicity_violation_V(np.asarray(cfg.ocv.mean), cfg.ocv.soc_min, cfg.ocv.soc_max) < 1e-3
     )
     assert all(m >= 0 for m in cfg.hysteresis.M_V)
-    assert cfg.initial is not None and 0.005 < cfg.initial.R0_ohm < 0.2
+    # No hand-set start values or bounds: identify and the daemon measure them on the record.
+    assert cfg.initial is None and cfg.bounds is None
+    model = ocv_model(cfg)  # with the end segments, where the config has them
+    for lo, hi in ((0.0, cfg.ocv.soc_min), (cfg.ocv.soc_max, 1.0)):
+        v = model.ocv(np.linspace(lo, hi, 200))
+        assert np.all(np.diff(v) >= -1e-12)
+    if cfg.ocv.v_full_V is not None:
+        assert float(model.ocv(np.array([1.0]))[0]) == pytest.approx(cfg.ocv.v_full_V, abs=1e-9)
 
 
 def _run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
@@ -155,6 +272,10 @@ def test_cli_writes_a_config_that_loads(tmp_path: Path, capsys: pytest.CaptureFi
     cfg = load_cell_config(out)
     assert cfg.name == "syn"
     assert cfg.capacity_Ah == pytest.approx(2.0, rel=2e-3)
+    assert cfg.bounds is None and cfg.initial is None  # nothing the user did not give
+    assert cfg.hysteresis.M_ci95_V is not None
+    for name in ("ocv_fit.txt", "ocv_fit.json", "ocv_fit.png"):
+        assert (tmp_path / "cell_report" / name).stat().st_size > 0
 
 
 @pytest.mark.parametrize(

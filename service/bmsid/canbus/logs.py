@@ -19,9 +19,11 @@ import logging
 import math
 import re
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
+import cantools
 import numpy as np
 import numpy.typing as npt
 
@@ -306,17 +308,235 @@ def _group_frames(group: MultiplexedGroup | ListedGroup, n: int) -> list[_FrameL
     ]
 
 
+# --- what a log holds: channels, identifiers, cells ------------------------------------------
+
+#: A cell index counts as present when at least this share of the frames that carry it hold a
+#: valid voltage (the DBC's range, above ``_MIN_CELL_V``): padding of a last, partly used group
+#: is sent as not-available, and some BMSs send 0 V for slots without a cell.
+_PRESENT_SHARE = 0.5
+_MIN_CELL_V = 0.5
+_IDS_LISTED = 8
+
+
+@dataclass
+class ChannelSummary:
+    """The frames of one CAN channel of a log.
+
+    ``ids`` counts frames per (arbitration id, extended); ``mapped`` counts the frames whose id
+    the mapping decodes (current, counter, cells, temperatures); ``cell_valid`` and
+    ``cell_seen`` count, per cell index (0-based), the frames with a valid voltage for it and
+    all frames that carried a slot for it.
+    """
+
+    frames: int = 0
+    mapped: int = 0
+    ids: dict[tuple[int, bool], int] = field(default_factory=dict)
+    cell_valid: dict[int, int] = field(default_factory=dict)
+    cell_seen: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def cells(self) -> list[int]:
+        """Cell indices (0-based) present in this channel (see ``_PRESENT_SHARE``)."""
+        return sorted(
+            c for c, n in self.cell_seen.items() if self.cell_valid.get(c, 0) >= _PRESENT_SHARE * n
+        )
+
+    @property
+    def n_cells(self) -> int:
+        """Cells of the pack as the log shows them: the highest present index + 1 (0: none)."""
+        cells = self.cells
+        return cells[-1] + 1 if cells else 0
+
+    def text(self, name: str) -> str:
+        ids = sorted(self.ids.items(), key=lambda kv: kv[0])
+        shown = ", ".join(f"0x{i:0{8 if ext else 3}X} x{n}" for (i, ext), n in ids[:_IDS_LISTED])
+        more = f", ... ({len(ids) - _IDS_LISTED} more ids)" if len(ids) > _IDS_LISTED else ""
+        return (
+            f"{name}: {self.frames} frames, {len(ids)} id(s) ({shown}{more}); "
+            f"{self.mapped} decoded by the mapping, {self.n_cells} cell(s)"
+        )
+
+
+@dataclass(frozen=True)
+class LogSummary:
+    """What a candump log holds, per channel (see :func:`summarize_log`)."""
+
+    path: str
+    mapping: str
+    channels: dict[str, ChannelSummary]
+
+    @property
+    def mapped_channels(self) -> list[str]:
+        """Channels carrying frames the mapping decodes, in name order."""
+        return sorted(c for c, s in self.channels.items() if s.mapped)
+
+    def text(self) -> str:
+        """One line: every channel's frames, ids and cells."""
+        if not self.channels:
+            return f"{self.path}: no CAN frames"
+        parts = "; ".join(s.text(c) for c, s in sorted(self.channels.items()))
+        return f"{Path(self.path).name} holds {parts}"
+
+
+#: signal, item index (listed) or offset in its group (multiplexed), scale, offset, DBC min, max
+_CellSlot = tuple[str, int, float, float, float, float]
+
+
+@dataclass
+class _CellFrame:
+    """A cell-voltage message: its multiplexer signal (None when listed) and voltage slots."""
+
+    message: cantools.database.can.Message
+    mux: str | None
+    slots: list[_CellSlot] = field(default_factory=list)
+
+
+def _cell_frames(mapping: BusMapping) -> dict[tuple[int, bool], _CellFrame]:
+    """The mapping's cell-voltage messages by (arbitration id, extended)."""
+    db = mapping.database()
+    group = mapping.cells
+    out: dict[tuple[int, bool], _CellFrame] = {}
+
+    def add(
+        msg_name: str, mux: str | None, sig_name: str, item: int, sc: float, off: float
+    ) -> None:
+        msg = db.get_message_by_name(msg_name)
+        sig = msg.get_signal_by_name(sig_name)
+        eps = abs(float(sig.scale)) * 1e-6  # as FrameToSamples: decoded floats may round
+        lo = -math.inf if sig.minimum is None else float(sig.minimum) - eps
+        hi = math.inf if sig.maximum is None else float(sig.maximum) + eps
+        key = (int(msg.frame_id), bool(msg.is_extended_frame))
+        out.setdefault(key, _CellFrame(msg, mux)).slots.append((sig_name, item, sc, off, lo, hi))
+
+    if isinstance(group, ListedGroup):
+        for i, ref in enumerate(group.signals):
+            add(ref.message, None, ref.signal, i, ref.scale, ref.offset)
+    else:
+        for k, name in enumerate(group.signals):
+            add(group.message, group.multiplexer, name, k, group.scale, group.offset)
+    return out
+
+
+def mapped_ids(mapping: BusMapping) -> set[tuple[int, bool]]:
+    """(arbitration id, extended) of every frame the mapping decodes."""
+    db = mapping.database()
+    names = {mapping.current.message}
+    if mapping.counter is not None:
+        names.add(mapping.counter.message)
+    for group in (mapping.cells, mapping.temperatures):
+        if isinstance(group, ListedGroup):
+            names.update(ref.message for ref in group.signals)
+        elif isinstance(group, MultiplexedGroup):
+            names.add(group.message)
+    msgs = [db.get_message_by_name(n) for n in names]
+    return {(int(m.frame_id), bool(m.is_extended_frame)) for m in msgs}
+
+
+def summarize_log(path: str | Path, mapping: BusMapping) -> LogSummary:
+    """Channels, frame counts, ids and the cells whose voltages a candump log carries.
+
+    One pass over the log (error and remote frames count as frames, not as ids). A cell frame
+    is decoded with the DBC only to see which cell indices hold a valid voltage, so the count
+    does not depend on a guessed ``n_cells``. Raises ``UserError`` for an unreadable file.
+    """
+    cell_frames = _cell_frames(mapping)
+    known = mapped_ids(mapping)
+    channels: dict[str, ChannelSummary] = {}
+    limit = mapping.max_cells()
+    for msg in read_log(path):
+        ch = channels.setdefault(str(msg.channel), ChannelSummary())
+        ch.frames += 1
+        if msg.is_error_frame or msg.is_remote_frame:
+            continue
+        key = (int(msg.arbitration_id), bool(msg.is_extended_id))
+        ch.ids[key] = ch.ids.get(key, 0) + 1
+        if key not in known:
+            continue
+        ch.mapped += 1
+        cf = cell_frames.get(key)
+        if cf is None:
+            continue
+        try:
+            values = cf.message.decode(bytes(msg.data), decode_choices=False)
+        except Exception:  # a bad frame says nothing about the cells; FrameToSamples counts it
+            continue
+        if not isinstance(values, dict):
+            continue
+        base = 0
+        if cf.mux is not None:
+            g = values.get(cf.mux)
+            if not isinstance(g, int | float):
+                continue
+            base = int(g) * len(cf.slots)
+        for sig, k, sc, off, lo, hi in cf.slots:
+            c = base + k
+            raw = values.get(sig)
+            if raw is None or c >= limit:
+                continue
+            ch.cell_seen[c] = ch.cell_seen.get(c, 0) + 1
+            v = float(raw) if isinstance(raw, int | float) else math.nan
+            if lo <= v <= hi and sc * v + off > _MIN_CELL_V:
+                ch.cell_valid[c] = ch.cell_valid.get(c, 0) + 1
+    return LogSummary(path=str(path), mapping=mapping.name, channels=channels)
+
+
 def samples_from_log(
-    path: str | Path, mapping: BusMapping, n_cells: int, staleness_s: float = 2.0
+    path: str | Path,
+    mapping: BusMapping,
+    n_cells: int,
+    staleness_s: float = 2.0,
+    *,
+    channel: str | None = None,
 ) -> list[Sample]:
-    """Samples of a candump log, through :class:`FrameToSamples` exactly as the daemon does."""
+    """Samples of a candump log, through :class:`FrameToSamples` exactly as the daemon does.
+
+    Parameters
+    ----------
+    path : str or Path
+        candump ``-l`` / ``-ta`` log.
+    mapping : BusMapping
+        Which frames and signals carry the current, cell voltages and temperatures.
+    n_cells : int
+        Cells of the pack (indices 0 .. n_cells-1 of the mapping's cell group).
+    staleness_s : float
+        Staleness limit of :class:`FrameToSamples`, s.
+    channel : str or None
+        Only frames of this CAN channel (e.g. ``can1``); None takes every frame, and then
+        frames of the mapping on more than one channel are refused: two buses interleaved into
+        one stream would give samples of neither.
+
+    Raises
+    ------
+    UserError
+        No sample decoded, no timestamps, several channels without ``channel``, or ``channel``
+        absent from the log.
+    """
     f2s = FrameToSamples(mapping, n_cells, staleness_s=staleness_s)
+    known = mapped_ids(mapping)
     out: list[Sample] = []
     any_time = False
+    seen: dict[str, int] = {}  # frames of the mapping per channel
     for msg in read_log(path):
+        name = str(msg.channel)
+        if (msg.arbitration_id, bool(msg.is_extended_id)) in known:
+            seen[name] = seen.get(name, 0) + 1
+        if channel is not None and name != channel:
+            continue
         any_time = any_time or msg.timestamp != 0.0
         out.extend(f2s.feed(msg))
     out.extend(f2s.flush())
+    if channel is None and len(seen) > 1:
+        raise UserError(
+            f"{path}: frames of mapping {mapping.name!r} on {len(seen)} CAN channels "
+            f"({', '.join(f'{c}: {n}' for c, n in sorted(seen.items()))}): pass --channel "
+            f"NAME (one of {', '.join(sorted(seen))}); mixed they give samples of neither"
+        )
+    if channel is not None and channel not in seen:
+        held = ", ".join(sorted(seen)) or "none"
+        raise UserError(
+            f"{path}: no frames of mapping {mapping.name!r} on channel {channel!r} "
+            f"(channels with such frames: {held})"
+        )
     if not out:
         raise UserError(
             f"{path}: no samples decoded with mapping {mapping.name!r} "

@@ -3,8 +3,12 @@
 Runs the three variants (non-hy-affrls, hy-affrls, hy-affrls-lpso) on every dataset (tester
 CSVs) and writes:
 
-- ``table2.md`` / ``table2.csv``: max error, RMSE, MAPE and run time per dataset (profile and
-  temperature, read from names such as ``..._dst_25C...``) and variant (the paper's Table 2);
+- ``table2.md`` / ``table2.csv``: per dataset (profile and temperature, read from names such as
+  ``..._dst_25C...``) and variant, the RMSE over the whole record, over its first 10 % of the
+  ticks (start-up) and over the rest, beside the paper's Table 2 columns (max error, RMSE, MAPE
+  over the evaluation window; run time);
+- ``soc_bands.md`` / ``soc_bands.csv``: RMSE, max error and MAPE per 10 % SOC band of every
+  dataset and variant;
 - ``consistency.md`` / ``consistency.csv`` and ``consistency_<group>.png``: the parameters'
   agreement across the profiles of one cell at one temperature (Fig. 14, method in
   ``bmsid.offline.report``);
@@ -13,6 +17,11 @@ CSVs) and writes:
 
 Cell configs: one ``--cell-config`` for every dataset, or one per dataset in the same order.
 For several cells per file, Table 2 pools all cells and the consistency analysis uses the first.
+
+Evaluation window: every tick by default; ``--skip-fraction`` leaves out a share of the first
+ticks, ``--soc-window`` keeps the ticks whose SOC lies in a range. That SOC (and the SOC bands')
+is the estimator's, or with ``--score-soc0`` a coulomb count of the measured current from a known
+start: ``--score-soc0 1.0 --soc-window 0.15,0.95`` scores SOC 95..15 % counted from a full cell.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,29 +42,34 @@ from bmsid.estimate.types import VARIANTS
 from bmsid.offline.identify import IdentifySpec, identify_source
 from bmsid.offline.inputs import (
     LoadedInput,
-    check_soc0,
     load_config,
     parse_tuning,
     parse_window,
     read_csv_input,
     tuning_overrides,
 )
-from bmsid.offline.outputs import OutputSpec, ocv_range_warning, soc_init_text
+from bmsid.offline.outputs import SCORE_SOC0_HELP, OutputSpec, ocv_range_warning, soc_init_text
 from bmsid.offline.plots import plot_consistency, plot_rmse_bars
 from bmsid.offline.report import (
     Consistency,
     DatasetLabel,
+    SocBandRow,
     Table2Row,
     consistency,
     consistency_csv,
     consistency_markdown,
     label_dataset,
+    soc_band_rows,
+    soc_bands_csv,
+    soc_bands_markdown,
     table2_csv,
     table2_markdown,
     unique_displays,
 )
 from bmsid.offline.scoring import (
+    EvalWindow,
     IdentifyResult,
+    SocReference,
     metrics_document,
     parameter_medians,
     parameter_trajectories,
@@ -93,6 +108,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=",".join(VARIANTS),
         help=f"comma-separated subset of {', '.join(VARIANTS)}",
     )
+    p.add_argument(
+        "--score-soc0",
+        action="append",
+        default=[],
+        type=float,
+        metavar="FRACTION",
+        help=SCORE_SOC0_HELP + "; once for all datasets, or once per dataset",
+    )
     p.add_argument("--params-csv", action="store_true", help="also write each run's params.csv")
     add_model_options(p)
     p.set_defaults(func=run)
@@ -108,14 +131,30 @@ def _configs(paths: list[str], n: int) -> list[tuple[CellConfig, str]]:
     return [(loaded[p], p) for p in chosen]
 
 
-def _soc0s(values: list[float], n: int) -> list[float | None]:
+def _soc0s(values: list[float], n: int, option: str = "--soc0") -> list[float | None]:
     if not values:
         return [None] * n
     if len(values) not in (1, n):
-        raise UserError(f"{len(values)} --soc0 for {n} datasets: give 1 or {n}")
+        raise UserError(f"{len(values)} {option} for {n} datasets: give 1 or {n}")
     for z in values:
-        check_soc0(z)
+        if not (math.isfinite(z) and 0.0 <= z <= 1.0):
+            raise UserError(f"{option} is a fraction in [0, 1], got {z:g}")
     return list(values * n if len(values) == 1 else values)
+
+
+def _window(
+    base: EvalWindow, cell: CellConfig, score_soc0: float | None, gap_s: float
+) -> EvalWindow:
+    """``base`` with the dataset's reference SOC, when ``--score-soc0`` gives one."""
+    if score_soc0 is None:
+        return base
+    return replace(base, soc_reference=SocReference.from_cell(cell, score_soc0, gap_s))
+
+
+def _distinct(texts: list[str]) -> str:
+    """One text when every dataset shares it, else each distinct one."""
+    unique = list(dict.fromkeys(texts))
+    return unique[0] if len(unique) == 1 else "per dataset: " + " | ".join(unique)
 
 
 def _variants(text: str) -> list[Variant]:
@@ -138,10 +177,13 @@ def _group_name(label: DatasetLabel, cell: CellConfig) -> str:
 
 def run(args: argparse.Namespace) -> int:
     tuning = parse_tuning(args.tuning)
-    window = parse_window(args.soc_window, args.skip_fraction)
+    # The default window is the whole record: the start-up is part of what a user gets.
+    skip = 0.0 if args.skip_fraction is None else args.skip_fraction
+    window = parse_window(args.soc_window, skip)
     variants = _variants(args.algorithms)
     configs = _configs(args.cell_config, len(args.datasets))
     soc0s = _soc0s(args.soc0, len(args.datasets))
+    score_soc0s = _soc0s(args.score_soc0, len(args.datasets), "--score-soc0")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory")
@@ -157,11 +199,16 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     rows: list[Table2Row] = []
+    band_rows: list[SocBandRow] = []
+    windows = [
+        _window(window, cell, z, tuning.gap_s)
+        for (cell, _), z in zip(configs, score_soc0s, strict=True)
+    ]
     medians: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
     trajectories: dict[str, dict[str, dict[str, dict[str, list[float]]]]] = {}
     runs: list[dict[str, Any]] = []
-    for d, lb, shown, (cell, cfg_path), soc0 in zip(
-        data, labels, displays, configs, soc0s, strict=True
+    for d, lb, shown, (cell, cfg_path), soc0, win in zip(
+        data, labels, displays, configs, soc0s, windows, strict=True
     ):
         for variant in variants:
             spec = IdentifySpec(
@@ -169,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
                 variant=variant,
                 tuning=tuning,
                 soc0=soc0,
-                window=window,
+                window=win,
                 charge_positive=args.charge_positive,
                 output=OutputSpec(
                     params_csv=args.params_csv,
@@ -180,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
             )
             with progress_bar(d.n_samples, f"{shown} {variant}") as bar:
                 res: IdentifyResult = identify_source(d, spec, out / lb.stem / variant, bar)
-            doc = metrics_document(res, window)
+            doc = metrics_document(res, win)
             rows.append(
                 Table2Row(
                     dataset=shown,
@@ -192,22 +239,28 @@ def run(args: argparse.Namespace) -> int:
                     rmse_V=float(doc["rmse_V"]),
                     mape_pct=float(doc["mape_pct"]),
                     runtime_s=res.runtime_s,
+                    rmse_whole_V=float(doc["overall"]["rmse_V"]),
+                    rmse_startup_V=float(doc["startup"]["rmse_V"]),
+                    rmse_after_startup_V=float(doc["after_startup"]["rmse_V"]),
                 )
             )
-            med = parameter_medians(res.trace, window)
+            band_rows += soc_band_rows(
+                shown, lb.profile, lb.temperature_C, variant, doc["soc_bands"]
+            )
+            med = parameter_medians(res.trace, win)
             group = _group_name(lb, cell)
             # Consistency looks at the first cell (a pack's cells differ by design).
             medians.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: float(v[0]) for k, v in med.items()
             }
             z0 = float(res.trace["soc"][0, 0]) if res.trace.n_ticks else math.nan
-            traj = parameter_trajectories(res.trace, window, 0)
+            traj = parameter_trajectories(res.trace, win, 0)
             trajectories.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: v.tolist() for k, v in traj.items()
             }
             runs.append(
                 {"dataset": shown, "algorithm": variant, "soc_init": res.soc_init_method,
-                 "soc0": z0}
+                 "soc0": z0, "scoring_soc": doc["scoring_soc"]}
             )  # fmt: skip
             if variant == variants[0]:
                 warning = ocv_range_warning(res, cell)
@@ -215,15 +268,29 @@ def run(args: argparse.Namespace) -> int:
                     print(f"{shown}: {soc_init_text(res)}", flush=True)
                 if warning:
                     print(f"{shown}: {warning}", flush=True)
+            r = rows[-1]
+            in_window = "" if win.is_whole_record else f"  window {1e3 * r.rmse_V:7.2f} mV"
             print(
-                f"{shown:<16} {variant:<15} RMSE {1e3 * doc['rmse_V']:7.2f} mV  "
-                f"max {1e3 * doc['max_abs_error_V']:7.1f} mV  MAPE {doc['mape_pct']:.3f} %  "
-                f"{res.runtime_s:6.1f} s",
+                f"{shown:<16} {variant:<15} RMSE whole {1e3 * r.rmse_whole_V:7.2f} mV  "
+                f"first 10 % {1e3 * r.rmse_startup_V:7.2f} mV{in_window}  "
+                f"max {1e3 * r.max_abs_error_V:7.1f} mV  {res.runtime_s:6.1f} s",
                 flush=True,
             )
 
-    (out / "table2.md").write_text(table2_markdown(rows, window.describe()), encoding="utf-8")
+    window_text = _distinct([w.describe() for w in windows])
+    soc_text = _distinct(
+        [
+            "the estimator's (a coulomb count from its initial SOC)"
+            if w.soc_reference is None
+            else w.soc_reference.describe()
+            for w in windows
+        ]
+    )
+    (out / "table2.md").write_text(table2_markdown(rows, window_text), encoding="utf-8")
     (out / "table2.csv").write_text(table2_csv(rows), encoding="utf-8")
+    bands_md = soc_bands_markdown(band_rows, soc_text)
+    (out / "soc_bands.md").write_text(bands_md, encoding="utf-8")
+    (out / "soc_bands.csv").write_text(soc_bands_csv(band_rows), encoding="utf-8")
     plot_rmse_bars([{"dataset": r.dataset, "algorithm": r.algorithm, "rmse_mV": r.rmse_mV}
                     for r in rows], out / "rmse.png")  # fmt: skip
 
@@ -249,7 +316,11 @@ def run(args: argparse.Namespace) -> int:
         "runs": runs,
     }
     (out / "compare.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    print(table2_markdown(rows, window.describe()))
+    print(table2_markdown(rows, window_text))
+    print(bands_md)
     print(consistency_markdown(cons))
-    print(f"wrote {out}/table2.md, table2.csv, consistency.md, consistency.csv and plots")
+    print(
+        f"wrote {out}/table2.md, table2.csv, soc_bands.md, soc_bands.csv, consistency.md, "
+        "consistency.csv and plots"
+    )
     return 0

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from bmsid.config.cell import InitialParameters, ParameterBounds, Range, save_cell_config
 from bmsid.errors import UserError
-from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
+from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files, write_report
 from bmsid.offline.ocv_fit import EQ32_KNOTS
 
 _INITIAL_KEYS = ("R0_ohm", "R1_ohm", "tau1_s", "R2_ohm", "tau2_s")
@@ -33,6 +33,17 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     p.add_argument("inputs", nargs="+", metavar="FILE", help="test CSV(s) in time order, or tables")
     p.add_argument("--out", required=True, help="cell config to write (.toml or .json)")
+    p.add_argument(
+        "--report",
+        default=None,
+        metavar="DIR",
+        help="folder for ocv_fit.txt/.json/.png (default: <out stem>_report/ beside --out)",
+    )
+    p.add_argument(
+        "--no-ends",
+        action="store_true",
+        help="do not extend the OCV to the rested voltages at empty/full (clamp as before)",
+    )
     p.add_argument("--name", default=None, help="cell name (default: the output file's stem)")
     p.add_argument("--chemistry", default="unknown", help="chemistry label, e.g. LFP, NMC")
     p.add_argument(
@@ -120,7 +131,9 @@ def _initial(text: str | None) -> InitialParameters | None:
         raise UserError(f"--initial: {exc}".splitlines()[0]) from None
 
 
-def _bounds(items: list[str]) -> ParameterBounds:
+def _bounds(items: list[str]) -> ParameterBounds | None:
+    if not items:
+        return None  # no [bounds] in the config: identify derives them from the record
     ranges: dict[str, Range] = {}
     for item in items:
         key, _, span = item.partition("=")
@@ -157,9 +170,13 @@ def run(args: argparse.Namespace) -> int:
         branch=args.branch,
         soc_anchor=args.soc_anchor,
         hysteresis_from=args.hysteresis_from,
+        ends=not args.no_ends,
     )
     fit = fit_ocv_files(args.inputs, spec)
     print(fit.report())
     save_cell_config(fit.config, out)
     print(f"wrote {out}")
+    report_dir = Path(args.report) if args.report else out.with_name(f"{out.stem}_report")
+    paths = write_report(fit, report_dir)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0

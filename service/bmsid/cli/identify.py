@@ -8,8 +8,15 @@ tick and cell; with the default 1 s tick that is one row per sample of a 1 s rec
 ``DIR/metrics.json`` (Eq. 31 over the evaluation window, and over all ticks under ``overall``)
 and PNG plots (parameters over time as the paper's Fig. 10, voltage and error as Fig. 11).
 
-Evaluation window: by default the first 10 % of the ticks (convergence from the start values)
-are not scored; ``--soc-window 0.15,0.95`` scores only ticks whose SOC lies in that range instead.
+Evaluation window: by default every tick is scored (the start-up is part of what a user gets);
+``--skip-fraction 0.1`` leaves the first 10 % out, ``--soc-window 0.15,0.95`` scores only ticks
+whose SOC lies in that range.
+
+Before the run the input is checked (bmsid.offline.plausibility): time in milliseconds or steps
+beyond the gap threshold and a flipped current sign stop it (exit 2); a capacity that does not
+fit the record, too little excitation for the capacity and a missing cell config are WARNING
+lines. Exports with other column names load with ``--columns t_s=Time,current_A=Current,...``
+(``NAME=COLUMN*SCALE`` converts units, e.g. ``t_s=Time_ms*0.001``).
 """
 
 from __future__ import annotations
@@ -18,23 +25,37 @@ import argparse
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
+from typing import Literal
 
 from tqdm import tqdm
 
+from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
+from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
+from bmsid.offline import plausibility
 from bmsid.offline.identify import IdentifySpec, Progress, identify_source
 from bmsid.offline.inputs import (
+    LoadedInput,
     cell_config,
     check_soc0,
     open_input,
+    parse_columns,
     parse_tuning,
     parse_window,
     tuning_overrides,
 )
-from bmsid.offline.outputs import OutputSpec, ocv_range_warning, soc_init_text, summary_line
-from bmsid.offline.scoring import metrics_document
+from bmsid.offline.outputs import (
+    SCORE_SOC0_HELP,
+    OutputSpec,
+    ocv_range_warning,
+    soc_init_text,
+    summary_line,
+)
+from bmsid.offline.plausibility import Finding
+from bmsid.offline.scoring import SocReference, metrics_document
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -57,7 +78,7 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
         "--skip-fraction",
         type=float,
         default=None,
-        help="fraction of the first ticks not scored (default 0.1, or 0 with --soc-window)",
+        help="fraction of the first ticks not scored (default 0: the whole record)",
     )
     p.add_argument(
         "--charge-positive", action="store_true", help="the input counts charge current positive"
@@ -99,7 +120,28 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="override the mean OCV curve (Eq. 4 coefficients, V)",
     )
     p.add_argument("--mapping", default=None, help="bus mapping TOML for .log input")
-    p.add_argument("--n-cells", type=int, default=1, help="cells in a .log input (default 1)")
+    p.add_argument(
+        "--n-cells",
+        type=int,
+        default=None,
+        help="cells in a .log input (default: as many as the log carries)",
+    )
+    p.add_argument("--score-soc0", type=float, default=None, metavar="FRACTION",
+                   help=SCORE_SOC0_HELP)  # fmt: skip
+    p.add_argument(
+        "--channel",
+        default=None,
+        metavar="NAME",
+        help="CAN channel of a .log input to read (required when several carry the mapping)",
+    )
+    p.add_argument(
+        "--columns",
+        default=None,
+        metavar="NAME=COLUMN,...",
+        help="CSV column names of another export, e.g. t_s=Time,current_A=Current*0.001,"
+        "voltage_V=Voltage (NAME: t_s, current_A, voltage_V, temperature_C, v_cell_NN; "
+        "*SCALE converts the unit)",
+    )
     add_model_options(p)
     p.set_defaults(func=run)
 
@@ -113,18 +155,90 @@ def _ocv_coeffs(text: str | None) -> list[float] | None:
         raise UserError(f"--ocv-coeffs: not numbers: {text!r}") from None
 
 
+def _time_fix(args: argparse.Namespace) -> str:
+    """The option that would give t_s in seconds, for the time-unit message."""
+    columns = parse_columns(args.columns) or {}
+    source = columns["t_s"].source if "t_s" in columns else "t_s"
+    return f"--columns t_s={source}*0.001"
+
+
+def _check_input(
+    args: argparse.Namespace, source: LoadedInput, cell: CellConfig, tuning: EstimatorTuning
+) -> tuple[CellConfig, str | None, list[Finding]]:
+    """Plausibility of the input for this cell: the cell to use (a capacity read off the record
+    when nothing else gives one), a replacement note, and the findings (errors first raised)."""
+    b = source.samples
+    t, i, v = b.t_s, b.current_A, b.cell_voltages_V
+    findings = plausibility.check_time_unit(t, i, cell.capacity_Ah, _time_fix(args), tuning.gap_s)
+    note = None
+    record_chemistry = None
+    capacity_from: Literal["cell", "option", "record"] = "cell"
+    if args.capacity_ah is not None:
+        capacity_from = "option"
+    elif args.cell_config is None and not plausibility.first_error(findings):
+        est = plausibility.derive_capacity(t, i, v, tuning.gap_s)
+        if est is not None:
+            coeffs = _ocv_coeffs(args.ocv_coeffs)
+            cell, note = cell_config(None, round(est.capacity_Ah, 3), coeffs)
+            note = f"{note} ({est.text()})"
+            capacity_from = "record"
+            record_chemistry = est.chemistry
+    if args.cell_config is None:
+        assumed = plausibility.assumed_cell(
+            cell.name, cell.capacity_Ah, capacity_from=capacity_from,
+            chemistry=cell.chemistry, record_chemistry=record_chemistry,
+        )  # fmt: skip
+        findings.insert(0, assumed)
+    if not plausibility.first_error(findings):
+        findings += plausibility.check_consistency(
+            t, i, v, capacity_Ah=cell.capacity_Ah,
+            capacity_assumed=args.cell_config is None and capacity_from == "cell",
+            soc0=args.soc0, charge_positive=args.charge_positive,
+            excitation_C=tuning.excitation_C, excitation_window_s=tuning.excitation_window_s,
+            gap_s=tuning.gap_s,
+        )  # fmt: skip
+    return cell, note, findings
+
+
 def run(args: argparse.Namespace) -> int:
     tuning = parse_tuning(args.tuning)
+    # The default window is the whole record (as compare and the library): the start-up is part
+    # of what a user gets.
     window = parse_window(args.soc_window, args.skip_fraction)
     check_soc0(args.soc0)
+    columns = parse_columns(args.columns)
     cell, note = cell_config(args.cell_config, args.capacity_ah, _ocv_coeffs(args.ocv_coeffs))
     source = open_input(
-        args.input, charge_positive=args.charge_positive, mapping=args.mapping, n_cells=args.n_cells
-    )
+        args.input, charge_positive=args.charge_positive, mapping=args.mapping,
+        n_cells=args.n_cells, channel=args.channel, columns=columns,
+    )  # fmt: skip
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory")
-    print(f"{args.input}: {source.n_samples} samples, {source.n_cells} cell(s); {note}")
+    cell, derived_note, checks = _check_input(args, source, cell, tuning)
+    note = derived_note or note
+    if args.score_soc0 is not None:
+        try:
+            ref = SocReference.from_cell(cell, args.score_soc0, tuning.gap_s)
+        except ValueError as exc:
+            raise UserError(f"--score-soc0: {exc}") from None
+        window = replace(window, soc_reference=ref)
+    period = plausibility.sample_period(source.samples.t_s, tuning.gap_s)
+    print(
+        f"{args.input}: {source.n_samples} samples, {source.n_cells} cell(s), "
+        f"{period.text()}; {note}"
+    )
+    for line in source.notes:
+        print(line)
+    findings = [*source.findings, *checks]
+    for f in findings:
+        if f.level != "error":
+            print(f.line())
+    error = plausibility.first_error(findings)
+    if error is not None:
+        raise UserError(f"{args.input}: {error.message}")
+    # The checks travel with the source (``input_report``), for metrics.json.
+    source = replace(source, findings=tuple(findings))
     meta = {
         "input": str(args.input),
         "cell_config": note,
@@ -138,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
         window=window,
         charge_positive=args.charge_positive,
         mapping=args.mapping,
-        n_cells=args.n_cells,
+        n_cells=source.n_cells,
         output=OutputSpec(title=f"{Path(args.input).name} - {args.algorithm}", metadata=meta),
     )
     with progress_bar(source.n_samples, args.algorithm) as bar:
@@ -149,6 +263,11 @@ def run(args: argparse.Namespace) -> int:
         print(warning)
     if result.trace.n_ticks == 0:
         raise UserError(f"{args.input}: no identification tick (too short or no valid time)")
+    if result.soc_init_method != "given":  # with --soc0 the coulomb count was checked before
+        start = {"ocv_at_rest": "the OCV at rest"}.get(result.soc_init_method, "its start")
+        soc_findings = plausibility.check_soc_range(result.trace["soc"], cell.capacity_Ah, start)
+        for f in soc_findings:
+            print(f.line())
     print(summary_line({**metrics_document(result, window), **meta}))
     print(f"wrote {out}/params.csv, metrics.json and plots")
     return 0

@@ -15,6 +15,8 @@ from typing import Annotated, Literal, Self
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from bmsid.model.ocv import end_segment
+
 Coeffs = Annotated[list[float], Field(min_length=6, max_length=6)]
 
 
@@ -27,8 +29,13 @@ class OcvCurve(_Strict):
 
     ``U(z) = a0 + a1 z + a2 z^2 + a3/z + a4 ln z + a5 ln(1-z)``. ``mean`` is the curve the model
     uses (Eq. 9); ``charge`` and ``discharge`` are kept for reporting and for M(z). ``soc_min`` and
-    ``soc_max`` bound the range where the fit is valid: z is clamped there (Eq. 4 is singular at 0
-    and 1).
+    ``soc_max`` bound the range where the Eq. 4 fit is valid (it is singular at 0 and 1).
+
+    ``v_empty_V`` / ``v_full_V`` (optional): the cell's rested voltage (V) at SOC 0 / 1 as the OCV
+    test measured it. When given, the mean curve continues beyond ``soc_min`` / ``soc_max`` by a
+    monotone cubic that is C1 with Eq. 4 at the join and reaches that voltage at the end
+    (``bmsid.model.ocv.end_segment``), and SOC may run to 0 / 1. When absent, z is clamped to
+    [soc_min, soc_max] as before. ``discharge``/``charge`` are never extended (reporting only).
     """
 
     mean: Coeffs
@@ -36,6 +43,18 @@ class OcvCurve(_Strict):
     discharge: Coeffs | None = None
     soc_min: float = Field(0.01, gt=0.0, lt=0.5)
     soc_max: float = Field(0.99, gt=0.5, lt=1.0)
+    v_empty_V: float | None = Field(None, gt=0.0, lt=10.0)
+    v_full_V: float | None = Field(None, gt=0.0, lt=10.0)
+
+    @model_validator(mode="after")
+    def _ends(self) -> Self:
+        for v_end, join, end in (
+            (self.v_empty_V, self.soc_min, 0.0),
+            (self.v_full_V, self.soc_max, 1.0),
+        ):
+            if v_end is not None:
+                end_segment(self.mean, join, end, v_end)  # ValueError: no monotone C1 segment
+        return self
 
 
 class HysteresisTable(_Strict):
@@ -44,11 +63,15 @@ class HysteresisTable(_Strict):
     ``soc`` must be increasing; outside it the end values hold. ``gamma`` is Plett's dimensionless
     hysteresis rate: h relaxes by a factor e for every 1/gamma of SOC moved (Eq. 5), i.e. the
     paper's decay factor kappa = eta * gamma / Q with Q in ampere-seconds (Eq. 6).
+    ``M_ci95_V`` (optional, written by ``fit-ocv``): half-width (V) of the 95 % confidence
+    interval of each ``M_V`` value, the prior's uncertainty for online learning of M; knots that
+    were not measured (the ends that an OCV test pins to 0) carry 0.
     """
 
     soc: list[float] = Field(default_factory=lambda: [0.0, 1.0], min_length=1)
     M_V: list[float] = Field(default_factory=lambda: [0.0, 0.0], min_length=1)
     gamma: float = Field(30.0, ge=0.0, le=10_000.0)
+    M_ci95_V: list[float] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Self:
@@ -58,6 +81,11 @@ class HysteresisTable(_Strict):
             raise ValueError("hysteresis.soc must be strictly increasing")
         if any(m < 0 or m > 0.5 for m in self.M_V):
             raise ValueError("hysteresis.M_V must lie in [0, 0.5] V")
+        if self.M_ci95_V is not None and (
+            len(self.M_ci95_V) != len(self.soc)
+            or any(not (math.isfinite(c) and c >= 0) for c in self.M_ci95_V)
+        ):
+            raise ValueError("hysteresis.M_ci95_V needs one finite value >= 0 per knot")
         return self
 
 
@@ -125,18 +153,33 @@ class CellConfig(_Strict):
     name: str = "cell"
     chemistry: str = "unknown"
     capacity_Ah: float = Field(gt=0.0, le=10_000.0)
-    coulombic_efficiency: float = Field(1.0, gt=0.5, le=1.0)
+    #: Charge-counting factor (Eq. 2, applied on charge): SOC moves eta x the measured charge Ah.
+    #: A physical coulombic efficiency is <= 1 (> 0.99 for Li-ion); a value above 1 is what a
+    #: closed OCV test measures when the tester counts charge low (more Ah out than back in to
+    #: the same rested voltage): a counting correction for that sensor, so it is accepted.
+    #: (0.5, 2] only rejects unit slips (a percentage, 0); fit-ocv reports anything beyond
+    #: [0.98, 1.02] as a counting mismatch.
+    coulombic_efficiency: float = Field(1.0, gt=0.5, le=2.0)
     ocv: OcvCurve
     hysteresis: HysteresisTable = HysteresisTable()
-    bounds: ParameterBounds = ParameterBounds()
+    bounds: ParameterBounds | None = None
+    """Parameter bounds; None: derived from the record around its measured R0 when one is
+    available (``estimate/startvalues.py``), else ``ParameterBounds()``'s wide defaults."""
     initial: InitialParameters | None = None
+    """Start values; None: from the record (its current steps) when one is available."""
     soc_init: SocInit = SocInit()
 
+    def parameter_bounds(self) -> ParameterBounds:
+        """The configured bounds, or the wide defaults (see ``bounds``)."""
+        return self.bounds if self.bounds is not None else ParameterBounds()
+
     def initial_parameters(self) -> InitialParameters:
-        """Configured starting values, or a capacity-scaled guess (R0 ~ 0.1 ohm Ah / Q)."""
+        """Configured starting values, or a capacity-scaled guess (R0 ~ 0.1 ohm Ah / Q): the
+        last resort when neither the config nor a record gives them (callers say so)."""
         if self.initial is not None:
             return self.initial
-        r0 = min(max(0.1 / self.capacity_Ah, self.bounds.R0_ohm.lo), self.bounds.R0_ohm.hi)
+        b = self.parameter_bounds()
+        r0 = min(max(0.1 / self.capacity_Ah, b.R0_ohm.lo), b.R0_ohm.hi)
         return InitialParameters(
             R0_ohm=r0, R1_ohm=0.5 * r0, tau1_s=10.0, R2_ohm=0.5 * r0, tau2_s=300.0
         )
@@ -174,4 +217,5 @@ def paper_cell(M_V: float = 0.015, gamma: float = 30.0) -> CellConfig:
         ocv=OcvCurve(mean=PAPER_OCV_MEAN, soc_min=0.02, soc_max=0.98),
         hysteresis=HysteresisTable(soc=[0.0, 1.0], M_V=[M_V, M_V], gamma=gamma),
         initial=InitialParameters(R0_ohm=2e-3, R1_ohm=1e-3, tau1_s=10.0, R2_ohm=1e-3, tau2_s=300.0),
+        bounds=ParameterBounds(),
     )

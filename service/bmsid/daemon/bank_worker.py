@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import dataclasses
 import gc
 import logging
 import logging.handlers
@@ -39,6 +40,7 @@ import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.estimate.startvalues import StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
@@ -57,6 +59,9 @@ FloatArray = npt.NDArray[np.float64]
 IntpArray = npt.NDArray[np.intp]
 #: Sequence numbers reserved per write of the ``.seq`` file.
 SEQ_BLOCK = 100_000
+#: Longest the daemon holds samples to measure start values (and samples, whichever first).
+PROBE_LIMIT_S = 1800.0
+PROBE_LIMIT_SAMPLES = 200_000
 #: How often the worker checks that the daemon still lives, s.
 PARENT_POLL_S = 0.5
 
@@ -161,15 +166,47 @@ class BankHost:
     _seq_reserved: int = 0
     _last_pub_t: float = -float("inf")
 
+    #: start values measured on the first samples (None: the config's or the capacity rule's)
+    start_values: StartValues | None = None
+    _probe: list[SampleBlock] = field(default_factory=list)
+    _probing: bool = False
+
     def __post_init__(self) -> None:
         self.bank = self._fresh_bank()
         self.counters = {"checkpoints": 0, "checkpoint_errors": 0, "seq_file_errors": 0}
+        # A config without start values or bounds: measure them on the first samples, as
+        # offline identification does on a record, before the estimators start.
+        self._probing = self.spec.cell.initial is None or self.spec.cell.bounds is None
 
     def _fresh_bank(self) -> EstimatorBank:
         from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
 
         s = self.spec
-        return build_bank(s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0)
+        return build_bank(
+            s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0, start=self.start_values
+        )
+
+    def _probe_block(self, block: SampleBlock) -> SampleBlock | None:
+        """Hold samples until the start values are measured; then the held samples, to feed."""
+        self._probe.append(block)
+        held = SampleBlock.concat(self._probe)
+        found = start_values_from_record(held.t_s, held.current_A, held.cell_voltages_V)
+        span = float(held.t_s[-1] - held.t_s[0]) if len(held) else 0.0
+        if found is None and span < PROBE_LIMIT_S and len(held) < PROBE_LIMIT_SAMPLES:
+            return None
+        self._probing = False
+        self._probe = []
+        self.start_values = found
+        if found is None:
+            log.warning(
+                "no current steps in the first %.0f s: start values from the capacity rule and "
+                "default bounds (put [initial] and [bounds] in the cell config to avoid this)",
+                span,
+            )
+        else:
+            log.info("start values from the first %.0f s of samples: %s", span, found.describe())
+        self.bank = self._fresh_bank()
+        return held
 
     # ------------------------------------------------------------------ start
     def start(self) -> StartInfo:
@@ -180,6 +217,10 @@ class BankHost:
         ck = load_checkpoint(self.spec.ckpt_path, self.spec.ckpt_key) if self.spec.restore else None
         if ck is not None:
             try:
+                sv = ck.extra.get("start_values")
+                if sv is not None:  # the bank's normalisation depends on them: rebuild first
+                    self.start_values = StartValues(**sv)
+                    self.bank = self._fresh_bank()
                 self.bank.load_state_dict(ck.state)
             except (ValueError, KeyError, TypeError) as exc:
                 log.warning(
@@ -187,9 +228,11 @@ class BankHost:
                     self.spec.ckpt_path,
                     exc,
                 )
+                self.start_values = None
                 self.bank = self._fresh_bank()
             else:
                 restored = True
+                self._probing = False
                 ck_seq = int(ck.extra.get("seq", 0))
                 t_raw = ck.extra.get("t_s")
                 t_s = float(t_raw) if t_raw is not None else None
@@ -238,6 +281,11 @@ class BankHost:
         """Feed a block of samples to the bank, in order, in chunks of about one tick."""
         estimates: list[Estimates] = []
         messages: list[OutMessage] = []
+        if self._probing:
+            held = self._probe_block(block)
+            if held is None:
+                return BatchResult(estimates, messages, self._counters(), self.seq)
+            block = held
         step = samples_per_tick(block.t_s, self.spec.tuning.id_period_s)
         for start in range(0, len(block), step):
             chunk = block.slice(start, start + step)
@@ -283,9 +331,17 @@ class BankHost:
         state = self.bank.state_dict()
         # The newest sample time (s, None before the first): a restarted replay resumes after it.
         t_s = self.bank.last_sample_t_s
+        sv = self.start_values
         try:
             save_checkpoint(
-                self.spec.ckpt_path, self.spec.ckpt_key, state, extra={"seq": self.seq, "t_s": t_s}
+                self.spec.ckpt_path,
+                self.spec.ckpt_key,
+                state,
+                extra={
+                    "seq": self.seq,
+                    "t_s": t_s,
+                    "start_values": None if sv is None else dataclasses.asdict(sv),
+                },
             )
         except OSError as exc:
             self.counters["checkpoint_errors"] += 1

@@ -105,11 +105,15 @@ class ArxRlsStage:
             )
             e = ue - np.einsum("nk,nk->n", phi, self.theta_arx * self.arx_scale)
             self.arx_err = np.where(ok, e, 0.0)
-            e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, ok, quiet, dt, forget, tun)
-            self.theta_arx, self.P_arx = rls_update(
-                self.theta_arx, self.P_arx, phi * self.arx_scale, e_c, self.lam, ok, tun.trace_max
+            learn = ctx.learn
+            e_c, self.sig_e, self.lam = adapt_innovation(
+                e, self.sig_e, learn, quiet, dt, forget, tun
             )
-            self._accept(ok)
+            self.theta_arx, self.P_arx = rls_update(
+                self.theta_arx, self.P_arx, phi * self.arx_scale, e_c, self.lam, learn,
+                tun.trace_max,
+            )  # fmt: skip
+            self._accept(learn)
         else:
             self.arx_err = np.where(ok, v - v_model, 0.0)
         self.ue_hist = np.stack([ue, self.ue_hist[:, 0]], axis=1)

@@ -101,7 +101,7 @@ class EstimatorBank:
         self.cell_ids = np.arange(n) if cell_ids is None else np.asarray(cell_ids, dtype=np.int64)
         setup = StageSetup(model, self.tuning, self.cell_ids, n_stagger or n)
         self.ticks = TickAssembler(n, self.tuning)
-        self.state = CoulombState(model, soc0)
+        self.state = CoulombState(model, soc0, self.tuning.knee_slope_factor)
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
 
     # ------------------------------------------------------------------ public API

@@ -144,12 +144,13 @@ class FusionStage:
         e = v - v_model
         self.arx_err = np.where(ok, e, 0.0)
         quiet = is_quiet(tick, self.model, tun)
-        e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, ok, quiet, dt, forget, tun)
+        learn = ctx.learn
+        e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, learn, quiet, dt, forget, tun)
         # The OCV offset is not tracked per tick (see fusion_covariance): column zeroed.
         phi_n = phi * (self.scale * np.array([1.0, 1.0, 1.0, use_h, 0.0]))
-        theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, ok, tun.trace_max)
+        theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, learn, tun.trace_max)
         self.theta = self._clamp_linear(self._project_linear(theta, self.P))
-        self.buffer.push(i, v - ocv_v, hm, ok)
+        self.buffer.push(i, v - ocv_v, hm, learn)
         self._run_swarms(tick.t_s)
         self._publish_linear()
         self.v_model = np.asarray(v_model, dtype=np.float64)
@@ -201,8 +202,10 @@ class FusionStage:
     # ------------------------------------------------------------------ swarms
     def _run_swarms(self, t: float) -> None:
         tun, sched = self.tuning, self.schedule
-        span = self.buffer.count * self._period_s
         for c in sched.due(t):
+            # Learnable data in the window, s: ticks in the OCV knees or without a voltage
+            # carry no weight in the fits, so they do not count towards min_window_s.
+            span = self.buffer.n_valid(c) * self._period_s
             if span >= tun.min_window_s and self._excited[c]:
                 self._start_swarm(c)
         if sched.n_running() == 0:

@@ -36,6 +36,8 @@ class TickContext:
         m_table_V: hysteresis half-gap M(z) of Eq. 32, V.
         hm_V: hysteresis voltage h M(z), V (Eq. 9).
         v_safe_V: measured voltage, or OCV(z) where a cell has none (the update skips it), V.
+        learn: cells whose parameters may learn from this tick (a valid voltage, SOC outside
+            the OCV curve's knees: ``EstimatorTuning.knee_slope_factor``).
     """
 
     tick: Tick
@@ -44,6 +46,7 @@ class TickContext:
     m_table_V: FloatArray = field(default_factory=lambda: np.zeros(0))
     hm_V: FloatArray = field(default_factory=lambda: np.zeros(0))
     v_safe_V: FloatArray = field(default_factory=lambda: np.zeros(0))
+    learn: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 class Stage(Protocol):

@@ -28,7 +28,12 @@ class CoulombState:
 
     name = "state"
 
-    def __init__(self, model: CellModel, soc0: float | FloatArray | None = None) -> None:
+    def __init__(
+        self,
+        model: CellModel,
+        soc0: float | FloatArray | None = None,
+        knee_slope_factor: float = np.inf,
+    ) -> None:
         self.model = model
         self.n = model.n_cells
         self.soc0 = soc0
@@ -38,6 +43,9 @@ class CoulombState:
         self.soc_init_method = "pending"
         self._capacity_As = model.capacity_As
         self._pending = np.ones(self.n, dtype=bool)  # cells whose SOC starts at the next tick
+        ocv = model.ocv
+        mid = np.abs(ocv.docv_dz(np.linspace(0.2, 0.8, 61)))
+        self._knee_slope = knee_slope_factor * float(np.median(mid))  # V per unit SOC
 
     def step(self, ctx: TickContext) -> None:
         tick = ctx.tick
@@ -57,6 +65,7 @@ class CoulombState:
         ctx.m_table_V = ocv.hysteresis_M(zc)
         ctx.hm_V = self.h * ctx.m_table_V
         ctx.v_safe_V = np.where(tick.ok, tick.v_V, ctx.ocv_V)
+        ctx.learn = tick.ok & (np.abs(ocv.docv_dz(zc)) <= self._knee_slope)
 
     def _start(self, tick: Tick, cells: BoolArray) -> None:
         """SOC of ``cells`` from the caller's soc0, else the voltage at rest, else a default."""

@@ -70,6 +70,10 @@ class WindowBuffer:
     def clear(self) -> None:
         self.count = 0
 
+    def n_valid(self, c: int) -> int:
+        """Buffered ticks with a valid (learnable) voltage of cell ``c``."""
+        return int(self.valid[c, self.order()].sum())
+
     def window(
         self, c: int, dt_s: float, window_s: float, use_hysteresis: bool, use_offset: bool
     ) -> tuple[Window, FloatArray]:

@@ -67,6 +67,12 @@ class EstimatorTuning(BaseModel):
     ocv_offset_prior_V: float = Field(0.01, gt=0.0)
     """Prior std of the OCV offset, V. Under a steady mean current the offset and the slow
     branch (R2 x2) are nearly collinear; this prior decides that direction, the data the rest."""
+    knee_slope_factor: float = Field(10.0, gt=0.0)
+    """Parameters are not learnt where |dOCV/dz| exceeds this many times its median over
+    20-80 % SOC: in the OCV curve's knees (below ~10 %, and above ~90 % on LFP) a SOC error of
+    a point is tens of mV of OCV error, which the estimators would learn as resistance (R2
+    driven to its bound in every low-SOC tail). The model keeps running there with what was
+    learnt before; ``inf`` learns everywhere."""
     identify_hysteresis_scale: bool = True
     """Identify a scale on the configured M(z) table (Eq. 32) instead of trusting it."""
 

@@ -1,14 +1,27 @@
 """The one loader for battery-tester CSV files (``.csv`` or ``.csv.gz``).
 
-Format: a header line, then one row per sample, comma separated. Columns (names are matched
-case-insensitively, surrounding blanks ignored):
+Format: a header line, then one row per sample, comma separated (a header without commas but
+with semicolons or tabs selects that separator; double quotes around names and values are
+dropped). Columns (names are matched case-insensitively, surrounding blanks ignored; other
+names are mapped with ``columns``, see :class:`ColumnMap`):
 
-- ``t_s`` (s, strictly increasing) and ``current_A`` (A, positive = discharge) are required;
+- ``t_s`` (s) and ``current_A`` (A, positive = discharge) are required;
 - the cell voltage(s) in volts: ``voltage_V`` for one cell, or ``v_cell_01, v_cell_02, ...`` for
   several (ordered by their number; when both exist the ``v_cell_*`` columns are the cells and
   ``voltage_V`` goes to ``extra``);
 - ``temperature_C`` is optional; any other column that is numeric in every row lands in
   ``extra`` (e.g. ``soc_true``), non-numeric ones (step names, dates) are ignored.
+
+Time as testers write it (gaps and sample-rate changes need nothing: the engine handles them):
+
+- rows with the same ``t_s`` (a record logged twice at a step change) are merged into the last
+  of them and counted (``TesterData.merged_repeats``);
+- a clock that restarts at the record's first time stamp (records appended to each other, a
+  tester that reset its clock) is stitched: the times after it continue the previous ones after
+  a gap of ``RESTART_GAP_S``, which the engine treats like any gap (a new segment after a rest
+  of unknown length); the lines are in ``TesterData.time_restarts``. More than
+  ``MAX_TIME_RESTARTS`` restarts look like a per-step time column and are refused;
+- any other step back in time is an error naming its line.
 
 Every rejected file raises ``UserError`` with one line that names the file and the lines
 (1-based, the header being line 1). Unit heuristics:
@@ -24,8 +37,9 @@ from __future__ import annotations
 
 import gzip
 import io
+import logging
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -36,11 +50,34 @@ import numpy.typing as npt
 from bmsid.errors import UserError
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+log = logging.getLogger(__name__)
 
 MAX_PLAUSIBLE_CURRENT_A = 3000.0
 MAX_PLAUSIBLE_CELL_VOLTAGE_V = 100.0
+#: Gap (s) put where a restarted clock is stitched on: longer than the engine's gap threshold
+#: (``EstimatorTuning.gap_s``, 30 s), so the pause of unknown length starts a new segment.
+RESTART_GAP_S = 60.0
+#: More restarts than this are a per-step time column (Arbin "Step_Time", Neware "Relative
+#: Time"), not appended records: refused, the user maps the test time instead.
+MAX_TIME_RESTARTS = 3
 _MAX_LINES_LISTED = 5
 _CELL_RE = re.compile(r"^v_cell_(\d+)$")
+#: Names ``columns`` may map to (besides ``v_cell_NN``).
+CANONICAL_COLUMNS = ("t_s", "current_A", "voltage_V", "temperature_C")
+
+
+@dataclass(frozen=True)
+class ColumnMap:
+    """Where a canonical column (``t_s``, ``current_A``, ...) comes from in a foreign export.
+
+    ``source`` is the export's column name (matched case-insensitively), ``scale`` multiplies its
+    values into the canonical unit (0.001 for a time in ms or a current in mA).
+    """
+
+    source: str
+    scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +94,10 @@ class TesterData:
     temperature_C: FloatArray | None = None
     extra: dict[str, FloatArray] = field(default_factory=dict)
     source: str = ""
+    #: Rows dropped because the next row has the same ``t_s`` (the last of equal times is kept).
+    merged_repeats: int = 0
+    #: File lines (1-based) where the clock restarted and was stitched on (see the module doc).
+    time_restarts: tuple[int, ...] = ()
     __test__: ClassVar[bool] = False  # "Test..." name: not a pytest class
 
     @property
@@ -112,11 +153,112 @@ def _parse_column(
     )
 
 
-def read_tester_csv(path: str | Path, *, charge_positive: bool = False) -> TesterData:
-    """Load a tester CSV (see the module docstring); ``charge_positive`` flips the current sign.
+def _separator(header_line: str) -> str:
+    """The field separator: a comma, else what the header uses (European exports: ';' or tab)."""
+    if "," in header_line:
+        return ","
+    for sep in (";", "\t"):
+        if sep in header_line:
+            return sep
+    return ","
 
-    Raises ``UserError`` for a missing/empty file, missing columns, bad rows, non-increasing time
-    and values that look like mV or mA.
+
+def _apply_column_map(
+    header: list[str], columns: Mapping[str, ColumnMap], path: Path
+) -> tuple[list[str], dict[int, float]]:
+    """``header`` with mapped columns renamed to their canonical names, and the scale per column.
+
+    A column that already carries a mapped-to name gives way: it is renamed ``NAME_unmapped``
+    (and lands in ``extra`` if numeric), so the user's mapping always wins.
+    """
+    keys = [h.lower() for h in header]
+    out = list(header)
+    scales: dict[int, float] = {}
+    taken: dict[int, str] = {}
+    for target, cm in columns.items():
+        j = keys.index(cm.source.strip().lower()) if cm.source.strip().lower() in keys else -1
+        if j < 0:
+            raise UserError(
+                f"{path}: no column {cm.source!r} (mapped to {target}); found: {', '.join(header)}"
+            )
+        if j in taken:
+            raise UserError(f"{path}: column {cm.source!r} is mapped to {taken[j]} and {target}")
+        taken[j] = target
+        scales[j] = cm.scale
+    for j, target in taken.items():
+        for k, key in enumerate(keys):
+            if k not in taken and key == target.lower():
+                out[k] = f"{header[k]}_unmapped"
+        out[j] = target
+    return out, scales
+
+
+def _clean_time(t: FloatArray, path: Path) -> tuple[FloatArray, BoolArray, tuple[int, ...]]:
+    """Stitched time, the rows to keep (the last of equal times) and the restart lines.
+
+    Lines are 1-based file lines (the header is line 1, row k is line k + 2). Raises
+    ``UserError`` for a step back that is not a restart of the clock (see the module doc).
+    """
+    steps = np.diff(t)
+    back = np.flatnonzero(steps < 0)
+    restarts: list[int] = []
+    if back.size:
+        forward = steps[steps > 0]
+        dt_med = float(np.median(forward)) if forward.size else 1.0
+        # A restart goes back to where the record started (t[0], usually 0) from far beyond
+        # it; anything else (rows out of order, a clock stepping back a little) is refused.
+        near_start = t[back + 1] <= t[0] + max(dt_med, 1.0)
+        far = t[back] - t[back + 1] > RESTART_GAP_S
+        bad = back[~(near_start & far)]
+        if bad.size:
+            k = int(bad[0])
+            raise UserError(
+                f"{path}: time t_s is not increasing at line {k + 3} ({t[k + 1]:g} s after "
+                f"{t[k]:g} s): rows out of order? (equal times are merged and a clock that "
+                f"restarts at the record's start, {t[0]:g} s, is stitched on)"
+            )
+        restarts = [int(k) + 3 for k in back]
+        if len(restarts) > MAX_TIME_RESTARTS:
+            raise UserError(
+                f"{path}: time t_s restarts {len(restarts)} times (line(s) "
+                f"{_lines_text(restarts)}): a per-step time column? Map the test's total time "
+                "to t_s (e.g. --columns t_s=Test_Time(s))"
+            )
+        t = t.copy()
+        gap = max(RESTART_GAP_S, dt_med)
+        for b in back.tolist():  # in file order: each offset carries over to all after it
+            t[b + 1 :] += t[b] + gap - t[b + 1]
+    # Equal times: keep the LAST row of each run. A tester logs the end of the old step and the
+    # start of the new one at the same instant; the new step's current is what flows until the
+    # next row (the engine holds a sample's current over the following interval), and its
+    # voltage is the response to it. An average would invent a current that never flowed.
+    keep = np.append(np.diff(t) != 0.0, True)
+    return t, keep, tuple(restarts)
+
+
+def read_tester_csv(
+    path: str | Path,
+    *,
+    charge_positive: bool = False,
+    columns: Mapping[str, ColumnMap] | None = None,
+) -> TesterData:
+    """Load a tester CSV (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.csv`` or ``.csv.gz`` file.
+    charge_positive : bool
+        The file counts charge current positive: the current's sign is flipped.
+    columns : mapping of canonical name to ColumnMap, or None
+        Where ``t_s``, ``current_A``, ``voltage_V``, ``v_cell_NN`` or ``temperature_C`` come
+        from in an export with other names (applied before the rules above), with a unit scale.
+
+    Raises
+    ------
+    UserError
+        A missing/empty file, missing columns, bad rows, time that goes back (other than a
+        restart of the clock), and values that look like mV or mA.
     """
     p = Path(path)
     text = _read_text(p)
@@ -125,7 +267,11 @@ def read_tester_csv(path: str | Path, *, charge_positive: bool = False) -> Teste
         lines.pop()
     if not lines:
         raise UserError(f"{p}: empty file")
-    header = [h.strip() for h in lines[0].split(",")]
+    sep = _separator(lines[0])
+    header = [h.strip().strip('"').strip() for h in lines[0].split(sep)]
+    scales: dict[int, float] = {}
+    if columns:
+        header, scales = _apply_column_map(header, columns, p)
     keys = [h.lower() for h in header]
     body = lines[1:]
     if not body:
@@ -140,13 +286,16 @@ def read_tester_csv(path: str | Path, *, charge_positive: bool = False) -> Teste
         missing.append("voltage_V (or v_cell_01, v_cell_02, ...)")
     if missing:
         names = ", ".join(m.replace("current_a", "current_A") for m in missing)
-        raise UserError(f"{p}: missing column(s) {names}; found: {', '.join(header)}")
+        raise UserError(
+            f"{p}: missing column(s) {names}; found: {', '.join(header)} "
+            "(other names: --columns t_s=NAME,current_A=NAME,voltage_V=NAME)"
+        )
 
     n_fields = len(header)
     rows: list[list[str]] = []
     bad_rows: list[int] = []
     for k, line in enumerate(body):
-        parts = line.split(",")
+        parts = line.split(sep)
         if len(parts) != n_fields:
             bad_rows.append(k + 2)
         else:
@@ -156,21 +305,19 @@ def read_tester_csv(path: str | Path, *, charge_positive: bool = False) -> Teste
             f"{p}: line(s) {_lines_text(bad_rows)} are empty or do not have the "
             f"{n_fields} fields of the header"
         )
-    columns = list(zip(*rows, strict=True))
+    columns_text = list(zip(*rows, strict=True))
+
+    def cells_of(j: int) -> list[str]:
+        return [s.strip().strip('"') for s in columns_text[j]]
 
     def required(name: str) -> FloatArray:
         j = keys.index(name.lower())
-        arr = _parse_column([s.strip() for s in columns[j]], header[j], p, 2, True)
+        arr = _parse_column(cells_of(j), header[j], p, 2, True)
         assert arr is not None
-        return arr
+        return arr * scales[j] if j in scales else arr
 
-    t = required("t_s")
-    steps = np.diff(t)
-    if np.any(steps <= 0):
-        k = int(np.flatnonzero(steps <= 0)[0])
-        raise UserError(
-            f"{p}: time t_s is not increasing at line {k + 3} ({t[k + 1]:g} s after {t[k]:g} s)"
-        )
+    t, keep, restarts = _clean_time(required("t_s"), p)
+    merged = int(keep.size - np.count_nonzero(keep))
     current = required("current_A")
     if charge_positive:
         current = -current
@@ -198,17 +345,21 @@ def read_tester_csv(path: str | Path, *, charge_positive: bool = False) -> Teste
     for j, name in enumerate(header):
         if j in used or not name:
             continue
-        arr = _parse_column([s.strip() for s in columns[j]], name, p, 2, False)
+        arr = _parse_column(cells_of(j), name, p, 2, False)
         if arr is not None:
-            extra[name] = arr
+            extra[name] = arr[keep]
+    if merged:
+        log.info("%s: merged %d rows with repeated timestamps", p, merged)
     return TesterData(
-        t_s=t,
-        current_A=current,
-        cell_voltages_V=volts,
+        t_s=t[keep],
+        current_A=current[keep],
+        cell_voltages_V=volts[keep],
         cell_names=[header[j] for j in cell_cols],
-        temperature_C=temperature,
+        temperature_C=None if temperature is None else temperature[keep],
         extra=extra,
         source=str(p),
+        merged_repeats=merged,
+        time_restarts=restarts,
     )
 
 

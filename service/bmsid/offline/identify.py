@@ -16,7 +16,7 @@ Pure apart from reading the input, writing into ``out`` and the clock read for t
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,10 +25,12 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
-from bmsid.config.engine import build_bank
+from bmsid.config.engine import build_bank, cell_model
+from bmsid.estimate.cellmodel import BOUNDED, INITIAL
+from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
-from bmsid.offline.csvio import TesterData
+from bmsid.offline.csvio import ColumnMap, TesterData
 from bmsid.offline.inputs import DEFAULT_BLOCK_SIZE, InputSource, LoadedInput, open_input
 from bmsid.offline.outputs import OutputSpec, prepare_out_dir, write_metrics_json, write_plots
 from bmsid.offline.scoring import EvalWindow, IdentifyResult, metrics_document
@@ -63,8 +65,13 @@ class IdentifySpec:
         The input counts charge current positive.
     mapping : str or None
         Bus mapping TOML of a candump log; None: the default mapping.
-    n_cells : int
-        Cells in a candump log (a CSV says it by its columns).
+    n_cells : int or None
+        Cells in a candump log (None: as many as the log carries; a CSV says it by its
+        columns).
+    channel : str or None
+        CAN channel of a candump log (needed when several carry the mapping's frames).
+    columns : mapping or None
+        Column map of a CSV whose names differ from bmsid's (``inputs.parse_columns``).
     block_size : int
         Samples per block fed to the bank (the results do not depend on it).
     output : OutputSpec
@@ -78,7 +85,9 @@ class IdentifySpec:
     window: EvalWindow = field(default_factory=EvalWindow)
     charge_positive: bool = False
     mapping: str | None = None
-    n_cells: int = 1
+    n_cells: int | None = None
+    channel: str | None = None
+    columns: Mapping[str, ColumnMap] | None = None
     block_size: int = DEFAULT_BLOCK_SIZE
     output: OutputSpec = field(default_factory=OutputSpec)
 
@@ -93,6 +102,7 @@ def run_blocks(
     progress: Progress | None = None,
     cell_names: Sequence[str] | None = None,
     sink: EstimateSink | None = None,
+    start: StartValues | None = None,
 ) -> IdentifyResult:
     """Feed sample blocks in order to a new bank of ``n_cells`` cells.
 
@@ -111,20 +121,23 @@ def run_blocks(
     sink : callable or None
         Called with each non-empty block of estimates as it is produced (before the next input
         block is read), e.g. ``ParamsCsvWriter.append``.
+    start : StartValues or None
+        Start values measured on the record (:func:`probe_start_values`) for what ``cell``
+        leaves out.
 
     Returns
     -------
     IdentifyResult
         ``runtime_s`` counts the bank's time only (no reading, writing or progress).
     """
-    bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0)
+    bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0, start=start)
     parts: list[EstimateBlock] = []
     n = 0
     runtime = 0.0
     for block in blocks:
-        start = time.perf_counter()
+        t0 = time.perf_counter()
         est = bank.update_block(block)
-        runtime += time.perf_counter() - start
+        runtime += time.perf_counter() - t0
         n += len(block)
         if est.n_ticks:
             parts.append(est)
@@ -142,6 +155,69 @@ def run_blocks(
         n_samples=n,
         cell_names=names,
     )
+
+
+def probe_start_values(blocks: Iterable[SampleBlock], cell: CellConfig) -> StartValues | None:
+    """Start values measured on the record's first ``PROBE_S`` seconds, when the cell config
+    leaves start values or bounds out (None when it gives both, or the record has too few
+    current steps: the config's capacity rule and default bounds then apply)."""
+    if cell.initial is not None and cell.bounds is not None:
+        return None
+    head: list[SampleBlock] = []
+    for block in blocks:
+        head.append(block)
+        if len(block) and block.t_s[-1] - head[0].t_s[0] >= PROBE_S:
+            break
+    if not head:
+        return None
+    b = SampleBlock.concat(head)
+    return start_values_from_record(b.t_s, b.current_A, b.cell_voltages_V)
+
+
+def start_values_document(
+    cell: CellConfig, start: StartValues | None, tuning: EstimatorTuning | None, n_cells: int
+) -> dict[str, object]:
+    """Where the run's start values and bounds came from, and what they were (SI units)."""
+    model = cell_model(cell, n_cells, start, tuning)
+    ini = {k: float(model.start(k)[0]) for k in INITIAL}
+    bounds = {k: [float(model.lo[0, j]), float(model.hi[0, j])] for j, k in enumerate(BOUNDED)}
+    return {
+        "initial_from": "config" if cell.initial is not None else
+        (start.source if start is not None else "capacity rule (R0 = 0.1 ohm Ah / capacity)"),
+        "bounds_from": "config" if cell.bounds is not None else
+        ("relative to the measured R0" if start is not None else "defaults"),
+        "initial": ini,
+        "bounds": bounds,
+    }  # fmt: skip
+
+
+#: A parameter within this share of a bound counts as on it.
+ON_BOUND_REL = 0.01
+
+
+def bound_findings(
+    trace: EstimateBlock,
+    cell: CellConfig,
+    start: StartValues | None,
+    tuning: EstimatorTuning | None,
+    cell_names: Sequence[str],
+) -> dict[str, object]:
+    """Where identified parameters sat on their bounds: per parameter the share of ticks on a
+    bound (pooled over cells) and the cells that end the record on one. A parameter on a bound
+    is a finding (the bound, not the data, decided it), not a value to trust."""
+    model = cell_model(cell, trace.n_cells, start, tuning)
+    share: dict[str, float] = {}
+    at_end: dict[str, list[str]] = {}
+    for name in ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s"):
+        lo, hi = model.bound(name)
+        x = trace[name]
+        on = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
+        share[name] = float(on.mean()) if on.size else 0.0
+        if trace.n_ticks:
+            ended = [cell_names[int(c)] for c in np.flatnonzero(on[-1])]
+            if ended:
+                at_end[name] = ended
+    return {"share_of_ticks_on_a_bound": share, "ends_on_a_bound": at_end}  # fmt: skip
 
 
 def identify_source(
@@ -177,12 +253,21 @@ def identify_source(
             if spec.output.params_csv:
                 writer = stack.enter_context(ParamsCsvWriter(out / "params.csv", source.cell_names))
                 sink = writer.append
+        start = probe_start_values(source.blocks(spec.block_size), spec.cell)
         result = run_blocks(
             source.blocks(spec.block_size), source.n_cells, spec.cell, spec.variant, spec.tuning,
-            spec.soc0, progress, source.cell_names, sink,
+            spec.soc0, progress, source.cell_names, sink, start,
         )  # fmt: skip
     if out is not None:
-        doc = {**metrics_document(result, spec.window), **spec.output.metadata}
+        doc = {
+            **metrics_document(result, spec.window),
+            "start_values": start_values_document(spec.cell, start, spec.tuning, source.n_cells),
+            "input_checks": source.input_report,
+            "bounds": bound_findings(
+                result.trace, spec.cell, start, spec.tuning, result.cell_names
+            ),
+            **spec.output.metadata,
+        }
         write_metrics_json(doc, out / "metrics.json")
         title = spec.output.title or f"{Path(source.source).name} - {spec.variant}"
         write_plots(result, spec.window, out, title, spec.output.plots)
@@ -202,8 +287,9 @@ def identify_file(
     it. Raises ``UserError`` for an unreadable input or output directory.
     """
     source = open_input(
-        path, charge_positive=spec.charge_positive, mapping=spec.mapping, n_cells=spec.n_cells
-    )
+        path, charge_positive=spec.charge_positive, mapping=spec.mapping, n_cells=spec.n_cells,
+        channel=spec.channel, columns=spec.columns,
+    )  # fmt: skip
     meta = {"input": str(path), **spec.output.metadata}
     spec = replace(spec, output=replace(spec.output, metadata=meta))
     return identify_source(source, spec, out, progress)
@@ -232,8 +318,17 @@ def run_arrays(
     block = SampleBlock.from_arrays(t_s, current_A, v)
     names = list(cell_names) if cell_names else [f"cell_{c + 1:02d}" for c in range(v.shape[1])]
     src = LoadedInput(source="<arrays>", samples=block, cell_names=names)
+    start = probe_start_values(src.blocks(), cell)
     return run_blocks(
-        src.blocks(), src.n_cells, cell, variant, tuning, soc0, progress, src.cell_names
+        src.blocks(),
+        src.n_cells,
+        cell,
+        variant,
+        tuning,
+        soc0,
+        progress,
+        src.cell_names,
+        start=start,
     )
 
 

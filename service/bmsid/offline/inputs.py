@@ -7,6 +7,10 @@ columns in time order, whatever the file format: tester CSV (``.csv``, ``.csv.gz
 load the whole file today and slice it; a streaming reader (issue 12) only has to yield the same
 blocks.
 
+What a reader did to the file (repeated timestamps merged, a restarted clock stitched on, the
+channel and cell count taken from a log) is kept on the source: ``notes`` (lines to print),
+``findings`` (warnings) and ``input_report`` (all of it as JSON for metrics.json).
+
 The option parsers take the text a user typed (``KEY=VALUE``, ``LO,HI``) and raise
 :class:`~bmsid.errors.UserError` with one line that names the command-line option it came from,
 so every front end (CLI, benches) reports a bad value the same way.
@@ -15,7 +19,8 @@ so every front end (CLI, benches) reports a bad value the same way.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+import re
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,12 +29,19 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import ValidationError
 
-from bmsid.canbus.logs import samples_from_log
+from bmsid.canbus.logs import LogSummary, samples_from_log, summarize_log
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.config.cell import CellConfig, OcvCurve, load_cell_config, paper_cell
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.offline.csvio import TesterData, read_tester_csv
+from bmsid.offline.csvio import (
+    CANONICAL_COLUMNS,
+    RESTART_GAP_S,
+    ColumnMap,
+    TesterData,
+    read_tester_csv,
+)
+from bmsid.offline.plausibility import Finding, sample_period
 from bmsid.offline.scoring import EvalWindow
 from bmsid.samples import SampleBlock
 
@@ -65,6 +77,11 @@ class InputSource(Protocol):
     @property
     def n_cells(self) -> int: ...
 
+    @property
+    def input_report(self) -> dict[str, Any]:
+        """What the reader did and found, JSON-ready (see :class:`LoadedInput`)."""
+        ...
+
     def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
         """Consecutive blocks of at most ``size`` samples, in time order."""
         ...
@@ -74,13 +91,34 @@ class InputSource(Protocol):
 class LoadedInput:
     """A recording held in memory as one block, yielded in slices (views, no copies).
 
-    ``temperature_C`` (degC, shape (n,)) is the tester file's temperature column, if any.
+    Attributes
+    ----------
+    temperature_C : array or None
+        The tester file's temperature column (degC, shape (n,)), if any.
+    merged_repeats : int
+        Rows merged into a row with the same time stamp (the last of them is kept).
+    time_restarts : tuple of int
+        File lines where the clock restarted and was stitched on.
+    notes : tuple of str
+        Lines for the user about what the reader did (merges, the log's contents, cells found).
+    findings : tuple of Finding
+        Doubtful things the reader saw (warnings; errors are raised).
+    log_summary : LogSummary or None
+        A candump log's channels, ids and cells.
+    channel : str or None
+        The CAN channel read from a log (None: all frames, or a CSV).
     """
 
     source: str
     samples: SampleBlock
     cell_names: list[str]
     temperature_C: FloatArray | None = None
+    merged_repeats: int = 0
+    time_restarts: tuple[int, ...] = ()
+    notes: tuple[str, ...] = ()
+    findings: tuple[Finding, ...] = ()
+    log_summary: LogSummary | None = None
+    channel: str | None = None
 
     @property
     def n_samples(self) -> int:
@@ -90,6 +128,30 @@ class LoadedInput:
     def n_cells(self) -> int:
         return self.samples.n_cells
 
+    @property
+    def input_report(self) -> dict[str, Any]:
+        """JSON-ready: ``merged_repeats``, ``time_restarts`` (lines), ``median_dt_s`` (None
+        when undefined), ``gaps_over_30s``, ``channel``, ``cells_in_log``, ``notes`` and
+        ``findings`` (level, code, message)."""
+        period = sample_period(self.samples.t_s)
+        cells = None
+        if self.log_summary is not None:
+            ch = self.log_summary.channels.get(self.channel or "")
+            mapped = self.log_summary.mapped_channels
+            if ch is None and len(mapped) == 1:
+                ch = self.log_summary.channels[mapped[0]]
+            cells = None if ch is None else ch.n_cells
+        return {
+            "merged_repeats": self.merged_repeats,
+            "time_restarts": list(self.time_restarts),
+            "median_dt_s": None if math.isnan(period.median_dt_s) else period.median_dt_s,
+            "gaps_over_30s": period.n_gaps,
+            "channel": self.channel,
+            "cells_in_log": cells,
+            "notes": list(self.notes),
+            "findings": [f.as_dict() for f in self.findings],
+        }
+
     def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
         if size < 1:
             raise ValueError(f"block size must be >= 1, got {size}")
@@ -98,17 +160,45 @@ class LoadedInput:
 
     @classmethod
     def from_tester(cls, data: TesterData, source: str | None = None) -> LoadedInput:
-        """A tester file's columns as a source (cells named by their voltage columns)."""
+        """A tester file's columns as a source (cells named by their voltage columns), with
+        a note for merged repeats and a warning for a stitched clock restart."""
         block = SampleBlock.from_arrays(data.t_s, data.current_A, data.cell_voltages_V)
+        notes: list[str] = []
+        findings: list[Finding] = []
+        if data.merged_repeats:
+            notes.append(
+                f"merged {data.merged_repeats} rows with repeated timestamps "
+                "(the last row of each time is kept)"
+            )
+        if data.time_restarts:
+            lines = ", ".join(str(n) for n in data.time_restarts)
+            findings.append(
+                Finding(
+                    "warning",
+                    "time_restart",
+                    f"the clock t_s restarts at line(s) {lines}: stitched on after a "
+                    f"{RESTART_GAP_S:g} s gap (a new segment from rest); if the parts are "
+                    "separate tests, identify them separately",
+                )
+            )
         return cls(
             source=data.source if source is None else source,
             samples=block,
             cell_names=list(data.cell_names),
             temperature_C=data.temperature_C,
+            merged_repeats=data.merged_repeats,
+            time_restarts=data.time_restarts,
+            notes=tuple(notes),
+            findings=tuple(findings),
         )
 
 
-def read_csv_input(path: str | Path, *, charge_positive: bool = False) -> LoadedInput:
+def read_csv_input(
+    path: str | Path,
+    *,
+    charge_positive: bool = False,
+    columns: Mapping[str, ColumnMap] | None = None,
+) -> LoadedInput:
     """A tester CSV as a source (format in :mod:`bmsid.offline.csvio`).
 
     Parameters
@@ -117,50 +207,117 @@ def read_csv_input(path: str | Path, *, charge_positive: bool = False) -> Loaded
         ``.csv`` or ``.csv.gz`` file.
     charge_positive : bool
         The file counts charge current positive (the engine counts discharge positive).
+    columns : mapping or None
+        Foreign column names and unit scales (:func:`parse_columns`).
 
     Raises
     ------
     UserError
         A missing or malformed file (one line naming the file and the lines).
     """
-    return LoadedInput.from_tester(read_tester_csv(path, charge_positive=charge_positive))
+    return LoadedInput.from_tester(
+        read_tester_csv(path, charge_positive=charge_positive, columns=columns)
+    )
+
+
+def _cell_range(a: int, b: int) -> str:
+    """Cells ``a..b`` (1-based) as text."""
+    return f"cell {a}" if a == b else f"cells {a}-{b}"
 
 
 def read_log_input(
     path: str | Path,
     *,
-    n_cells: int = 1,
+    n_cells: int | None = None,
     mapping: str | Path | None = None,
     charge_positive: bool = False,
+    channel: str | None = None,
 ) -> LoadedInput:
     """A candump log decoded as the daemon decodes the bus, as a source.
+
+    The log is first summarised (:func:`~bmsid.canbus.logs.summarize_log`): its channels,
+    frame counts and ids go into ``notes``, and the cells whose voltages it carries give the
+    cell count when ``n_cells`` is None.
 
     Parameters
     ----------
     path : str or Path
         candump ``-l`` / ``-ta`` log.
-    n_cells : int
-        Cells of the pack on the bus.
+    n_cells : int or None
+        Cells of the pack on the bus; None: as many as the log carries. Fewer than the log
+        carries is a warning (only the first are analysed), more is an error (every sample
+        would lack the missing cells).
     mapping : str, Path or None
         Bus mapping TOML; None uses the default mapping.
     charge_positive : bool
         The bus counts charge current positive.
+    channel : str or None
+        CAN channel to read (e.g. ``can1``); required when the mapping's frames appear on
+        more than one channel.
 
     Raises
     ------
     UserError
-        A missing file, a bad mapping, no decodable sample or no timestamps.
+        A missing file, a bad mapping, several channels without ``channel``, a channel or
+        cell count the log does not hold, no decodable sample or no timestamps.
     """
-    if n_cells < 1:
+    if n_cells is not None and n_cells < 1:
         raise UserError(f"--n-cells must be >= 1, got {n_cells}")
     if not Path(path).is_file():
         raise UserError(f"{path}: no such file")
     bus = load_mapping(mapping) if mapping else default_mapping()
-    block = SampleBlock.from_samples(samples_from_log(path, bus, n_cells))
+    summary = summarize_log(path, bus)
+    notes = [summary.text()]
+    findings: list[Finding] = []
+    mapped = summary.mapped_channels
+    if channel is None and len(mapped) > 1:
+        counts = ", ".join(f"{c}: {summary.channels[c].mapped}" for c in mapped)
+        raise UserError(
+            f"{path}: frames of mapping {bus.name!r} on {len(mapped)} CAN channels ({counts} "
+            f"frames): pass --channel NAME (one of {', '.join(mapped)}); mixed they give "
+            "samples of neither"
+        )
+    if channel is not None and channel not in mapped:
+        held = ", ".join(sorted(summary.channels)) or "none"
+        raise UserError(
+            f"{path}: no frames of mapping {bus.name!r} on channel {channel!r} "
+            f"(the log holds: {held})"
+        )
+    chosen = channel if channel is not None else (mapped[0] if mapped else None)
+    found = summary.channels[chosen].n_cells if chosen is not None else 0
+    where = f" on {chosen}" if chosen is not None and len(summary.channels) > 1 else ""
+    if n_cells is None:
+        n_cells = max(found, 1)  # none found: decoding below says what is missing
+        if found:
+            notes.append(f"{found} cells found in the log{where}")
+    elif found and n_cells > found:
+        raise UserError(
+            f"--n-cells {n_cells} but the log carries voltages of {found} cells{where} "
+            f"({_cell_range(found + 1, n_cells)} never have one): every sample would be "
+            f"incomplete; pass --n-cells {found} or leave it out"
+        )
+    elif n_cells < found:
+        findings.append(
+            Finding(
+                "warning",
+                "n_cells_below_log",
+                f"--n-cells {n_cells} but the log carries {found} cells{where}: only "
+                f"{_cell_range(1, n_cells)} analysed (leave --n-cells out for all)",
+            )
+        )
+    block = SampleBlock.from_samples(samples_from_log(path, bus, n_cells, channel=chosen))
     if charge_positive:
         block = SampleBlock(block.t_s, -block.current_A, block.cell_voltages_V)
     names = [f"v_cell_{c + 1:02d}" for c in range(block.n_cells)]
-    return LoadedInput(source=str(path), samples=block, cell_names=names)
+    return LoadedInput(
+        source=str(path),
+        samples=block,
+        cell_names=names,
+        notes=tuple(notes),
+        findings=tuple(findings),
+        log_summary=summary,
+        channel=chosen,
+    )
 
 
 def open_input(
@@ -168,20 +325,30 @@ def open_input(
     *,
     charge_positive: bool = False,
     mapping: str | Path | None = None,
-    n_cells: int = 1,
+    n_cells: int | None = None,
+    channel: str | None = None,
+    columns: Mapping[str, ColumnMap] | None = None,
 ) -> LoadedInput:
     """The recording at ``path``: a candump log when it ends in ``.log``, else a tester CSV.
 
-    ``mapping`` and ``n_cells`` apply to logs only (a mapping given for a CSV is an error: the
-    user meant something else). Errors as :func:`read_csv_input` and :func:`read_log_input`.
+    ``mapping``, ``n_cells`` (None: from the log) and ``channel`` apply to logs only,
+    ``columns`` to CSV only (given for the other kind it is an error: the user meant something
+    else). Errors as :func:`read_csv_input` and :func:`read_log_input`.
     """
     if str(path).lower().endswith(".log"):
+        if columns:
+            raise UserError("--columns applies to tester CSV inputs only")
         return read_log_input(
-            path, n_cells=n_cells, mapping=mapping, charge_positive=charge_positive
+            path,
+            n_cells=n_cells,
+            mapping=mapping,
+            charge_positive=charge_positive,
+            channel=channel,
         )
-    if mapping is not None:
-        raise UserError("--mapping applies to candump .log inputs only")
-    return read_csv_input(path, charge_positive=charge_positive)
+    for given, option in ((mapping, "--mapping"), (channel, "--channel")):
+        if given is not None:
+            raise UserError(f"{option} applies to candump .log inputs only")
+    return read_csv_input(path, charge_positive=charge_positive, columns=columns)
 
 
 # ----------------------------------------------------------------------------- cell config
@@ -265,10 +432,51 @@ def tuning_overrides(items: Sequence[str]) -> dict[str, str]:
     return dict(item.partition("=")[::2] for item in items)
 
 
+def parse_columns(text: str | None) -> dict[str, ColumnMap] | None:
+    """``--columns t_s=Time,current_A=Current*0.001,voltage_V=Voltage`` as column maps.
+
+    Each item is ``NAME=COLUMN`` or ``NAME=COLUMN*SCALE``: NAME one of ``t_s``, ``current_A``,
+    ``voltage_V``, ``temperature_C`` or ``v_cell_NN``; COLUMN the export's header name; SCALE
+    converts its unit (0.001 for ms or mA). None or empty text: no mapping.
+    """
+    if not text:
+        return None
+    known = {c.lower(): c for c in CANONICAL_COLUMNS}
+    out: dict[str, ColumnMap] = {}
+    for item in text.split(","):
+        name, sep, col = (x.strip() for x in item.partition("="))
+        if not sep or not name or not col:
+            raise UserError(f"--columns: {item.strip()!r} is not NAME=COLUMN")
+        if name.lower() in known:
+            name = known[name.lower()]
+        elif re.fullmatch(r"v_cell_\d+", name.lower()):
+            name = name.lower()
+        else:
+            raise UserError(
+                f"--columns: unknown name {name!r}; use {', '.join(CANONICAL_COLUMNS)} or v_cell_NN"
+            )
+        scale = 1.0
+        head, star, tail = col.rpartition("*")
+        if star:
+            try:
+                scale = float(tail)
+            except ValueError:
+                head = col  # a '*' inside the column name itself
+            else:
+                if not (math.isfinite(scale) and scale != 0.0):
+                    raise UserError(f"--columns: scale of {name} must be finite and non-zero")
+            col = head.strip()
+        if name in out:
+            raise UserError(f"--columns: {name} given twice")
+        out[name] = ColumnMap(source=col, scale=scale)
+    return out
+
+
 def parse_window(soc_window: str | None, skip_fraction: float | None) -> EvalWindow:
     """The evaluation window from ``LO,HI`` SOC fractions and a skipped fraction of the ticks.
 
-    Without a SOC window the first 10 % of the ticks are skipped by default, with one none.
+    Nothing is skipped by default: the start-up is part of what a user gets (metrics.json
+    reports it on its own as well).
     """
     lo = hi = None
     if soc_window is not None:
@@ -279,7 +487,7 @@ def parse_window(soc_window: str | None, skip_fraction: float | None) -> EvalWin
             raise UserError(f"--soc-window: expected LO,HI fractions, got {soc_window!r}") from None
         if lo > 1.0 or hi > 1.0:
             raise UserError("--soc-window takes fractions (0.15,0.95), not percent")
-    skip = skip_fraction if skip_fraction is not None else (0.1 if soc_window is None else 0.0)
+    skip = skip_fraction if skip_fraction is not None else 0.0
     try:
         return EvalWindow(skip_fraction=skip, soc_lo=lo, soc_hi=hi)
     except ValueError as exc:

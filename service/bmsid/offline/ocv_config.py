@@ -7,10 +7,12 @@ Table-1-like report. Pure apart from reading the files it is given (the caller s
 
 from __future__ import annotations
 
+import importlib
+import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -69,6 +71,9 @@ class OcvFitSpec:
         ``full``: shift each table's SOC so its highest discharge point is 100 %.
     hysteresis_from : str or None
         Cell config whose M(z) is taken when the tables have one branch only.
+    ends : bool
+        Extend the mean OCV to the rested voltages measured at empty/full (when the test has
+        them); False keeps it clamped to [soc_min, soc_max].
     """
 
     name: str
@@ -86,6 +91,7 @@ class OcvFitSpec:
     branch: Branch | None = None
     soc_anchor: Literal["none", "full"] = "none"
     hysteresis_from: str | None = None
+    ends: bool = True
 
 
 @dataclass(frozen=True)
@@ -124,17 +130,38 @@ def fit_test_files(
             raise UserError(f"{path}: {data.n_cells} cell voltage columns; choose one with --cell")
         parts.append(OcvTestPart(data.t_s, data.current_A, data.cell_voltages_V[:, col]))
     br = extract_branches(
-        parts, capacity_Ah=spec.capacity_Ah, coulombic_efficiency=spec.coulombic_efficiency
+        parts,
+        capacity_Ah=spec.capacity_Ah,
+        coulombic_efficiency=spec.coulombic_efficiency,
+        gamma=spec.gamma,
     )
+    if not spec.ends:
+        br = replace(br, v_empty_V=None, v_full_V=None)
     result = fit_ocv_test(br, trim_soc=spec.trim_soc, knots=spec.knots)
-    steps = ", ".join(f"{1e3 * r:.1f}" for r in br.step_resistances_ohm)
+    tp, pol = br.throughput, br.polarisation
+    steps = ", ".join(f"{1e3 * r:.1f}" for r in pol.step_resistances_ohm)
     info = [
         f"capacity measured from the test: {br.measured_capacity_Ah:.4f} Ah "
-        f"(used: {br.capacity_Ah:.4f} Ah); coulombic efficiency {br.coulombic_efficiency:.4f}",
+        f"(used: {br.capacity_Ah:.4f} Ah)",
+        f"throughput: discharge {tp.discharge_Ah:.4f} Ah, charge {tp.charge_Ah:.4f} Ah, "
+        f"mismatch {tp.mismatch_Ah:+.4f} Ah ({tp.mismatch_pct:+.2f} %); SOC {tp.method}, "
+        f"coulombic efficiency (charge-counting factor) {tp.eta:.4f}: {tp.reason}",
         f"branch currents: discharge {br.discharge.current_A:.4g} A "
         f"(C/{br.capacity_Ah / br.discharge.current_A:.0f}), charge {br.charge.current_A:.4g} A "
         f"(C/{br.capacity_Ah / br.charge.current_A:.0f})",
-        f"IR steps |dV/dI| [mOhm]: {steps or 'none'}; R used = {1e3 * br.resistance_ohm:.1f} mOhm",
+        f"polarisation: {pol.source}: R0 {1e3 * pol.R0_ohm:.1f} mOhm, R1 {1e3 * pol.R1_ohm:.1f} "
+        f"mOhm (tau1 {pol.tau1_s:.0f} s), R2 {1e3 * pol.R2_ohm:.1f} mOhm (tau2 {pol.tau2_s:.0f} "
+        f"s), total {1e3 * pol.r_total_ohm:.1f}"
+        + (f" +- {1e3 * pol.r_total_se_ohm:.1f} (1 se)" if pol.r_total_se_ohm is not None else "")
+        + " mOhm",
+        *[
+            f"  rest after the {r.after} at SOC {100 * r.soc:.1f} % ({r.duration_s:.0f} s): "
+            f"{1e3 * r.r_total_ohm:.1f} +- {1e3 * r.r_total_se_ohm:.1f} mOhm, tau "
+            f"{r.tau1_s:.0f} / {r.tau2_s:.0f} s, fit RMSE {1e3 * r.rmse_V:.2f} mV"
+            for r in pol.relaxations
+        ],
+        f"  one-sample steps |dV/dI| [mOhm]: {steps or 'none'}",
+        f"hysteresis state h run along the test with gamma = {br.gamma:g}",
     ]
     return result, br.capacity_Ah, br.coulombic_efficiency, info
 
@@ -181,6 +208,7 @@ def fit_point_files(
         m_table=m_table,
         trim_soc=spec.trim_soc,
         knots=spec.knots,
+        ends=spec.ends,
     )
     eta = 1.0 if spec.coulombic_efficiency is None else spec.coulombic_efficiency
     return result, spec.capacity_Ah, eta, info
@@ -228,25 +256,154 @@ def _fit_lines(name: str, f: Eq4Fit) -> list[str]:
 
 
 def format_report(result: OcvFitResult, info: Sequence[str]) -> str:
-    """The Table-1-like report: per-branch coefficients with bounds and fit statistics, M table."""
+    """The Table-1-like report: per-branch coefficients with bounds and fit statistics, the
+    ends, M(z) with its 95 % CI, and the residuals per branch and SOC band."""
     lines = ["OCV fit, Eq. 4: U(z) = a0 + a1 z + a2 z^2 + a3/z + a4 ln z + a5 ln(1-z)", *info]
     for name in ("discharge", "charge", "mean"):
         f = getattr(result, name)
         if f is not None:
             lines += _fit_lines(name, f)
+    ends = ", ".join(
+        f"{name} {v:.4f} V" if v is not None else f"{name} not measured (clamped)"
+        for name, v in (("empty", result.v_empty_V), ("full", result.v_full_V))
+    )
     lines.append(
-        f"valid SOC range: {result.soc_min:.4f} .. {result.soc_max:.4f}; hysteresis M(z) "
-        "(SOC %: mV): "
+        f"Eq. 4 range: SOC {result.soc_min:.4f} .. {result.soc_max:.4f}; "
+        f"rested end voltages: {ends}"
+    )
+    ci = result.m_ci95_V
+    lines.append(
+        "hysteresis M(z) (SOC %: mV"
+        + (", 95 % CI" if ci is not None else "")
+        + "): "
         + ", ".join(
-            f"{100 * z:.0f}: {1e3 * m:.1f}" for z, m in zip(result.m_soc, result.m_V, strict=True)
+            f"{100 * z:.0f}: {1e3 * m:.1f}"
+            + (f" +- {1e3 * ci[k]:.1f}" if ci is not None and ci[k] > 0 else "")
+            for k, (z, m) in enumerate(zip(result.m_soc, result.m_V, strict=True))
         )
     )
     if result.half_gap_raw_V is not None and result.half_gap_V is not None:
         lines.append(
-            f"half-gap (max over SOC): raw {1e3 * np.max(result.half_gap_raw_V):.1f} mV, "
-            f"IR-corrected {1e3 * np.max(result.half_gap_V):.1f} mV; median raw "
-            f"{1e3 * np.median(result.half_gap_raw_V):.1f} mV, corrected "
-            f"{1e3 * np.median(result.half_gap_V):.1f} mV"
+            f"half-gap median over SOC: measured {1e3 * np.median(result.half_gap_raw_V):.1f} mV, "
+            f"polarisation-corrected {1e3 * np.median(result.half_gap_V):.1f} mV"
         )
+    if result.residuals:
+        lines.append("residuals vs the model (mean OCV + M h), per branch [SOC %: RMSE / bias mV]:")
+        for name in ("discharge", "charge"):
+            rows = [b for b in result.residuals if b.branch == name]
+            if rows:
+                lines.append(
+                    f"  {name}: "
+                    + ", ".join(
+                        f"{100 * b.soc_lo:.0f}-{100 * b.soc_hi:.0f}: {1e3 * b.rmse_V:.1f}/"
+                        f"{1e3 * b.bias_V:+.1f}"
+                        for b in rows
+                    )
+                )
     lines += [f"note: {n}" for n in result.notes]
     return "\n".join(lines)
+
+
+def report_json(fit: OcvFit) -> dict[str, Any]:
+    """The report as plain data (what ``--report`` writes as ``ocv_fit.json``)."""
+    r = fit.result
+
+    def arr(a: FloatArray | None) -> list[float] | None:
+        return None if a is None else [float(x) for x in a]
+
+    doc: dict[str, Any] = {
+        "info": list(fit.info),
+        "notes": list(r.notes),
+        "soc_min": r.soc_min,
+        "soc_max": r.soc_max,
+        "v_empty_V": r.v_empty_V,
+        "v_full_V": r.v_full_V,
+        "hysteresis": {"soc": arr(r.m_soc), "M_V": arr(r.m_V), "M_fit_V": arr(r.m_fit_V),
+                       "M_ci95_V": arr(r.m_ci95_V)},
+        "fits": {
+            name: {"coeffs": arr(f.coeffs), "ci_low": arr(f.ci_low), "ci_high": arr(f.ci_high),
+                   "sse_V2": f.sse_V2, "r2": f.r2, "r2_adj": f.r2_adj, "rmse_V": f.rmse_V,
+                   "n": f.n}
+            for name in ("discharge", "charge", "mean")
+            if (f := getattr(r, name)) is not None
+        },
+        "residuals": [asdict(b) for b in r.residuals],
+    }  # fmt: skip
+    if r.test is not None:
+        tp, pol = r.test.throughput, r.test.polarisation
+        doc["throughput"] = {**asdict(tp), "mismatch_Ah": tp.mismatch_Ah,
+                             "mismatch_pct": tp.mismatch_pct}  # fmt: skip
+        doc["polarisation"] = {
+            "R0_ohm": pol.R0_ohm, "R1_ohm": pol.R1_ohm, "tau1_s": pol.tau1_s,
+            "R2_ohm": pol.R2_ohm, "tau2_s": pol.tau2_s, "r_total_ohm": pol.r_total_ohm,
+            "r_total_se_ohm": pol.r_total_se_ohm, "source": pol.source,
+            "relaxations": [asdict(x) for x in pol.relaxations],
+            "step_resistances_ohm": list(pol.step_resistances_ohm),
+        }  # fmt: skip
+        doc["gamma"] = r.test.gamma
+    return doc
+
+
+def write_report(fit: OcvFit, out_dir: str | Path) -> list[Path]:
+    """Write ``ocv_fit.txt``, ``ocv_fit.json`` and ``ocv_fit.png`` (branches, mean, M(z) with its
+    CI, residuals) into ``out_dir``; returns the paths."""
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    txt, js, png = d / "ocv_fit.txt", d / "ocv_fit.json", d / "ocv_fit.png"
+    txt.write_text(fit.report() + "\n", encoding="utf-8")
+    js.write_text(json.dumps(report_json(fit), indent=2) + "\n", encoding="utf-8")
+    _plot(fit.result, png)
+    return [txt, js, png]
+
+
+def _plot(r: OcvFitResult, path: Path) -> None:
+    # matplotlib only here: every other command would pay for importing it.
+    matplotlib = importlib.import_module("matplotlib")
+    matplotlib.use("Agg")
+    plt = importlib.import_module("matplotlib.pyplot")
+    model = r.ocv_model()
+    z = np.linspace(0.0, 1.0, 1001)
+    fig, ax = plt.subplots(3, 1, figsize=(9, 10), sharex=True,
+                           gridspec_kw={"height_ratios": [3, 1.4, 1.4]})  # fmt: skip
+    a0, a1, a2 = ax
+    if r.test is not None:
+        for b, name, col in ((r.test.discharge, "discharge", "tab:red"),
+                             (r.test.charge, "charge", "tab:blue")):  # fmt: skip
+            k = slice(None, None, max(1, b.z.shape[0] // 3000))
+            a0.plot(100 * b.z[k], b.v_raw_V[k], ",", color=col, alpha=0.3)
+            a0.plot(100 * b.z[k], b.v_V[k], lw=0.8, color=col, label=f"{name} (corrected)")
+            res = b.v_V - (model.ocv(b.z) + model.hysteresis_M(b.z) * b.h)
+            a2.plot(100 * b.z[k], 1e3 * res[k], lw=0.6, color=col, label=name)
+    a0.plot(100 * z, model.ocv(z), "k", lw=1.2, label="mean OCV (Eq. 4 + ends)")
+    for zz in (r.soc_min, r.soc_max):
+        a0.axvline(100 * zz, color="0.6", ls=":", lw=0.8)
+    a0.set_ylabel("voltage / V")
+    a0.legend(fontsize=8)
+    a0.grid(alpha=0.3)
+    if r.gap_soc is not None and r.half_gap_raw_V is not None and r.half_gap_V is not None:
+        a1.plot(
+            100 * r.gap_soc, 1e3 * r.half_gap_raw_V, color="0.6", lw=0.8, label="half-gap measured"
+        )
+        a1.plot(
+            100 * r.gap_soc,
+            1e3 * r.half_gap_V,
+            color="tab:green",
+            lw=0.8,
+            label="half-gap corrected",
+        )
+    a1.plot(100 * r.m_soc, 1e3 * r.m_V, "ko-", ms=3, label="M(z) table")
+    if r.m_ci95_V is not None and r.m_fit_V is not None:
+        a1.errorbar(100 * r.m_soc, 1e3 * r.m_fit_V, yerr=1e3 * r.m_ci95_V, fmt="none",
+                    ecolor="k", capsize=3, label="95 % CI")  # fmt: skip
+    a1.set_ylabel("M / mV")
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    a2.set_ylabel("residual / mV")
+    a2.set_xlabel("SOC / %")
+    a2.grid(alpha=0.3)
+    if r.test is not None:
+        a2.set_ylim(-50, 50)
+        a2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,46 +1,67 @@
-"""OCV fitting (pure numpy): Eq. 4 per branch with Table-1 statistics, hysteresis half-gap M(z).
+"""OCV fitting (pure numpy/scipy): Eq. 4 per branch with Table-1 statistics, hysteresis M(z)
+(Eq. 10/32) with confidence intervals, the test's polarisation, and the ends of the SOC range.
 
 Eq. 4 is linear in a0..a5, so each fit is ordinary least squares on ``ocv_basis``; the 95 %
 bounds use the t-distribution with n - 6 degrees of freedom, as MATLAB's ``fit`` (the paper's
 Table 1) does. On a dense OCV test the residuals are model misfit, correlated along SOC, so the
 bounds are the conventional figures, not a calibrated uncertainty.
 
-Low-rate OCV test (``extract_branches``), the rules in one place:
+Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one place:
 
 - Branches: the discharge branch is the sustained positive-current run carrying the most charge,
   the charge branch the negative one; of each run only samples within 10 % of its median current
-  count (drops CV tails). Rest means |I| <= 1 % of the test's largest current.
-- SOC reference: z = 1 at the start of the low-rate discharge (the test rests the cell full
-  before it), z = 0 at the start of the low-rate charge (rested empty). Capacity Q = net charge
-  from the discharge start to the deepest point before the charge (CV/dither parts that finish
-  the discharge count), or the reverse for a charge-first test; charge is counted times the
-  coulombic efficiency eta = total discharged / total charged Ah (the test ends where it began).
-- IR drop: the voltage jump |dV/dI| at every rest <-> low-rate step is the ohmic drop plus the
-  fast polarisation within one sample interval plus any OCV slope at that SOC, so every such
-  estimate is an upper bound of the resistance and the smallest one is used as R. The branches
-  are corrected to ``v_dis + |I_dis| R`` and ``v_chg - |I_chg| R`` before fitting, so the
-  half-gap M is the raw half-gap minus (|I_dis| + |I_chg|) R / 2, i.e. gap - 2 I R when both
-  rates match.
-- Fit range: both branches' overlap, trimmed by ``trim_soc`` at each end (the steep knees load
-  the ill-conditioned 1/z and ln(1-z) terms and carry the most polarisation); it becomes the
-  config's [soc_min, soc_max]. The mean branch is the average of the two branch curves: Eq. 4 is
-  linear, so its coefficients are the average of the branch coefficients (covariance
-  (C_dis + C_chg)/4); its SSE/R^2/RMSE are against the average of the two branches' data on a
-  common SOC grid.
-- M(z): the corrected half-gap on that grid, least-squares fitted by a continuous piecewise-
-  linear function with the Eq. 32 knots (2, 12, 88, 98 % clipped to the fit range), then
-  clipped to >= 0.
+  count (drops CV tails). Rest means |I| <= 1 % of the test's largest current. Several files are
+  one test in time order; nothing is counted across a file boundary (unknown pause).
+- SOC: z = 1 at the start of the low-rate discharge (the test rests the cell full before it),
+  z = 0 at the deepest point before the charge (CV/dither parts that finish the discharge count),
+  Q = the charge between them (or the reverse for a charge-first test).
+- Throughput (``Throughput``): the Ah out of the first branch's side and back in on the second's
+  are compared. More back in than out: their ratio is the measured coulombic efficiency and each
+  branch spans its own throughput (normalised: Plett's method). Less back in than out (the
+  issue case: 2.61 of 3.00 Ah): the rested voltage where the test ends is compared with the one
+  it started from. If it closes (the SOC the voltage difference means at the second branch's
+  end slope is under half the SOC the Ah say is missing) the mismatch is counting, not charge:
+  normalised, eta = out/in > 1 stored as the charge-counting factor. Otherwise the second
+  branch really ended short: counted with eta = 1 and it ends where it ends. Forcing eta = 1 on
+  a closed test would shift the charge branch by the whole mismatch and fake a hysteresis.
+- Polarisation (``Polarisation``): a 2RC model (Eq. 7-8) fitted to the relaxation of each rest
+  that follows a branch (the hysteresis state is frozen at rest, so the relaxation is the RC
+  branches only; R0 is the jump, R1/R2 the amplitudes over the run's current). The relaxation
+  at a knee or with solid diffusion at an end of the SOC range is larger than mid-SOC, and only
+  ever larger, so the smallest fit is used; a fit larger than the raw mid-SOC half-gap allows
+  (M >= 0) is refused. Without a rest long enough (>= 300 s) the smallest one-sample step
+  |dV/dI| stands in (R0 plus what relaxes within one sample: a lower bound, no error estimate).
+  The model runs over the whole test with its own current and corrects every sample:
+  ``v + R0 i + R1 x1 + R2 x2`` (x the unit-gain branch states), the polarisation as it builds
+  up after each step, instead of one IR drop.
+- Hysteresis: h is run along the test with the one-state model (Eq. 5-6, rate ``gamma``,
+  starting at +1 when the test starts full after a charge); the corrected branches are
+  ``OCV(z) + M(z) h``, so the gap v_chg - v_dis = M(z) (h_chg - h_dis) is fitted for the
+  Eq. 32 knots (clipped to the fit range) by least squares (``fit_hysteresis``): the branch
+  starts, where h is still turning, count with their smaller weight instead of biasing M. The
+  95 % CI combines the residual scatter (inflated for its autocorrelation along SOC) with the
+  polarisation's standard error. A negative knot is stored as 0 with a note, never silently.
+- Mean and fit range: the mean is Eq. 4 fitted to both branches' corrected data less M(z) h,
+  on both branches' overlap trimmed by ``trim_soc`` at each end; that range becomes the
+  config's [soc_min, soc_max]. Eq. 4 per branch is fitted for reporting.
+- Ends: the last 5 % of the longest rest (>= 600 s) within 0.5 % SOC of 0 and of 1 is the
+  rested voltage there; the mean continues to it by the monotone C1 segment of
+  ``model.ocv.end_segment`` (the join moves inwards in 0.5 % steps until one exists), and M is
+  0 at that end (one rested voltage: the branches meet).
+- Residuals: each branch against the whole model (extended mean + M h) per SOC band.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+from scipy import optimize, stats
 
 from bmsid.config.cell import (
     CellConfig,
@@ -50,7 +71,8 @@ from bmsid.config.cell import (
     ParameterBounds,
 )
 from bmsid.errors import UserError
-from bmsid.model.ocv import eval_ocv, ocv_basis
+from bmsid.model.ecm import rc_decay
+from bmsid.model.ocv import OcvModel, end_segment, eval_ocv, ocv_basis
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -215,27 +237,16 @@ def fit_piecewise_linear(
     return k, np.asarray(vals, dtype=np.float64)
 
 
-@dataclass(frozen=True)
-class Branch:
-    """One OCV branch: SOC (fraction), terminal voltage (V) and its current magnitude (A)."""
-
-    z: FloatArray
-    v_V: FloatArray
-    current_A: float
-
-
-@dataclass(frozen=True)
-class OcvTestBranches:
-    """Both branches of a low-rate OCV test with the SOC scale and the IR-drop estimate."""
-
-    discharge: Branch
-    charge: Branch
-    capacity_Ah: float  #: capacity used for the SOC scale
-    measured_capacity_Ah: float  #: capacity measured from the test (see the module doc)
-    coulombic_efficiency: float
-    resistance_ohm: float  #: smallest step estimate, 0 when the test has no usable step
-    step_resistances_ohm: tuple[float, ...]
-    notes: tuple[str, ...] = ()
+#: Rest: |I| at most this fraction of the test's largest current.
+REST_FRACTION = 0.01
+#: Shortest rest (s) after a branch whose relaxation is fitted for the polarisation.
+MIN_RELAX_S = 300.0
+#: Shortest rest (s) whose voltage counts as a rested end voltage (empty or full).
+MIN_END_REST_S = 600.0
+#: A rest within this SOC of 0 or 1 gives that end's rested voltage.
+END_SOC_TOL = 0.005
+#: SOC bands (fractions) of the residual report: the ends, then 10 % bands.
+SOC_BANDS = (0.0, 0.02, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.98, 1.0)
 
 
 @dataclass(frozen=True)
@@ -247,6 +258,111 @@ class OcvTestPart:
     v_V: FloatArray
 
 
+@dataclass(frozen=True)
+class RelaxationFit:
+    """A 2RC fit to the rest after a low-rate branch: ``v(t) = v_inf - A1 e^(-t/tau1) -
+    A2 e^(-t/tau2)`` (Eq. 7-8 with i = 0), t from the first rest sample.
+
+    R0 (ohm) is the jump at the step, R1/R2 (ohm) the branch amplitudes over the run's current
+    (steady state corrected for the run's length); ``r_total_se_ohm`` the standard error of
+    R0 + R1 + R2 from the fit's covariance of v_inf plus the noise of the last loaded sample.
+    """
+
+    after: str
+    soc: float
+    duration_s: float
+    current_A: float
+    R0_ohm: float
+    R1_ohm: float
+    tau1_s: float
+    R2_ohm: float
+    tau2_s: float
+    r_total_se_ohm: float
+    rmse_V: float
+
+    @property
+    def r_total_ohm(self) -> float:
+        """DC polarisation resistance R0 + R1 + R2 (ohm) at the test's rate."""
+        return self.R0_ohm + self.R1_ohm + self.R2_ohm
+
+
+@dataclass(frozen=True)
+class Polarisation:
+    """The test's polarisation model (2RC, Eq. 7-9 without OCV and hysteresis) and where it
+    comes from. ``r_total_se_ohm`` None: no error estimate (one-sample steps)."""
+
+    R0_ohm: float
+    R1_ohm: float
+    tau1_s: float
+    R2_ohm: float
+    tau2_s: float
+    r_total_se_ohm: float | None
+    source: str
+    relaxations: tuple[RelaxationFit, ...] = ()
+    step_resistances_ohm: tuple[float, ...] = ()
+
+    @property
+    def r_total_ohm(self) -> float:
+        """DC polarisation resistance R0 + R1 + R2 (ohm)."""
+        return self.R0_ohm + self.R1_ohm + self.R2_ohm
+
+
+@dataclass(frozen=True)
+class Throughput:
+    """Charge counted on each side of the test (Ah, eta = 1) and how SOC was scaled.
+
+    ``method``: ``normalised`` (each branch spans its own throughput: eta = discharged / charged
+    Ah over the closed cycle), ``counted`` (charge counted with eta = 1: the second branch ends
+    where it ends) or ``given`` (the user's eta).
+    """
+
+    discharge_Ah: float
+    charge_Ah: float
+    method: Literal["normalised", "counted", "given"]
+    eta: float
+    reason: str
+
+    @property
+    def mismatch_Ah(self) -> float:
+        """Charge minus discharge throughput, Ah."""
+        return self.charge_Ah - self.discharge_Ah
+
+    @property
+    def mismatch_pct(self) -> float:
+        """``mismatch_Ah`` in % of the discharge throughput."""
+        return 100.0 * self.mismatch_Ah / self.discharge_Ah
+
+
+@dataclass(frozen=True)
+class Branch:
+    """One OCV branch: SOC (fraction), polarisation-corrected and measured terminal voltage (V),
+    the one-state hysteresis state h along the test (Eq. 5-6) and the branch current (A)."""
+
+    z: FloatArray
+    v_V: FloatArray
+    v_raw_V: FloatArray
+    h: FloatArray
+    current_A: float
+
+
+@dataclass(frozen=True)
+class OcvTestBranches:
+    """Both branches of a low-rate OCV test with the SOC scale, the polarisation model, the
+    hysteresis rate used for h, and the rested voltages at empty/full (None: not measured)."""
+
+    discharge: Branch
+    charge: Branch
+    capacity_Ah: float  #: capacity used for the SOC scale
+    measured_capacity_Ah: float  #: capacity measured from the test (see the module doc)
+    coulombic_efficiency: float
+    throughput: Throughput
+    polarisation: Polarisation
+    gamma: float
+    v_empty_V: float | None = None
+    v_full_V: float | None = None
+    notes: tuple[str, ...] = ()
+
+
 def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
     """Contiguous True runs as (start, stop) index pairs, stop exclusive."""
     m = np.concatenate([[False], mask, [False]]).astype(np.int8)
@@ -254,58 +370,177 @@ def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
+def fit_relaxation(
+    t_s: FloatArray,
+    v_V: FloatArray,
+    *,
+    current_A: float,
+    v_load_V: float,
+    run_s: float,
+    v_load_se_V: float = 0.0,
+) -> RelaxationFit | None:
+    """Fit the rest after a constant-current run of ``current_A`` (A, + = discharge) lasting
+    ``run_s`` (s) that ended at ``v_load_V`` (V, standard error ``v_load_se_V``) at the switch;
+    ``t_s``/``v_V`` are the rest's samples, the first one at the switch. None when the rest is
+    too short or the fit fails.
+
+    Two exponentials with tau2 > tau1 (scipy ``curve_fit``; one if two do not converge): the
+    relaxation of the two RC branches with the hysteresis state frozen at rest (Plett).
+    """
+    t = np.asarray(t_s, dtype=np.float64) - float(t_s[0])
+    v = np.asarray(v_V, dtype=np.float64)
+    if t.shape[0] < 8 or t[-1] < MIN_RELAX_S or current_A == 0:
+        return None
+    sgn = 1.0 if current_A > 0 else -1.0  # a rest after discharge relaxes upwards
+    span = abs(float(v[-1] - v[0])) + 1e-6
+    dt = float(np.median(np.diff(t)))
+    lt_lo, lt_hi = np.log(max(dt / 2.0, 1e-3)), np.log(t[-1])
+
+    def two(
+        tt: FloatArray, v_inf: float, a1: float, lt1: float, a2: float, ld: float
+    ) -> FloatArray:
+        return np.asarray(
+            v_inf - sgn * (a1 * np.exp(-tt / np.exp(lt1)) + a2 * np.exp(-tt / np.exp(lt1 + ld))),
+            dtype=np.float64,
+        )
+
+    def one(tt: FloatArray, v_inf: float, a1: float, lt1: float) -> FloatArray:
+        return np.asarray(v_inf - sgn * a1 * np.exp(-tt / np.exp(lt1)), dtype=np.float64)
+
+    p0_lt = float(np.clip(np.log(t[-1] / 20.0), lt_lo, lt_hi))
+    try:
+        p, cov = optimize.curve_fit(
+            two, t, v, p0=[float(v[-1]), span / 2, p0_lt, span / 2, np.log(10.0)],
+            bounds=([-np.inf, 0, lt_lo, 0, 0], [np.inf, np.inf, lt_hi, np.inf, np.log(100.0)]),
+            max_nfev=5000,
+        )  # fmt: skip
+        fit = two(t, *p)
+        a1, tau1, a2, tau2 = (
+            float(p[1]),
+            float(np.exp(p[2])),
+            float(p[3]),
+            float(np.exp(p[2] + p[4])),
+        )
+    except (RuntimeError, ValueError):
+        try:
+            p, cov = optimize.curve_fit(
+                one, t, v, p0=[float(v[-1]), span, p0_lt],
+                bounds=([-np.inf, 0, lt_lo], [np.inf, np.inf, lt_hi]), max_nfev=5000,
+            )  # fmt: skip
+        except (RuntimeError, ValueError):
+            return None
+        fit = one(t, *p)
+        a1, tau1, a2, tau2 = float(p[1]), float(np.exp(p[2])), 0.0, 10.0 * float(np.exp(p[2]))
+    resid = v - fit
+    s2 = float(resid @ resid) / max(t.shape[0] - p.shape[0], 1)
+    i_abs = abs(current_A)
+    se = float(np.sqrt(max(float(cov[0, 0]), 0.0) + v_load_se_V**2)) / i_abs
+    if not np.isfinite(se):
+        return None
+
+    def steady(a: float, tau: float) -> float:  # the branch had run_s to charge up
+        return a / (i_abs * -math.expm1(-run_s / tau))
+
+    return RelaxationFit(
+        after="discharge" if current_A > 0 else "charge",
+        soc=float("nan"),
+        duration_s=float(t[-1]),
+        current_A=current_A,
+        R0_ohm=max(sgn * float(fit[0] - v_load_V) / i_abs, 0.0),
+        R1_ohm=steady(a1, tau1),
+        tau1_s=tau1,
+        R2_ohm=steady(a2, tau2),
+        tau2_s=tau2,
+        r_total_se_ohm=se,
+        rmse_V=float(np.sqrt(s2)),
+    )
+
+
+def branch_states(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    file_start: npt.NDArray[np.bool_],
+    *,
+    tau1_s: float,
+    tau2_s: float,
+    kappa_dis: float,
+    kappa_chg: float,
+    h0: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Unit-gain RC states x1, x2 (A; branch voltage U_j = R_j x_j) and hysteresis h along the
+    test (Eq. 5-8, ``model.ecm``), each at its sample before that sample's current acts.
+
+    The current is held forward over each interval; the RC states restart at 0 at every file
+    start (a file begins after a rest of unknown length), h carries on (it does not relax at
+    rest). ``kappa_dis``/``kappa_chg``: Eq. 6's kappa (1/(A s)) on discharge / charge.
+    """
+    n = t_s.shape[0]
+    dt = np.diff(t_s, append=t_s[-1])
+    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0  # no time passes across a file boundary
+    a1 = rc_decay(dt, tau1_s)
+    a2 = rc_decay(dt, tau2_s)
+    kappa = np.where(current_A < 0, kappa_chg, kappa_dis)
+    x1, x2, h = np.zeros(n), np.zeros(n), np.zeros(n)
+    u1 = u2 = 0.0
+    hk = h0
+    for k, (i, s1, s2, d, kp, first) in enumerate(
+        zip(current_A.tolist(), a1.tolist(), a2.tolist(), dt.tolist(), kappa.tolist(),
+            file_start.tolist(), strict=True)
+    ):  # fmt: skip
+        if first:
+            u1 = u2 = 0.0
+        x1[k], x2[k], h[k] = u1, u2, hk
+        u1 = s1 * u1 + (1.0 - s1) * i
+        u2 = s2 * u2 + (1.0 - s2) * i
+        decay = math.exp(-abs(kp * i) * d)
+        hk = decay * hk - (1.0 - decay) * (1.0 if i > 0 else -1.0 if i < 0 else 0.0)
+    return x1, x2, h
+
+
+def _end_voltage(v: FloatArray, a: int, b: int) -> float:
+    """Rested voltage of the rest [a, b): the mean of its last 5 % (at least one sample)."""
+    k = max(1, (b - a) // 20)
+    return float(np.mean(v[b - k : b]))
+
+
 def extract_branches(
     parts: Sequence[OcvTestPart],
     *,
     capacity_Ah: float | None = None,
     coulombic_efficiency: float | None = None,
+    gamma: float = 30.0,
 ) -> OcvTestBranches:
-    """Split a low-rate OCV test (one or several files, in time order) into its two branches."""
+    """Split a low-rate OCV test (one or several files, in time order) into its two branches,
+    scale SOC, estimate the test's polarisation and correct the branches with it (module doc)."""
     if not parts:
         raise UserError("no OCV test data")
     notes: list[str] = []
+    t_all = np.concatenate([p.t_s for p in parts])
     i_all = np.concatenate([p.current_A for p in parts])
+    v_all = np.concatenate([p.v_V for p in parts])
+    n_all = i_all.shape[0]
+    file_start = np.zeros(n_all, dtype=bool)
+    file_start[np.cumsum([0, *[p.t_s.shape[0] for p in parts[:-1]]])] = True
     i_max = float(np.max(np.abs(i_all)))
     if i_max <= 0:
         raise UserError("the OCV test has no current at all")
-    i_rest = 0.01 * i_max
+    i_rest = REST_FRACTION * i_max
 
-    # Forward-held current over each sample interval; Ah per interval (dis, chg), chained.
-    dis_ah, chg_ah, n_off = [], [], []
-    offset = 0
-    for p in parts:
-        dt = np.diff(p.t_s)
-        i = p.current_A[:-1]
-        dis_ah.append(np.concatenate([[0.0], np.clip(i, 0, None) * dt / 3600.0]))
-        chg_ah.append(np.concatenate([[0.0], np.clip(-i, 0, None) * dt / 3600.0]))
-        n_off.append(offset)
-        offset += p.t_s.shape[0]
-    d_inc = np.concatenate(dis_ah)
-    c_inc = np.concatenate(chg_ah)
-    tot_dis, tot_chg = float(d_inc.sum()), float(c_inc.sum())
-    if coulombic_efficiency is None:
-        eta = tot_dis / tot_chg if tot_chg > 0 else 1.0
-        if not 0.95 <= eta <= 1.0:
-            notes.append(
-                f"discharged/charged Ah = {eta:.4f} is no plausible efficiency (the test does not "
-                "end where it began); eta = 1 used"
-            )
-            eta = 1.0
-    else:
-        eta = coulombic_efficiency
-    q = np.cumsum(d_inc - eta * c_inc)  # net Ah removed, at each sample
-    v_all = np.concatenate([p.v_V for p in parts])
+    # Ah per forward-held interval (none across a file boundary), cumulative before each sample.
+    dt = np.diff(t_all, append=t_all[-1])
+    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0
+    d_cum = np.concatenate([[0.0], np.cumsum(np.clip(i_all, 0, None) * dt / 3600.0)[:-1]])
+    c_cum = np.concatenate([[0.0], np.cumsum(np.clip(-i_all, 0, None) * dt / 3600.0)[:-1]])
+    q1 = d_cum - c_cum  # net Ah removed, eta = 1
 
-    # Sign runs (never across file boundaries: a boundary is a break in the record).
+    # The two branches: the sign runs carrying the most charge (never across a file boundary).
     sign = np.where(i_all > i_rest, 1, np.where(i_all < -i_rest, -1, 0))
-    boundary = np.zeros(i_all.shape[0], dtype=bool)
-    boundary[np.asarray(n_off[1:], dtype=np.int64)] = True
     best: dict[int, tuple[float, int, int]] = {}
     for s in (1, -1):
         for a, b in _runs(sign == s):
-            cuts = [a, *[int(k) for k in np.flatnonzero(boundary[a + 1 : b]) + a + 1], b]
+            cuts = [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
             for aa, bb in itertools.pairwise(cuts):
-                ah = abs(float(q[bb - 1] - q[aa]))
+                ah = abs(float(q1[bb - 1] - q1[aa]))
                 if ah > best.get(s, (0.0, 0, 0))[0]:
                     best[s] = (ah, aa, bb)
     for s, name in ((1, "discharge"), (-1, "charge")):
@@ -319,65 +554,261 @@ def extract_branches(
             )
     _, da, db = best[1]
     _, ca, cb = best[-1]
-    # Discharge first: the deepest point between the discharge start and the charge start.
-    measured_q = float(np.max(q[da:ca]) - q[da]) if da < ca else float(q[ca] - np.min(q[ca:da]))
-    if measured_q <= 0:
+    s1 = 1.0 if da < ca else -1.0  # +1: discharge first (the test starts full)
+    f0, s0 = (da, ca) if s1 > 0 else (ca, da)
+    # Extreme points: the far end of the first branch (before the second starts), then the
+    # end of the second branch's side (to the end of the test).
+    deep = f0 + int(np.argmax(s1 * (q1[f0 : s0 + 1] - q1[f0])))
+    top = deep + int(np.argmax(-s1 * (q1[deep:] - q1[deep])))
+    first_Ah = abs(float(q1[deep] - q1[f0]))
+    second_Ah = abs(float(q1[top] - q1[deep]))
+    if first_Ah <= 0:
         raise UserError("cannot measure the capacity from the OCV test")
-    cap = capacity_Ah if capacity_Ah is not None else measured_q
+    dis_Ah, chg_Ah = (first_Ah, second_Ah) if s1 > 0 else (second_Ah, first_Ah)
+    tot_d = float(d_cum[top] - d_cum[f0])
+    tot_c = float(c_cum[top] - c_cum[f0])
+    eta_meas = tot_d / tot_c if tot_c > 0 else 1.0
 
-    def branch(a: int, b: int, s: int, name: str) -> Branch:
+    # Rests for the relaxations and end voltages: a tester's current noise at rest can exceed
+    # 1 % of the largest current, so up to 10 % of the smaller branch current counts as rest.
+    i_quiet = max(
+        i_rest, 0.1 * min(float(np.median(np.abs(i_all[a:b]))) for a, b in ((da, db), (ca, cb)))
+    )
+    rests = [
+        (aa, bb)
+        for a, b in _runs(np.abs(i_all) <= i_quiet)
+        for aa, bb in itertools.pairwise(
+            [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
+        )
+    ]
+    throughput = _scale_charge(
+        eta_meas=eta_meas, given=coulombic_efficiency, dis_Ah=dis_Ah, chg_Ah=chg_Ah,
+        s1=s1, f0=f0, top=top, second=(s0, cb if s1 > 0 else db), rests=rests,
+        t=t_all, v=v_all, q1=q1, first_Ah=first_Ah,
+    )  # fmt: skip
+    eta = throughput.eta
+    q = d_cum - eta * c_cum
+    measured_q = abs(float(q[deep] - q[f0]))
+    cap = capacity_Ah if capacity_Ah is not None else measured_q
+    z_all = (1.0 if s1 > 0 else 0.0) - s1 * (q - q[f0]) / cap
+
+    def keep(a: int, b: int, name: str) -> tuple[npt.NDArray[np.intp], float]:
         i_run = np.abs(i_all[a:b])
         i_med = float(np.median(i_run))
-        keep = np.flatnonzero(np.abs(i_run - i_med) <= 0.1 * i_med) + a
-        z = 1.0 - (q[keep] - q[a]) / cap if s == 1 else (q[a] - q[keep]) / cap
+        idx = np.flatnonzero(np.abs(i_run - i_med) <= 0.1 * i_med) + a
         rate = i_med / cap
         if rate > MAX_OCV_C_RATE:
             raise UserError(
                 f"the {name} branch runs at {i_med:g} A = C/{1 / rate:.1f} for {cap:.4g} Ah: too "
                 "fast for an OCV test (want C/20-C/30); current in mA or wrong capacity?"
             )
-        span = float(np.ptp(z))
+        span = float(np.ptp(z_all[idx]))
         if span < MIN_BRANCH_SPAN:
             raise UserError(
                 f"the {name} branch covers only {100 * span:.0f} % of {cap:.4g} Ah; an OCV test "
                 f"needs a full {name}"
             )
-        return Branch(z=z, v_V=v_all[keep], current_A=i_med)
+        return idx, i_med
 
-    dis = branch(da, db, 1, "discharge")
-    chg = branch(ca, cb, -1, "charge")
+    k_dis, i_dis = keep(da, db, "discharge")
+    k_chg, i_chg = keep(ca, cb, "charge")
 
-    # IR steps: the rest <-> low-rate transitions at both ends of both branch runs.
+    # One-sample steps at the rest <-> branch transitions (for the report, and the fallback).
     steps: list[float] = []
     for a, b in ((da, db), (ca, cb)):
         for k0, k1 in ((a - 1, a), (b - 1, b)):
-            same_file = k0 >= 0 and k1 < i_all.shape[0] and not boundary[k1]
+            same_file = k0 >= 0 and k1 < n_all and not file_start[k1]
             if same_file and min(abs(i_all[k0]), abs(i_all[k1])) <= i_rest:
-                di = float(i_all[k1] - i_all[k0])
-                steps.append(abs(float(v_all[k1] - v_all[k0]) / di))
-    if steps:
-        r_ohm = min(steps)
-    else:
-        r_ohm = 0.0
-        notes.append("no rest <-> current step in the test: M is not corrected for the IR drop")
+                steps.append(abs(float(v_all[k1] - v_all[k0]) / float(i_all[k1] - i_all[k0])))
+    relax: list[RelaxationFit] = []
+    for a, b in ((da, db), (ca, cb)):
+        # The rest that starts at the run's end (noise at rest may blur the end by a sample).
+        rest = next(((ra, rb) for ra, rb in rests if abs(ra - b) <= 3 and ra > a), None)
+        if rest is None:
+            continue
+        ra, rb = rest
+        # The loaded voltage at the switch: a line through the run's last samples, extrapolated
+        # (one sample would carry its full noise into R0).
+        k0 = max(a, ra - 20)
+        tt, vv = t_all[k0:ra] - t_all[ra], v_all[k0:ra]
+        if tt.shape[0] >= 4:
+            (_, v_sw), cov_l = np.polyfit(tt, vv, 1, cov=True)
+            v_sw_se = float(np.sqrt(max(float(cov_l[1, 1]), 0.0)))
+        else:
+            v_sw, v_sw_se = float(v_all[ra - 1]), 0.0
+        fit = fit_relaxation(
+            t_all[ra:rb], v_all[ra:rb], current_A=float(np.median(i_all[a:b])),
+            v_load_V=float(v_sw), run_s=float(t_all[ra] - t_all[a]), v_load_se_V=v_sw_se,
+        )  # fmt: skip
+        if fit is not None:
+            relax.append(replace(fit, soc=float(z_all[ra])))
+    # Upper bound: M >= 0, so the polarisation cannot exceed the raw half-gap at mid SOC.
+    mid = np.linspace(0.2, 0.8, 61)
+    raw_half = 0.5 * (
+        _interp_sorted(mid, z_all[k_chg], v_all[k_chg])
+        - _interp_sorted(mid, z_all[k_dis], v_all[k_dis])
+    )
+    r_max = float(np.percentile(raw_half, 5)) / (0.5 * (i_dis + i_chg))
+    pol = _choose_polarisation(relax, steps, r_max, notes)
+
+    kap = gamma / (cap * 3600.0)
+    x1, x2, h = branch_states(
+        t_all, i_all, file_start, tau1_s=pol.tau1_s, tau2_s=pol.tau2_s,
+        kappa_dis=kap, kappa_chg=kap * eta, h0=1.0 if s1 > 0 else -1.0,
+    )  # fmt: skip
+    v_corr = v_all + pol.R0_ohm * i_all + pol.R1_ohm * x1 + pol.R2_ohm * x2
+
+    def branch(idx: npt.NDArray[np.intp], i_med: float) -> Branch:
+        return Branch(z=z_all[idx], v_V=v_corr[idx], v_raw_V=v_all[idx], h=h[idx], current_A=i_med)
+
+    ends: dict[float, float] = {}
+    for anchor in (0.0, 1.0):
+        cands = [
+            (abs(float(z_all[b - 1]) - anchor), -(t_all[b - 1] - t_all[a]), a, b)
+            for a, b in rests
+            if t_all[b - 1] - t_all[a] >= MIN_END_REST_S
+            and abs(float(z_all[b - 1]) - anchor) <= END_SOC_TOL
+        ]
+        if cands:
+            _, _, a, b = min(cands)
+            ends[anchor] = _end_voltage(v_all, a, b)
+        else:
+            notes.append(
+                f"no rest of >= {MIN_END_REST_S:.0f} s at SOC {100 * anchor:.0f} %: the OCV "
+                f"is not extended to {'empty' if anchor == 0 else 'full'}"
+            )
     return OcvTestBranches(
-        discharge=dis,
-        charge=chg,
+        discharge=branch(k_dis, i_dis),
+        charge=branch(k_chg, i_chg),
         capacity_Ah=cap,
         measured_capacity_Ah=measured_q,
         coulombic_efficiency=eta,
-        resistance_ohm=r_ohm,
-        step_resistances_ohm=tuple(steps),
+        throughput=throughput,
+        polarisation=pol,
+        gamma=gamma,
+        v_empty_V=ends.get(0.0),
+        v_full_V=ends.get(1.0),
         notes=tuple(notes),
     )
+
+
+def _scale_charge(
+    *,
+    eta_meas: float,
+    given: float | None,
+    dis_Ah: float,
+    chg_Ah: float,
+    s1: float,
+    f0: int,
+    top: int,
+    second: tuple[int, int],
+    rests: Sequence[tuple[int, int]],
+    t: FloatArray,
+    v: FloatArray,
+    q1: FloatArray,
+    first_Ah: float,
+) -> Throughput:
+    """Normalise or count (module doc): decides eta from the throughput and the rested voltages."""
+    if given is not None:
+        return Throughput(dis_Ah, chg_Ah, "given", given, "given by the user")
+    if eta_meas <= 1.0:
+        why = "more Ah back in than out: the measured coulombic efficiency (Plett's method)"
+        return Throughput(dis_Ah, chg_Ah, "normalised", eta_meas, why)
+    # Less charge back than out: did the test close (the counting is off) or end short?
+    before = next(((a, b) for a, b in rests if abs(b - f0) <= 3), None)
+    after = next(((a, b) for a, b in rests if a - 3 <= top < b), None)
+    if before is None:
+        if eta_meas <= 1.02:
+            why = "within 2 % and no rest before the first branch to judge closure by"
+            return Throughput(dis_Ah, chg_Ah, "normalised", eta_meas, why)
+        why = "no rest before the first branch to judge closure by: charge counted as measured"
+        return Throughput(dis_Ah, chg_Ah, "counted", 1.0, why)
+    v_start = _end_voltage(v, *before)
+    v_end = _end_voltage(v, *after) if after is not None else float(v[top])
+    sa, sb = second
+    z = -s1 * (q1[sa:sb] - q1[sa]) / first_Ah  # SOC moved along the second branch, eta = 1
+    tail = np.abs(z) >= np.max(np.abs(z)) - 0.02
+    slope = abs(float(np.polyfit(z[tail], v[sa:sb][tail], 1)[0])) if tail.sum() > 2 else 0.0
+    short_q = 1.0 - 1.0 / eta_meas  # SOC the second branch misses if counted with eta = 1
+    # The end visited twice: short means below the start's voltage at full, above it at empty.
+    dv = (v_start - v_end) * (1.0 if s1 > 0 else -1.0)
+    short_v = max(dv, 0.0) / slope if slope > 0 else float("inf")
+    if short_v < 0.5 * short_q:
+        why = (
+            f"the test ends {1e3 * dv:+.1f} mV from its starting rested voltage (SOC "
+            f"{100 * short_v:.2f} % at the end's slope) while the Ah say {100 * short_q:.1f} % "
+            "short: a counting mismatch, each branch normalised to its own throughput"
+        )
+        return Throughput(dis_Ah, chg_Ah, "normalised", eta_meas, why)
+    why = (
+        f"the test ends {1e3 * dv:+.1f} mV below its starting rested voltage (SOC "
+        f"{100 * short_v:.2f} % at the end's slope), as the Ah say ({100 * short_q:.2f} %): the "
+        "second branch ends short; charge counted with eta = 1"
+    )
+    return Throughput(dis_Ah, chg_Ah, "counted", 1.0, why)
+
+
+def _choose_polarisation(
+    relax: Sequence[RelaxationFit], steps: Sequence[float], r_max: float, notes: list[str]
+) -> Polarisation:
+    """The smallest relaxation fit (knees and diffusion at the test's ends only inflate it),
+    else the smallest one-sample step, scaled down to ``r_max`` (ohm: the most the mid-SOC
+    half-gap allows with M >= 0) when even that exceeds it (module doc)."""
+    if relax:
+        r = min(relax, key=lambda f: f.r_total_ohm)
+        pol = Polarisation(
+            r.R0_ohm, r.R1_ohm, r.tau1_s, r.R2_ohm, r.tau2_s, r.r_total_se_ohm,
+            f"2RC relaxation fit of the {r.duration_s:.0f} s rest after the {r.after} "
+            f"(SOC {100 * r.soc:.1f} %)", tuple(relax), tuple(steps),
+        )  # fmt: skip
+    elif steps:
+        notes.append(
+            "no rest after a branch long enough to fit its relaxation: polarisation = the "
+            "smallest one-sample step |dV/dI| (misses the slow relaxation; not in the CI)"
+        )
+        pol = Polarisation(
+            min(steps), 0.0, 1.0, 0.0, 1.0, None, "smallest one-sample step |dV/dI|",
+            (), tuple(steps),
+        )  # fmt: skip
+    else:
+        notes.append("no rest or step in the test: the branches are not corrected")
+        return Polarisation(0.0, 0.0, 1.0, 0.0, 1.0, None, "none")
+    if pol.r_total_ohm > r_max > 0:
+        k = r_max / pol.r_total_ohm
+        notes.append(
+            f"the {pol.source} gives {1e3 * pol.r_total_ohm:.1f} mOhm, more than the mid-SOC "
+            f"half-gap allows ({1e3 * r_max:.1f} mOhm with M >= 0): the polarisation varies "
+            "along SOC (larger at the test's ends); scaled down to that bound"
+        )
+        pol = replace(
+            pol, R0_ohm=k * pol.R0_ohm, R1_ohm=k * pol.R1_ohm, R2_ohm=k * pol.R2_ohm,
+            source=pol.source + f", scaled to the mid-SOC bound {1e3 * r_max:.1f} mOhm",
+        )  # fmt: skip
+    return pol
+
+
+@dataclass(frozen=True)
+class BandResidual:
+    """Residual of one branch against the fitted model in one SOC band (V)."""
+
+    branch: str
+    soc_lo: float
+    soc_hi: float
+    n: int
+    rmse_V: float
+    bias_V: float
 
 
 @dataclass(frozen=True)
 class OcvFitResult:
     """Everything ``fit-ocv`` reports and stores.
 
-    ``m_soc``/``m_V``: the M(z) table (fraction, V). ``half_gap_raw_V`` / ``half_gap_V``: the raw
-    and IR-corrected half-gaps on ``gap_soc`` (both None with a single branch).
+    ``m_soc``/``m_V``: the M(z) table (fraction, V; >= 0) and ``m_ci95_V`` the half-widths of its
+    95 % confidence intervals (None for rest-point tables with one branch). ``m_fit_V``: the
+    fitted knot values before clipping at 0. ``half_gap_raw_V`` / ``half_gap_V``: the measured
+    and polarisation-corrected half-gaps on ``gap_soc``. ``v_empty_V``/``v_full_V``: the rested
+    end voltages the mean curve reaches (None: not measured). ``residuals``: per branch and SOC
+    band, against the whole model (extended mean + M h). ``test``: the branches (OCV tests).
     """
 
     mean: Eq4Fit
@@ -391,6 +822,19 @@ class OcvFitResult:
     half_gap_raw_V: FloatArray | None = None
     half_gap_V: FloatArray | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    m_ci95_V: FloatArray | None = None
+    m_fit_V: FloatArray | None = None
+    v_empty_V: float | None = None
+    v_full_V: float | None = None
+    residuals: tuple[BandResidual, ...] = ()
+    test: OcvTestBranches | None = None
+
+    def ocv_model(self) -> OcvModel:
+        """The fitted mean curve with its end segments and the M table, as the engine uses it."""
+        return OcvModel.from_coeffs(
+            self.mean.coeffs, self.soc_min, self.soc_max, self.m_soc, self.m_V,
+            v_empty_V=self.v_empty_V, v_full_V=self.v_full_V,
+        )  # fmt: skip
 
 
 def _in_range(z: FloatArray, v: FloatArray, lo: float, hi: float) -> tuple[FloatArray, FloatArray]:
@@ -398,68 +842,174 @@ def _in_range(z: FloatArray, v: FloatArray, lo: float, hi: float) -> tuple[Float
     return z[k], v[k]
 
 
-def fit_two_branches(
-    z_dis: FloatArray,
-    v_dis_V: FloatArray,
-    z_chg: FloatArray,
-    v_chg_V: FloatArray,
-    *,
-    trim_soc: float = 0.02,
-    knots: Sequence[float] = EQ32_KNOTS,
-    raw_offset_V: float = 0.0,
-    notes: Sequence[str] = (),
-) -> OcvFitResult:
-    """Fit discharge, charge and mean branches and M(z) from (IR-corrected) branch data.
-
-    ``raw_offset_V`` is the IR correction already applied to the half-gap (reported only: the raw
-    half-gap is the corrected one plus it).
-    """
-    lo = max(float(np.min(z_dis)), float(np.min(z_chg)), trim_soc)
-    hi = min(float(np.max(z_dis)), float(np.max(z_chg)), 1.0 - trim_soc)
-    if hi - lo < MIN_BRANCH_SPAN:
-        raise UserError(
-            f"the charge and discharge branches overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %"
-        )
-    zd, vd = _in_range(z_dis, v_dis_V, lo, hi)
-    zc, vc = _in_range(z_chg, v_chg_V, lo, hi)
-    dis = fit_eq4(zd, vd)
-    chg = fit_eq4(zc, vc)
-    mean = mean_branch(dis, chg, z_dis=zd, v_dis_V=vd, z_chg=zc, v_chg_V=vc)
-    grid = np.linspace(lo, hi, 201)
-    half = 0.5 * (_interp_sorted(grid, zc, vc) - _interp_sorted(grid, zd, vd))
-    m_soc, m_vals = fit_piecewise_linear(grid, half, knots)
-    m_vals = np.clip(m_vals, 0.0, 0.5)
-    return OcvFitResult(
-        mean=mean,
-        discharge=dis,
-        charge=chg,
-        soc_min=lo,
-        soc_max=hi,
-        m_soc=m_soc,
-        m_V=m_vals,
-        gap_soc=grid,
-        half_gap_raw_V=half + raw_offset_V,
-        half_gap_V=half,
-        notes=tuple(notes),
+def _hats(z: FloatArray, knots: FloatArray) -> FloatArray:
+    """Design matrix of a continuous piecewise-linear function: one hat per knot."""
+    return np.column_stack(
+        [np.interp(z, knots, np.eye(knots.shape[0])[j]) for j in range(knots.shape[0])]
     )
+
+
+def fit_hysteresis(
+    z: FloatArray,
+    gap_V: FloatArray,
+    weight: FloatArray,
+    knots: Sequence[float],
+    *,
+    gap_per_ohm: FloatArray | None = None,
+    r_se_ohm: float | None = None,
+    confidence: float = 0.95,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """M(z) knots from a branch gap: least squares of ``gap = M(z) weight`` (Eq. 10 on both
+    branches: v_chg - v_dis = M (h_chg - h_dis); ``weight`` = h_chg - h_dis, 2 on the major loop).
+
+    Returns (knots, M, ci95 half-widths). The covariance is the residual variance inflated by
+    the residuals' lag-1 autocorrelation ((1 + rho) / (1 - rho): a dense test's residuals are
+    correlated along SOC), plus, when given, the polarisation's: ``gap_per_ohm`` is d gap / d R
+    (V/ohm) and ``r_se_ohm`` the standard error of R.
+    """
+    k = np.unique(np.clip(np.asarray(knots, dtype=np.float64), np.min(z), np.max(z)))
+    a = _hats(z, k) * weight[:, None]
+    m, *_ = np.linalg.lstsq(a, gap_V, rcond=None)
+    resid = gap_V - a @ m
+    dof = max(z.shape[0] - k.shape[0], 1)
+    s2 = float(resid @ resid) / dof
+    rho = float(np.clip(np.corrcoef(resid[:-1], resid[1:])[0, 1], 0.0, 0.99)) if dof > 2 else 0.0
+    cov = np.linalg.pinv(a.T @ a) * s2 * (1.0 + rho) / (1.0 - rho)
+    if gap_per_ohm is not None and r_se_ohm is not None:
+        j, *_ = np.linalg.lstsq(a, gap_per_ohm, rcond=None)
+        cov = cov + np.outer(j, j) * r_se_ohm**2
+    half = float(stats.t.ppf(0.5 + confidence / 2.0, dof)) * np.sqrt(np.maximum(np.diag(cov), 0))
+    return k, np.asarray(m, dtype=np.float64), np.asarray(half, dtype=np.float64)
+
+
+def band_residuals(
+    name: str, z: FloatArray, resid_V: FloatArray, bands: Sequence[float] = SOC_BANDS
+) -> list[BandResidual]:
+    """RMSE and mean of ``resid_V`` per SOC band [lo, hi) (the last band closed)."""
+    out = []
+    for lo, hi in itertools.pairwise(bands):
+        k = (z >= lo) & ((z < hi) | ((hi == bands[-1]) & (z <= hi)))
+        if k.any():
+            r = resid_V[k]
+            out.append(
+                BandResidual(
+                    name, lo, hi, int(k.sum()), float(np.sqrt(np.mean(r * r))), float(np.mean(r))
+                )
+            )
+    return out
+
+
+def _join_ends(
+    coeffs: FloatArray,
+    lo: float,
+    hi: float,
+    v_empty: float | None,
+    v_full: float | None,
+    notes: list[str],
+) -> tuple[float, float, float | None, float | None]:
+    """Move each join inwards (0.5 % steps, up to 10 %) until a monotone C1 end segment exists;
+    drop that end with a note when none does."""
+    for which in ("empty", "full"):
+        v_end = v_empty if which == "empty" else v_full
+        if v_end is None:
+            continue
+        join = lo if which == "empty" else hi
+        step = 0.005 if which == "empty" else -0.005
+        for _ in range(40):
+            try:
+                end_segment(coeffs, join, 0.0 if which == "empty" else 1.0, v_end)
+                break
+            except ValueError as exc:
+                last = str(exc)
+                join = round(join + step, 6)
+                if not 0.0 < join < 1.0 or (join > 0.1 if which == "empty" else join < 0.9):
+                    join = float("nan")
+                    break
+        if np.isnan(join):
+            notes.append(f"the OCV is not extended to {which}: {last}")
+            if which == "empty":
+                v_empty = None
+            else:
+                v_full = None
+        elif which == "empty" and join != lo:
+            notes.append(f"Eq. 4 joins the empty-end segment at SOC {100 * join:.1f} % (monotone)")
+            lo = join
+        elif which == "full" and join != hi:
+            notes.append(f"Eq. 4 joins the full-end segment at SOC {100 * join:.1f} % (monotone)")
+            hi = join
+    return lo, hi, v_empty, v_full
 
 
 def fit_ocv_test(
     branches: OcvTestBranches, *, trim_soc: float = 0.02, knots: Sequence[float] = EQ32_KNOTS
 ) -> OcvFitResult:
-    """Fit an OCV test's branches after the IR correction of the module doc."""
-    r = branches.resistance_ohm
+    """Fit an OCV test's polarisation-corrected branches: Eq. 4 per branch, M(z) with its CI
+    from the one-state hysteresis model, the mean and its end segments (module doc)."""
+    notes = list(branches.notes)
     dis, chg = branches.discharge, branches.charge
-    return fit_two_branches(
-        dis.z,
-        dis.v_V + dis.current_A * r,
-        chg.z,
-        chg.v_V - chg.current_A * r,
-        trim_soc=trim_soc,
-        knots=knots,
-        raw_offset_V=0.5 * (dis.current_A + chg.current_A) * r,
-        notes=branches.notes,
+    lo = max(float(np.min(dis.z)), float(np.min(chg.z)), trim_soc)
+    hi = min(float(np.max(dis.z)), float(np.max(chg.z)), 1.0 - trim_soc)
+    if hi - lo < MIN_BRANCH_SPAN:
+        raise UserError(
+            f"the charge and discharge branches overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %"
+        )
+    grid = np.linspace(lo, hi, 401)
+
+    def on_grid(b: Branch, y: FloatArray) -> FloatArray:
+        return _interp_sorted(grid, b.z, y)
+
+    gap = on_grid(chg, chg.v_V) - on_grid(dis, dis.v_V)
+    weight = on_grid(chg, chg.h) - on_grid(dis, dis.h)
+    pol = branches.polarisation
+    # d gap / d R_total at steady state: the charge branch falls, the discharge branch rises.
+    per_ohm = np.full_like(grid, -(chg.current_A + dis.current_A))
+    m_soc, m_fit, m_ci = fit_hysteresis(
+        grid, gap, weight, knots, gap_per_ohm=per_ohm, r_se_ohm=pol.r_total_se_ohm
     )
+    m_vals = np.clip(m_fit, 0.0, 0.5)
+    if np.any(m_fit < 0):
+        notes.append(
+            "the corrected half-gap is negative at SOC "
+            + ", ".join(f"{100 * z:.0f} %" for z in m_soc[m_fit < 0])
+            + ": M stored as 0 there (over-corrected polarisation or misaligned branches?)"
+        )
+    half_raw = 0.5 * (on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V))
+
+    def mean_data(b: Branch) -> tuple[FloatArray, FloatArray]:
+        k = (b.z >= lo) & (b.z <= hi)
+        return b.z[k], b.v_V[k] - np.interp(b.z[k], m_soc, m_vals) * b.h[k]
+
+    zd, vd = _in_range(dis.z, dis.v_V, lo, hi)
+    zc, vc = _in_range(chg.z, chg.v_V, lo, hi)
+    fit_d, fit_c = fit_eq4(zd, vd), fit_eq4(zc, vc)
+    (zmd, vmd), (zmc, vmc) = mean_data(dis), mean_data(chg)
+    mean = fit_eq4(np.concatenate([zmd, zmc]), np.concatenate([vmd, vmc]))
+
+    lo_j, hi_j, v_empty, v_full = _join_ends(
+        mean.coeffs, lo, hi, branches.v_empty_V, branches.v_full_V, notes
+    )
+    m_ci_tab = m_ci
+    if v_empty is not None:  # one rested voltage at the end: the branches meet there
+        m_soc, m_vals, m_fit, m_ci_tab = (
+            np.concatenate([[0.0], x]) for x in (m_soc, m_vals, m_fit, m_ci_tab)
+        )
+    if v_full is not None:
+        m_soc, m_vals, m_fit, m_ci_tab = (
+            np.concatenate([x, [v]])
+            for x, v in ((m_soc, 1.0), (m_vals, 0.0), (m_fit, 0.0), (m_ci_tab, 0.0))
+        )
+    result = OcvFitResult(
+        mean=mean, discharge=fit_d, charge=fit_c, soc_min=lo_j, soc_max=hi_j,
+        m_soc=m_soc, m_V=m_vals, gap_soc=grid, half_gap_raw_V=half_raw,
+        half_gap_V=0.5 * gap, notes=tuple(notes), m_ci95_V=m_ci_tab, m_fit_V=m_fit,
+        v_empty_V=v_empty, v_full_V=v_full, test=branches,
+    )  # fmt: skip
+    model = result.ocv_model()
+    bands: list[BandResidual] = []
+    for name, b in (("discharge", dis), ("charge", chg)):
+        v_model = model.ocv(b.z) + model.hysteresis_M(b.z) * b.h
+        bands += band_residuals(name, b.z, b.v_V - v_model)
+    return replace(result, residuals=tuple(bands))
 
 
 def fit_rest_points(
@@ -469,32 +1019,43 @@ def fit_rest_points(
     m_table: tuple[FloatArray, FloatArray] | None = None,
     trim_soc: float = 0.02,
     knots: Sequence[float] = EQ32_KNOTS,
+    ends: bool = True,
 ) -> OcvFitResult:
     """Fit rest-point tables (SOC fraction, OCV V) with one or both branches.
 
-    Rest voltages carry no IR drop, so no correction is applied. Points at or beyond
-    [trim_soc, 1 - trim_soc] are moved onto it (tables start and end at 0 % and 100 %, where
-    Eq. 4 is singular; with ~10 points a narrower trim lets the 1/z term bend the curve
-    upwards below the lowest interior point). With both branches M(z) is the piecewise-linear
-    fit of the half-gap on their overlap (ends held beyond it); with one, ``m_table`` (soc, M_V)
-    is used, or M = 0 with a note. The mean is Eq. 4 fitted to all points shifted onto the
-    mean: discharge points + M(z), charge points - M(z) (Plett's convention: discharge lies M
-    below the mean), over the union of the branches' SOC ranges, which becomes the config's
-    [soc_min, soc_max].
+    Rest voltages carry no IR drop, so no correction is applied. Points within
+    ``END_SOC_TOL`` of 0 % or 100 % are the rested end voltages (their mean; with ``ends``) and
+    stay out of Eq. 4; other points at or beyond [trim_soc, 1 - trim_soc] are moved onto it
+    (Eq. 4 is singular at 0 and 1; with ~10 points a narrower trim lets the 1/z term bend the
+    curve upwards below the lowest interior point). With both branches M(z) is the
+    piecewise-linear fit of the half-gap on their overlap (ends held beyond it) with its 95 %
+    CI; with one, ``m_table`` (soc, M_V) is used, or M = 0 with a note. The mean is Eq. 4
+    fitted to all points shifted onto the mean: discharge points + M(z), charge points - M(z)
+    (Plett's convention: discharge lies M below the mean), over the union of the branches' SOC
+    ranges, which becomes the config's [soc_min, soc_max].
     """
     notes: list[str] = []
     branches: dict[str, tuple[FloatArray, FloatArray]] = {}
+    end_pts: dict[float, list[tuple[float, float]]] = {0.0: [], 1.0: []}  # (V, branch sign)
     for name, pts in (("discharge", discharge), ("charge", charge)):
         if pts is None:
             continue
-        z, n_moved = clamp_soc_points(np.asarray(pts[0], dtype=np.float64), trim_soc)
+        z0 = np.asarray(pts[0], dtype=np.float64)
+        v0 = np.asarray(pts[1], dtype=np.float64)
+        if ends:
+            for anchor in (0.0, 1.0):
+                at = np.abs(z0 - anchor) <= END_SOC_TOL
+                sgn = 1.0 if name == "discharge" else -1.0
+                end_pts[anchor] += [(float(x), sgn) for x in v0[at]]
+                z0, v0 = z0[~at], v0[~at]
+        z, n_moved = clamp_soc_points(z0, trim_soc)
         if n_moved:
             notes.append(f"{n_moved} {name} point(s) moved onto SOC [{trim_soc}, {1 - trim_soc}]")
-        branches[name] = (z, np.asarray(pts[1], dtype=np.float64))
+        branches[name] = (z, v0)
     if not branches:
         raise UserError("no rest points given")
     fits = {name: fit_eq4(z, v) for name, (z, v) in branches.items()}
-    gap_soc = half = None
+    gap_soc = half = m_ci = m_fit = None
     if len(branches) == 2:
         (zd, vd), (zc, vc) = branches["discharge"], branches["charge"]
         lo, hi = max(zd.min(), zc.min()), min(zd.max(), zc.max())
@@ -502,8 +1063,8 @@ def fit_rest_points(
             raise UserError(f"the branches overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %")
         gap_soc = np.linspace(lo, hi, 201)
         half = 0.5 * (_interp_sorted(gap_soc, zc, vc) - _interp_sorted(gap_soc, zd, vd))
-        m_soc, m_vals = fit_piecewise_linear(gap_soc, half, knots)
-        m_vals = np.clip(m_vals, 0.0, 0.5)
+        m_soc, m_fit, m_ci = fit_hysteresis(gap_soc, 2.0 * half, np.full_like(gap_soc, 2.0), knots)
+        m_vals = np.clip(m_fit, 0.0, 0.5)
     elif m_table is not None:
         m_soc, m_vals = (np.asarray(a, dtype=np.float64) for a in m_table)
         notes.append("M(z) taken from the given hysteresis table")
@@ -516,19 +1077,31 @@ def fit_rest_points(
         z_all.append(z)
         v_all.append(v + sign * np.interp(z, m_soc, m_vals))
     mean = fit_eq4(np.concatenate(z_all), np.concatenate(v_all))
-    return OcvFitResult(
-        mean=mean,
-        discharge=fits.get("discharge"),
-        charge=fits.get("charge"),
-        soc_min=mean.soc_lo,
-        soc_max=mean.soc_hi,
-        m_soc=m_soc,
-        m_V=m_vals,
-        gap_soc=gap_soc,
-        half_gap_raw_V=half,
-        half_gap_V=half,
-        notes=tuple(notes),
+    # An end point of a branch lies M off the mean, as every other point (Plett's sign).
+    v_ends = {
+        a: float(np.mean([v + sgn * float(np.interp(a, m_soc, m_vals)) for v, sgn in pts]))
+        if pts
+        else None
+        for a, pts in end_pts.items()
+    }
+    lo_j, hi_j, v_empty, v_full = _join_ends(
+        mean.coeffs, mean.soc_lo, mean.soc_hi, v_ends[0.0], v_ends[1.0], notes
     )
+    result = OcvFitResult(
+        mean=mean, discharge=fits.get("discharge"), charge=fits.get("charge"),
+        soc_min=lo_j, soc_max=hi_j, m_soc=m_soc, m_V=m_vals, gap_soc=gap_soc,
+        half_gap_raw_V=half, half_gap_V=half, notes=tuple(notes), m_ci95_V=m_ci, m_fit_V=m_fit,
+        v_empty_V=v_empty, v_full_V=v_full,
+    )  # fmt: skip
+    model = result.ocv_model()
+    bands: list[BandResidual] = []
+    for name, pts in (("discharge", discharge), ("charge", charge)):
+        if pts is not None:
+            z = np.clip(np.asarray(pts[0], dtype=np.float64), 0.0, 1.0)
+            h = -1.0 if name == "discharge" else 1.0
+            v_model = model.ocv(z) + h * model.hysteresis_M(z)
+            bands += band_residuals(name, z, np.asarray(pts[1], dtype=np.float64) - v_model)
+    return replace(result, residuals=tuple(bands))
 
 
 def clamp_soc_points(z: FloatArray, trim_soc: float) -> tuple[FloatArray, int]:
@@ -554,7 +1127,7 @@ def build_cell_config(
     bounds: ParameterBounds | None = None,
     initial: InitialParameters | None = None,
 ) -> CellConfig:
-    """The cell config for a fit: Eq. 4 branches, valid SOC range and M table."""
+    """The cell config for a fit: Eq. 4 branches, valid SOC range, end voltages and M table."""
 
     def lst(a: FloatArray) -> list[float]:
         return [float(x) for x in a]
@@ -570,8 +1143,15 @@ def build_cell_config(
             discharge=lst(result.discharge.coeffs) if result.discharge is not None else None,
             soc_min=result.soc_min,
             soc_max=result.soc_max,
+            v_empty_V=result.v_empty_V,
+            v_full_V=result.v_full_V,
         ),
-        hysteresis=HysteresisTable(soc=lst(result.m_soc), M_V=lst(result.m_V), gamma=gamma),
-        bounds=bounds if bounds is not None else ParameterBounds(),
+        hysteresis=HysteresisTable(
+            soc=lst(result.m_soc),
+            M_V=lst(result.m_V),
+            gamma=gamma,
+            M_ci95_V=lst(result.m_ci95_V) if result.m_ci95_V is not None else None,
+        ),
+        bounds=bounds,
         initial=initial,
     )

@@ -22,6 +22,14 @@ from bmsid.errors import UserError
 from bmsid.offline.plots import plot_parameters, plot_voltage
 from bmsid.offline.scoring import EvalWindow, IdentifyResult, score
 
+#: Help of the ``--score-soc0`` option (``identify``, ``compare``): what the reference SOC is.
+SCORE_SOC0_HELP = (
+    "score the --soc-window and the SOC bands on a coulomb count of the measured current "
+    "(+ = discharge) from this SOC (fraction) at the first sample, with the cell config's "
+    "capacity and coulombic efficiency, instead of on the estimator's SOC; e.g. 1.0 for a test "
+    "that starts full"
+)
+
 #: Cells plotted one by one; a larger pack shows its first and its worst cell.
 MAX_PLOTTED_CELLS = 4
 
@@ -130,10 +138,19 @@ def ocv_range_warning(result: IdentifyResult, cell: CellConfig) -> str | None:
 
 
 def summary_line(doc: Mapping[str, Any]) -> str:
-    """One line of a metrics.json document: window errors (mV, %), ticks and run time (s)."""
-    return (
-        f"{doc['algorithm']}: RMSE {1e3 * doc['rmse_V']:.2f} mV, "
-        f"max {1e3 * doc['max_abs_error_V']:.1f} mV, MAPE {doc['mape_pct']:.3f} % "
-        f"over {doc['n_samples']} ticks "
-        f"({doc['evaluation_window']['description']}); run time {doc['runtime_s']:.1f} s"
+    """One line of a metrics.json document: the whole record's errors (mV, %), the start-up's and
+    the rest's RMSE (mV), the evaluation window's when one was asked for, and the run time (s)."""
+    o, s, a = doc["overall"], doc["startup"], doc["after_startup"]
+    first = f"{100 * doc['startup_fraction']:g} %"
+    text = (
+        f"{doc['algorithm']}: RMSE {1e3 * o['rmse_V']:.2f} mV over all {o['n_samples']} ticks "
+        f"(max {1e3 * o['max_abs_error_V']:.1f} mV, MAPE {o['mape_pct']:.3f} %); "
+        f"first {first} {1e3 * s['rmse_V']:.2f} mV, after it {1e3 * a['rmse_V']:.2f} mV"
     )
+    w = doc["evaluation_window"]
+    if w["skip_fraction"] or w["soc_lo"] is not None or w["soc_hi"] is not None:
+        text += (
+            f"; window ({w['description']}) {1e3 * doc['rmse_V']:.2f} mV over "
+            f"{doc['n_samples']} ticks (max {1e3 * doc['max_abs_error_V']:.1f} mV)"
+        )
+    return f"{text}; run time {doc['runtime_s']:.1f} s"

@@ -1,5 +1,6 @@
 """The paper's comparison tables: Table 2 (accuracy and run time per profile, temperature and
-variant) and the parameter-consistency analysis of Fig. 14. Pure: rows in, text out.
+variant, with the whole record and its start-up beside the evaluation window), the RMSE per SOC
+band, and the parameter-consistency analysis of Fig. 14. Pure: rows in, text out.
 
 Consistency (the paper gives no formula, Sec. 3.4): for each variant and each group of datasets
 of one cell at one temperature, take the median of every identified parameter (R0, R1, C1, R2,
@@ -20,6 +21,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 #: Parameters the consistency analysis covers (the model's "full parameters").
 CONSISTENCY_PARAMS = ("R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F")
@@ -84,7 +86,9 @@ def unique_displays(labels: Sequence[DatasetLabel]) -> list[str]:
 
 @dataclass(frozen=True)
 class Table2Row:
-    """One dataset x variant line of Table 2 (errors over the evaluation window)."""
+    """One dataset x variant line of Table 2: errors over the evaluation window (``n_samples``
+    ticks, V and %), run time (s), and the RMSE (V) of the whole record, of its first 10 % of
+    the ticks (the start-up) and of the rest."""
 
     dataset: str
     profile: str
@@ -95,6 +99,9 @@ class Table2Row:
     rmse_V: float
     mape_pct: float
     runtime_s: float
+    rmse_whole_V: float = math.nan
+    rmse_startup_V: float = math.nan
+    rmse_after_startup_V: float = math.nan
 
     @property
     def rmse_mV(self) -> float:
@@ -115,29 +122,38 @@ def _fmt_t(t: float | None) -> str:
     return "-" if t is None else f"{t:g}"
 
 
+def _mv(v: float, digits: int = 2) -> str:
+    return "-" if not math.isfinite(v) else f"{1e3 * v:.{digits}f}"
+
+
 def table2_markdown(rows: Sequence[Table2Row], window_text: str) -> str:
-    """Table 2 as Markdown: the long table, an RMSE pivot, and the paper's RMSE where a
-    dataset has the paper's profile and temperature."""
+    """Table 2 as Markdown: the long table (the whole record, its first 10 % and the rest beside
+    the evaluation window), an RMSE pivot over the window, and the paper's RMSE where a dataset
+    has the paper's profile and temperature."""
     lines = [
         "## Table 2: model-voltage accuracy and run time",
         "",
-        f"Errors over the evaluation window ({window_text}); run time = wall time of the "
-        "identification loop.",
+        "RMSE over the whole record (every tick), over its first 10 % of the ticks (start-up, "
+        "converging from the start values) and over the rest; max error, RMSE and MAPE over the "
+        f"evaluation window ({window_text}); run time = wall time of the identification loop.",
         "",
-        "| dataset | profile | T / C | algorithm | max error / mV | RMSE / mV | MAPE / % "
-        "| run time / s |",
-        "|---|---|---|---|---:|---:|---:|---:|",
+        "| dataset | profile | T / C | algorithm | RMSE whole / mV | RMSE first 10 % / mV "
+        "| RMSE after 10 % / mV | max error in window / mV | RMSE in window / mV "
+        "| MAPE in window / % | run time / s |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
             f"| {r.dataset} | {r.profile} | {_fmt_t(r.temperature_C)} | {r.algorithm} "
-            f"| {1e3 * r.max_abs_error_V:.1f} | {r.rmse_mV:.2f} | {r.mape_pct:.3f} "
+            f"| {_mv(r.rmse_whole_V)} | {_mv(r.rmse_startup_V)} | {_mv(r.rmse_after_startup_V)} "
+            f"| {_mv(r.max_abs_error_V, 1)} | {_mv(r.rmse_V)} | {r.mape_pct:.3f} "
             f"| {r.runtime_s:.1f} |"
         )
     datasets = list(dict.fromkeys(r.dataset for r in rows))
     variants = list(dict.fromkeys(r.algorithm for r in rows))
     by = {(r.dataset, r.algorithm): r for r in rows}
-    lines += ["", "RMSE / mV (ours):", "", "| algorithm | " + " | ".join(datasets) + " |"]
+    lines += ["", "RMSE / mV in the evaluation window (ours):", ""]
+    lines += ["| algorithm | " + " | ".join(datasets) + " |"]
     lines.append("|---|" + "---:|" * len(datasets))
     for v in variants:
         cells = [f"{by[(d, v)].rmse_mV:.2f}" if (d, v) in by else "-" for d in datasets]
@@ -160,6 +176,100 @@ def table2_markdown(rows: Sequence[Table2Row], window_text: str) -> str:
         lines.append(
             "Paper run times per run: DST 18.7-22.3 s, BBDST 26.3-35.4 s (MATLAB, their PC)."
         )
+    return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class SocBandRow:
+    """Eq. 31 of one dataset x variant over the ticks of one SOC band (pooled over the cells):
+    ``band`` as labelled in metrics.json (``"10-20 %"``), its bounds as fractions (None: open),
+    ``n_samples`` ticks, errors in V and %."""
+
+    dataset: str
+    profile: str
+    temperature_C: float | None
+    algorithm: str
+    band: str
+    soc_lo: float | None
+    soc_hi: float | None
+    n_samples: int
+    max_abs_error_V: float
+    rmse_V: float
+    mape_pct: float
+
+
+def soc_band_rows(
+    dataset: str,
+    profile: str,
+    temperature_C: float | None,
+    algorithm: str,
+    bands: Sequence[Mapping[str, Any]],
+) -> list[SocBandRow]:
+    """The rows of one run from the ``soc_bands`` list of its metrics.json."""
+    return [
+        SocBandRow(
+            dataset=dataset,
+            profile=profile,
+            temperature_C=temperature_C,
+            algorithm=algorithm,
+            band=str(b["band"]),
+            soc_lo=b["soc_lo"],
+            soc_hi=b["soc_hi"],
+            n_samples=int(b["n_samples"]),
+            max_abs_error_V=float(b["max_abs_error_V"]),
+            rmse_V=float(b["rmse_V"]),
+            mape_pct=float(b["mape_pct"]),
+        )
+        for b in bands
+    ]
+
+
+def soc_bands_csv(rows: Sequence[SocBandRow]) -> str:
+    """One line per dataset, variant and non-empty SOC band."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(SocBandRow.__dataclass_fields__), lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if v is None else v) for k, v in asdict(r).items()})
+    return buf.getvalue()
+
+
+def _band_order(rows: Sequence[SocBandRow]) -> list[str]:
+    """Band labels present, in SOC order (below 0 first, above 100 last)."""
+
+    def key(label: str) -> float:
+        r = next(x for x in rows if x.band == label)
+        return -math.inf if r.soc_lo is None else r.soc_lo
+
+    return sorted(dict.fromkeys(r.band for r in rows), key=key)
+
+
+def soc_bands_markdown(rows: Sequence[SocBandRow], soc_text: str) -> str:
+    """RMSE per SOC band as Markdown, one line per dataset and variant, each cell
+    ``RMSE mV (ticks)``; ``-`` where the run never reached the band."""
+    lines = [
+        "## Model-voltage RMSE per SOC band",
+        "",
+        f"RMSE / mV (ticks in the band) per 10 % SOC band over every tick of the record, the "
+        f"start-up included. SOC: {soc_text}.",
+        "",
+    ]
+    if not rows:
+        lines.append("No tick was scored.")
+        return "\n".join(lines) + "\n"
+    bands = _band_order(rows)
+    lines.append("| dataset | algorithm | " + " | ".join(bands) + " |")
+    lines.append("|---|---|" + "---:|" * len(bands))
+    by = {(r.dataset, r.algorithm, r.band): r for r in rows}
+    runs = list(dict.fromkeys((r.dataset, r.algorithm) for r in rows))
+    for d, a in runs:
+        cells = [
+            f"{1e3 * by[(d, a, b)].rmse_V:.2f} ({by[(d, a, b)].n_samples})"
+            if (d, a, b) in by
+            else "-"
+            for b in bands
+        ]
+        lines.append(f"| {d} | {a} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

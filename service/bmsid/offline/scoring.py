@@ -1,35 +1,133 @@
 """What an offline run produced and how well its model voltage tracks the cell (Eq. 31).
 
-Evaluation window (:class:`EvalWindow`): the first ticks are spent converging from the start
-values, so by default the first 10 % of the ticks are not scored; with a SOC window only the
-ticks whose (coulomb-counted) SOC lies inside it are scored. Metrics over every tick are reported
-as well. Pure: arrays in, numbers and dicts out.
+Every run is scored over the whole record (every tick), over its first
+:data:`STARTUP_FRACTION` of the ticks on its own (the start-up, where the estimators converge from
+their start values and can blow up), over the rest, and per 10 % SOC band, so a start-up
+blow-up or an end of the SOC range the model cannot hold is seen rather than averaged away.
+A user's evaluation window (:class:`EvalWindow`: a skipped share of the first ticks and a SOC
+range) is scored as well; by default it is the whole record.
+
+The SOC that decides the window and the bands is the estimator's own SOC, unless a
+:class:`SocReference` is given: a coulomb count of the measured current from a known start
+(e.g. "SOC 95..15 % counted from the full start"), independent of what the estimator believes.
+
+Pure: arrays in, numbers and dicts out.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate.tuning import Variant
+from bmsid.config.cell import CellConfig
+from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.metrics import VoltageMetrics, voltage_metrics
+from bmsid.model.simulator import coulomb_count
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.int64]
+
+#: Share of the first ticks reported on their own as the start-up (and left out of
+#: ``after_startup``): where the estimators converge from their start values.
+STARTUP_FRACTION = 0.1
+#: Inner edges of the SOC bands (fractions): 0-10 %, 10-20 %, ..., 90-100 % (100 % included).
+SOC_BAND_EDGES: tuple[float, ...] = tuple(k / 10 for k in range(11))
+#: The tick-interval limit of the default tuning, s: longer steps are gaps (no charge counted).
+DEFAULT_GAP_S = EstimatorTuning().gap_s
+
+
+# ----------------------------------------------------------------------------- reference SOC
+def reference_soc(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    soc0: float,
+    capacity_Ah: float,
+    coulombic_efficiency: float = 1.0,
+    gap_s: float = DEFAULT_GAP_S,
+) -> FloatArray:
+    """SOC (fraction) at each tick by a coulomb count of the tick currents from ``soc0`` at the
+    first tick (Eq. 2, ``simulator.coulomb_count``): each tick's current (A, + = discharge) is
+    held until the next tick, the efficiency applies on charge only, and steps back in time or
+    longer than ``gap_s`` (s) count no charge, as the estimator assumes the pack rested over a
+    gap. Not clamped: a count that leaves 0..1 says the capacity or the start is wrong."""
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    if t.size == 0:
+        return np.zeros(0)
+    dt = np.diff(t, append=t[-1])  # the last tick's current acts on nothing scored
+    dt = np.where((dt > 0) & (dt <= gap_s), dt, 0.0)
+    return coulomb_count(i, dt, soc0, capacity_Ah, coulombic_efficiency)
+
+
+@dataclass(frozen=True)
+class SocReference:
+    """The SOC windows and bands are decided by, when not the estimator's: a coulomb count of the
+    measured current from ``soc0`` (fraction) at the first tick, with ``capacity_Ah`` (Ah), the
+    ``coulombic_efficiency`` (on charge) and the gap limit ``gap_s`` (s) of :func:`reference_soc`.
+    """
+
+    soc0: float
+    capacity_Ah: float
+    coulombic_efficiency: float = 1.0
+    gap_s: float = DEFAULT_GAP_S
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.soc0) and 0.0 <= self.soc0 <= 1.0):
+            raise ValueError(f"the scoring SOC start is a fraction in [0, 1], got {self.soc0:g}")
+        if not (self.capacity_Ah > 0 and self.coulombic_efficiency > 0 and self.gap_s > 0):
+            raise ValueError("capacity, coulombic efficiency and gap limit must be positive")
+
+    @classmethod
+    def from_cell(cls, cell: CellConfig, soc0: float, gap_s: float = DEFAULT_GAP_S) -> SocReference:
+        """A count from ``soc0`` with the cell config's capacity and coulombic efficiency."""
+        return cls(soc0, cell.capacity_Ah, cell.coulombic_efficiency, gap_s)
+
+    def soc(self, trace: EstimateBlock) -> FloatArray:
+        """The counted SOC at each tick of ``trace``, shape (n_ticks,)."""
+        return reference_soc(
+            trace.t_s, trace.current_A, self.soc0, self.capacity_Ah,
+            self.coulombic_efficiency, self.gap_s,
+        )  # fmt: skip
+
+    def describe(self) -> str:
+        return (
+            f"a coulomb count of the measured current from {100 * self.soc0:g} % at the first "
+            f"sample ({self.capacity_Ah:g} Ah, coulombic efficiency {self.coulombic_efficiency:g})"
+        )
+
+
+def scoring_soc(trace: EstimateBlock, reference: SocReference | None) -> FloatArray:
+    """The SOC that decides windows and bands, (n_ticks, n_cells): the estimator's ``soc``,
+    or the reference count (the same for every cell of the pack: one current)."""
+    if reference is None:
+        return np.asarray(trace["soc"], dtype=np.float64)
+    z = reference.soc(trace)
+    return np.repeat(z[:, None], trace.n_cells, axis=1)
+
+
+# ----------------------------------------------------------------------------- windows, bands
+def startup_ticks(n_ticks: int, fraction: float = STARTUP_FRACTION) -> int:
+    """Ticks in the start-up: the first ``floor(fraction n)``."""
+    return int(np.floor(fraction * n_ticks))
 
 
 @dataclass(frozen=True)
 class EvalWindow:
-    """Which ticks are scored: SOC inside [soc_lo, soc_hi] (fractions), after skipping the
-    first ``skip_fraction`` of the ticks. ``None`` bounds are open."""
+    """Which ticks the top-level metrics score: SOC inside [soc_lo, soc_hi] (fractions), after
+    skipping the first ``skip_fraction`` of the ticks. ``None`` bounds are open; the default is
+    the whole record. ``soc_reference``: the SOC the range applies to (None: the estimator's)."""
 
-    skip_fraction: float = 0.1
+    skip_fraction: float = 0.0
     soc_lo: float | None = None
     soc_hi: float | None = None
+    soc_reference: SocReference | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.skip_fraction < 1.0:
@@ -39,12 +137,19 @@ class EvalWindow:
         if lo >= hi:
             raise ValueError(f"SOC window needs lo < hi, got {self.soc_lo}, {self.soc_hi}")
 
+    @property
+    def is_whole_record(self) -> bool:
+        """True when every tick is scored (no skip, no SOC range)."""
+        return self.skip_fraction == 0 and self.soc_lo is None and self.soc_hi is None
+
     def mask(self, trace: EstimateBlock) -> BoolArray:
         """Boolean (n_ticks, n_cells): the scored ticks of each cell."""
         n = trace.n_ticks
-        keep = np.arange(n) >= int(np.floor(self.skip_fraction * n))
+        keep = np.arange(n) >= startup_ticks(n, self.skip_fraction)
         m = np.repeat(keep[:, None], trace.n_cells, axis=1)
-        soc = trace["soc"]
+        if self.soc_lo is None and self.soc_hi is None:
+            return m
+        soc = scoring_soc(trace, self.soc_reference)
         if self.soc_lo is not None:
             m &= soc >= self.soc_lo
         if self.soc_hi is not None:
@@ -58,7 +163,10 @@ class EvalWindow:
         if self.soc_lo is not None or self.soc_hi is not None:
             lo = "0" if self.soc_lo is None else f"{100 * self.soc_lo:g}"
             hi = "100" if self.soc_hi is None else f"{100 * self.soc_hi:g}"
-            parts.append(f"estimated SOC within {lo}-{hi} %")
+            which = "estimated SOC" if self.soc_reference is None else "SOC"
+            parts.append(f"{which} within {lo}-{hi} %")
+            if self.soc_reference is not None:
+                parts.append(f"SOC: {self.soc_reference.describe()}")
         return "; ".join(parts) or "all ticks"
 
     def as_dict(self) -> dict[str, Any]:
@@ -66,10 +174,138 @@ class EvalWindow:
             "skip_fraction": self.skip_fraction,
             "soc_lo": self.soc_lo,
             "soc_hi": self.soc_hi,
+            "soc_source": "estimator" if self.soc_reference is None else "coulomb_count",
             "description": self.describe(),
         }
 
 
+@dataclass(frozen=True)
+class SocBand:
+    """A SOC band: ``lo <= z < hi`` (fractions; ``None`` is open), the top in-range band also
+    holding z = 1. Ticks outside 0..1 fall in the ``<0 %`` and ``>100 %`` bands."""
+
+    label: str
+    lo: float | None
+    hi: float | None
+
+
+def _band_label(lo: float, hi: float) -> str:
+    return f"{100 * lo:g}-{100 * hi:g} %"
+
+
+#: Every band, in SOC order: below 0, the ten 10 % bands, above 100 (indices of ``band_index``).
+SOC_BANDS: tuple[SocBand, ...] = (
+    SocBand("<0 %", None, 0.0),
+    *(SocBand(_band_label(lo, hi), lo, hi) for lo, hi in itertools.pairwise(SOC_BAND_EDGES)),
+    SocBand(">100 %", 1.0, None),
+)
+
+
+def band_index(soc: FloatArray) -> IntArray:
+    """Index into ``SOC_BANDS`` of each SOC (fraction), -1 for a non-finite one."""
+    z = np.asarray(soc, dtype=np.float64)
+    edges = np.asarray(SOC_BAND_EDGES)
+    idx = np.searchsorted(edges, z, side="right")  # 0 below 0, k in [edge k-1, edge k), 11 >= 1
+    idx = np.where(z == edges[-1], len(edges) - 1, idx)  # a full cell belongs to 90-100 %
+    return np.where(np.isfinite(z), idx, -1).astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- scores
+@dataclass(frozen=True)
+class BandScore:
+    """Eq. 31 over the ticks whose scoring SOC lies in ``band``."""
+
+    band: SocBand
+    metrics: VoltageMetrics
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "band": self.band.label,
+            "soc_lo": self.band.lo,
+            "soc_hi": self.band.hi,
+            **self.metrics.as_dict(),
+        }
+
+
+@dataclass(frozen=True)
+class ScoreSet:
+    """Eq. 31 (errors in V, MAPE in %) over the parts of one record, for one cell or pooled:
+    ``overall`` every tick, ``startup`` the first ``STARTUP_FRACTION`` of the ticks,
+    ``after_startup`` the others, ``window`` the evaluation window, ``soc_bands`` the non-empty
+    SOC bands in SOC order."""
+
+    overall: VoltageMetrics
+    startup: VoltageMetrics
+    after_startup: VoltageMetrics
+    window: VoltageMetrics
+    soc_bands: tuple[BandScore, ...]
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Eq. 31 pooled over the cells (``pooled``) and per cell (``cells``); ``n_startup_ticks``
+    ticks form the start-up."""
+
+    pooled: ScoreSet
+    cells: tuple[ScoreSet, ...]
+    n_startup_ticks: int
+
+    @property
+    def window(self) -> VoltageMetrics:
+        return self.pooled.window
+
+    @property
+    def overall(self) -> VoltageMetrics:
+        return self.pooled.overall
+
+    @property
+    def per_cell_window(self) -> list[VoltageMetrics]:
+        return [c.window for c in self.cells]
+
+    @property
+    def per_cell_overall(self) -> list[VoltageMetrics]:
+        return [c.overall for c in self.cells]
+
+
+def _score_set(
+    meas: FloatArray, model: FloatArray, startup: BoolArray, window: BoolArray, band: IntArray
+) -> ScoreSet:
+    """Eq. 31 over the parts of equally shaped arrays (1-D for a cell, 2-D pooled)."""
+
+    def part(mask: BoolArray) -> VoltageMetrics:
+        # A NaN measurement leaves a tick out of voltage_metrics: that is how a part is masked.
+        return voltage_metrics(np.where(mask, meas, np.nan).ravel(), model.ravel())
+
+    bands = (BandScore(b, part(band == k)) for k, b in enumerate(SOC_BANDS))
+    return ScoreSet(
+        overall=part(np.ones_like(window)),
+        startup=part(startup),
+        after_startup=part(~startup),
+        window=part(window),
+        soc_bands=tuple(b for b in bands if b.metrics.n_samples > 0),
+    )
+
+
+def score(trace: EstimateBlock, window: EvalWindow) -> Scores:
+    """Eq. 31 on the model voltage, pooled over the cells and per cell: the whole record, the
+    start-up and the rest, ``window``, and the SOC bands of ``window.soc_reference``'s SOC."""
+    meas = np.asarray(trace["v_meas_V"], dtype=np.float64)
+    model = np.asarray(trace["v_model_V"], dtype=np.float64)
+    n0 = startup_ticks(trace.n_ticks)
+    startup = np.repeat((np.arange(trace.n_ticks) < n0)[:, None], trace.n_cells, axis=1)
+    win = window.mask(trace)
+    band = band_index(scoring_soc(trace, window.soc_reference))
+    return Scores(
+        pooled=_score_set(meas, model, startup, win, band),
+        cells=tuple(
+            _score_set(meas[:, c], model[:, c], startup[:, c], win[:, c], band[:, c])
+            for c in range(trace.n_cells)
+        ),
+        n_startup_ticks=n0,
+    )
+
+
+# ----------------------------------------------------------------------------- metrics.json
 @dataclass(frozen=True)
 class IdentifyResult:
     """One bank run over a recording.
@@ -101,51 +337,75 @@ class IdentifyResult:
     cell_names: list[str] = field(default_factory=list)
 
 
-@dataclass(frozen=True)
-class Scores:
-    """Eq. 31 metrics: pooled over the cells and per cell, in the window and over all ticks."""
+def _parts(s: ScoreSet, n_ticks: int, n_startup: int) -> dict[str, Any]:
+    return {
+        "overall": s.overall.as_dict(),
+        "startup": {"n_ticks": n_startup, **s.startup.as_dict()},
+        "after_startup": {"n_ticks": n_ticks - n_startup, **s.after_startup.as_dict()},
+        "soc_bands": [b.as_dict() for b in s.soc_bands],
+    }
 
-    window: VoltageMetrics
-    overall: VoltageMetrics
-    per_cell_window: list[VoltageMetrics]
-    per_cell_overall: list[VoltageMetrics]
+
+def _soc_range(z: FloatArray) -> dict[str, float | None]:
+    ok = z[np.isfinite(z)]
+    if ok.size == 0:
+        return {"soc_first": None, "soc_last": None, "soc_min": None, "soc_max": None}
+    first, last = z[0], z[-1]
+    return {
+        "soc_first": float(np.nanmean(first)) if np.isfinite(first).any() else None,
+        "soc_last": float(np.nanmean(last)) if np.isfinite(last).any() else None,
+        "soc_min": float(ok.min()),
+        "soc_max": float(ok.max()),
+    }
 
 
-def score(trace: EstimateBlock, window: EvalWindow) -> Scores:
-    """Eq. 31 on the model voltage, pooled over cells and per cell, in ``window`` and overall."""
-    m = window.mask(trace)
-    meas, model = trace["v_meas_V"], trace["v_model_V"]
-    nan = np.nan
-    return Scores(
-        window=voltage_metrics(np.where(m, meas, nan).ravel(), model.ravel()),
-        overall=voltage_metrics(meas.ravel(), model.ravel()),
-        per_cell_window=[
-            voltage_metrics(np.where(m[:, c], meas[:, c], nan), model[:, c])
-            for c in range(trace.n_cells)
-        ],
-        per_cell_overall=[voltage_metrics(meas[:, c], model[:, c]) for c in range(trace.n_cells)],
-    )
+def scoring_soc_document(trace: EstimateBlock, reference: SocReference | None) -> dict[str, Any]:
+    """The ``scoring_soc`` entry of metrics.json: which SOC decided the window and the bands, and
+    the range it covered (fractions; first and last ticks averaged over the cells)."""
+    head: dict[str, Any]
+    if reference is None:
+        head = {"source": "estimator", "description": "the estimator's SOC (coulomb count)"}
+    else:
+        head = {
+            "source": "coulomb_count",
+            "description": reference.describe(),
+            "soc0": reference.soc0,
+            "capacity_Ah": reference.capacity_Ah,
+            "coulombic_efficiency": reference.coulombic_efficiency,
+            "gap_s": reference.gap_s,
+        }
+    return {**head, **_soc_range(scoring_soc(trace, reference))}
 
 
 def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, Any]:
-    """The content of metrics.json: window metrics at the top, per cell under ``cells``."""
+    """The content of metrics.json.
+
+    Top level: Eq. 31 over ``window`` (``n_samples``, ``max_abs_error_V``, ``rmse_V``,
+    ``mape_pct``; the whole record by default), then ``overall`` (every tick), ``startup`` (the
+    first ``STARTUP_FRACTION`` of the ticks) and ``after_startup`` (the rest), ``soc_bands``
+    (non-empty 10 % SOC bands), ``evaluation_window`` and ``scoring_soc`` (the SOC that decided
+    the window and bands); the same per cell under ``cells``.
+    """
     s = score(result.trace, window)
+    n, n0 = result.trace.n_ticks, s.n_startup_ticks
     cells: dict[str, Any] = {}
     for c, name in enumerate(result.cell_names):
         cells[name] = {
             "algorithm": result.variant,
-            **s.per_cell_window[c].as_dict(),
+            **s.cells[c].window.as_dict(),
             "runtime_s": result.runtime_s,
-            "overall": s.per_cell_overall[c].as_dict(),
+            **_parts(s.cells[c], n, n0),
         }
     return {
         "algorithm": result.variant,
         **s.window.as_dict(),
         "runtime_s": result.runtime_s,
         "evaluation_window": window.as_dict(),
-        "overall": s.overall.as_dict(),
+        **_parts(s.pooled, n, n0),
+        "startup_fraction": STARTUP_FRACTION,
+        "scoring_soc": scoring_soc_document(result.trace, window.soc_reference),
         "n_input_samples": result.n_samples,
-        "n_ticks": result.trace.n_ticks,
+        "n_ticks": n,
         "soc_init_method": result.soc_init_method,
         "counters": result.counters,
         "cells": cells,

@@ -1,0 +1,578 @@
+"""Is a recording what it claims to be? Checks run on the arrays before they are identified.
+
+Each check is a pure function over columns (time s, current A with + = discharge, cell voltages
+V) and plain numbers, returning :class:`Finding` values (level, a stable code, one line of
+text). Nothing here reads files or prints: ``bmsid identify`` prints the findings and turns the
+first error into a ``UserError``; the daemon can run the same checks on its sample blocks.
+
+Levels: ``error`` where identifying would give garbage (time in milliseconds, a flipped current
+sign), ``warning`` where the result is only doubtful (a capacity that does not fit the record,
+too little excitation for the capacity, an assumed cell).
+
+Evidence used:
+
+- **time unit**: a record logged in ms has a median step of 10-1000 "s" with a current that
+  changes at most steps (no tester logs a drive cycle every 1000 s), and a coulomb count in
+  seconds that moves many times the capacity while in ms it moves a plausible share of it;
+- **current sign**: at a current step the voltage answers at once through R0, against the step
+  when positive = discharge (U = OCV - R0 I - ...); so voltage steps correlate negatively with
+  current steps, and a strong positive correlation means the sign is flipped;
+- **capacity**: no cell moves more than its capacity (within ageing and efficiency, 25 %) in
+  one direction; the engine's excitation threshold is ``excitation_C`` times the capacity, so a
+  capacity far too large leaves every tick "poorly excited" and the swarm never runs;
+- **capacity from the record**: a discharge from full (at rest) to empty (at a cut-off) moves
+  the capacity (a lower bound: a cut-off under load leaves some charge in the cell).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+Level = Literal["error", "warning"]
+
+#: The engine's gap threshold (``EstimatorTuning.gap_s``), s: the coulomb count assumes rest
+#: over longer steps, as the engine does.
+GAP_S = 30.0
+
+# Time unit: a median step this long (in the file's unit) with a current that changes at
+# DYNAMIC_SHARE of the steps or more (a drive cycle's steps, not a constant-current OCV test) is a
+# record in ms; so is a coulomb count that in seconds moves more than MS_CAPACITY_RATIO
+# capacities and in ms a plausible share of one (MS_PLAUSIBLE_LO..HI).
+MS_MEDIAN_STEP = 100.0
+MS_MEDIAN_STEP_WITH_CAPACITY = 10.0
+DYNAMIC_SHARE = 0.02
+MS_CAPACITY_RATIO = 3.0
+MS_PLAUSIBLE_LO, MS_PLAUSIBLE_HI = 0.05, 1.5
+
+# Current sign: steps of at least STEP_SHARE of the peak current, within SIGN_MAX_DT_S of each
+# other (the R0 response is immediate; OCV drift over long steps would blur it).
+STEP_SHARE = 0.05
+SIGN_MAX_DT_S = 60.0
+SIGN_ERROR_CORR, SIGN_ERROR_MIN_STEPS = 0.5, 10
+SIGN_WARN_CORR, SIGN_WARN_MIN_STEPS = 0.2, 5
+
+# Capacity: one-direction charge beyond this many capacities (a configured capacity; an assumed
+# one is checked at 1x), and below TINY_SHARE of an assumed capacity with peaks below
+# TINY_PEAK_C (a short record of the right cell moves little but still peaks at its C-rate).
+CAPACITY_SLACK = 1.25
+TINY_SHARE = 0.05
+TINY_PEAK_C = 0.5
+EXCITED_SHARE_MIN = 0.05
+
+# SOC by coulomb count further than this outside [0, 1] (fraction).
+SOC_SLACK = 0.1
+
+# Full and empty, for a capacity read off the record: rested voltages of a full Li-ion cell
+# (NMC/NCA/LCO >= 4.1 V; LFP on its flat plateau, 3.40-3.65 V) and cut-offs under load.
+FULL_NMC_V, EMPTY_NMC_V = 4.1, 3.0
+FULL_LFP_V, LFP_MAX_V, EMPTY_LFP_V = 3.40, 3.65, 2.7
+LFP_PLATEAU_SPAN_V = 0.15
+REST_SHARE = 0.05
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One result of a check: ``level``, a stable ``code`` (for metrics.json) and one line."""
+
+    level: Level
+    code: str
+    message: str
+
+    def line(self) -> str:
+        """The line to print: ``WARNING: ...`` or ``ERROR: ...``."""
+        return f"{self.level.upper()}: {self.message}"
+
+    def as_dict(self) -> dict[str, str]:
+        return {"level": self.level, "code": self.code, "message": self.message}
+
+
+def first_error(findings: Iterable[Finding]) -> Finding | None:
+    """The first finding of level ``error``, if any."""
+    return next((f for f in findings if f.level == "error"), None)
+
+
+# ----------------------------------------------------------------------------- time base
+@dataclass(frozen=True)
+class SamplePeriod:
+    """The time base of a record: median step (s) and steps longer than ``gap_s`` (gaps)."""
+
+    median_dt_s: float
+    n_gaps: int
+    gap_s: float = GAP_S
+
+    def text(self) -> str:
+        """``median dt 1 s, 0 gaps > 30 s``."""
+        dt = "n/a" if math.isnan(self.median_dt_s) else f"{self.median_dt_s:.4g} s"
+        return f"median dt {dt}, {self.n_gaps} gap(s) > {self.gap_s:g} s"
+
+
+def sample_period(t_s: FloatArray, gap_s: float = GAP_S) -> SamplePeriod:
+    """Median forward step (s; NaN with fewer than 2 samples) and the number of gaps."""
+    dt = np.diff(np.asarray(t_s, dtype=np.float64))
+    fwd = dt[dt > 0]
+    med = float(np.median(fwd)) if fwd.size else math.nan
+    return SamplePeriod(median_dt_s=med, n_gaps=int(np.count_nonzero(dt > gap_s)), gap_s=gap_s)
+
+
+def coulomb_Ah(t_s: FloatArray, current_A: FloatArray, gap_s: float | None = GAP_S) -> FloatArray:
+    """Discharged charge since the first sample, Ah (+ = discharge), shape (n,).
+
+    Each sample's current is held until the next sample (as the engine counts); over a step
+    longer than ``gap_s`` the cell is taken to rest (None: no gap rule).
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    dt = np.clip(np.diff(t), 0.0, None)
+    if gap_s is not None:
+        dt = np.where(dt > gap_s, 0.0, dt)
+    return np.concatenate([[0.0], np.cumsum(i[:-1] * dt)]) / 3600.0
+
+
+@dataclass(frozen=True)
+class Excursion:
+    """The largest one-direction charge movement: ``charge_Ah`` (> 0) from sample ``start`` to
+    ``end``; ``direction`` is ``discharge`` or ``charge``."""
+
+    charge_Ah: float
+    start: int
+    end: int
+    direction: Literal["discharge", "charge"]
+
+
+def max_excursion(q_Ah: FloatArray) -> Excursion:
+    """The widest swing of a cumulative charge (Ah): max over a <= b of |q[b] - q[a]|."""
+    q = np.asarray(q_Ah, dtype=np.float64)
+    lo = np.minimum.accumulate(q)
+    hi = np.maximum.accumulate(q)
+    b_dis = int(np.argmax(q - lo))
+    b_chg = int(np.argmax(hi - q))
+    dis = float(q[b_dis] - lo[b_dis])
+    chg = float(hi[b_chg] - q[b_chg])
+    if dis >= chg:
+        a = int(np.argmin(q[: b_dis + 1]))
+        return Excursion(dis, a, b_dis, "discharge")
+    a = int(np.argmax(q[: b_chg + 1]))
+    return Excursion(chg, a, b_chg, "charge")
+
+
+def check_time_unit(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    capacity_Ah: float | None,
+    fix: str = "--columns t_s=t_s*0.001",
+    gap_s: float = GAP_S,
+) -> list[Finding]:
+    """An error when ``t_s`` looks like milliseconds, or its steps are longer than ``gap_s``.
+
+    Refused rather than converted: the evidence is a heuristic, a silently rescaled time axis
+    changes every time constant, and the fix (``fix``, shown in the message) is one option.
+    A median step beyond the engine's gap threshold is an error in any unit: the engine would
+    take nearly every step for a gap and assume rest over it (``--tuning gap_s`` says otherwise).
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    if t.size < 3:
+        return []
+    period = sample_period(t, gap_s)
+    med = period.median_dt_s
+    if not med >= MS_MEDIAN_STEP_WITH_CAPACITY:
+        return []
+    span = float(np.ptp(i))
+    changes = float(np.mean(np.abs(np.diff(i)) > 0.02 * span)) if span > 0 else 0.0
+    evidence: list[str] = []
+    if med >= MS_MEDIAN_STEP and changes >= DYNAMIC_SHARE:
+        evidence.append(f"a current that changes at {100 * changes:.0f} % of the steps")
+    if capacity_Ah is not None and capacity_Ah > 0:
+        moved = max_excursion(coulomb_Ah(t, i, gap_s=None)).charge_Ah
+        ratio = moved / capacity_Ah
+        if ratio > MS_CAPACITY_RATIO and MS_PLAUSIBLE_LO <= ratio / 1000 <= MS_PLAUSIBLE_HI:
+            evidence.append(
+                f"a coulomb count in seconds that moves {moved:.4g} Ah of a {capacity_Ah:g} Ah "
+                f"cell ({moved / 1000:.3g} Ah in ms)"
+            )
+    gaps = f"{period.n_gaps} of {t.size - 1} steps are gaps > {gap_s:g} s"
+    if evidence:
+        return [
+            Finding(
+                "error",
+                "time_unit_ms",
+                f"t_s looks like milliseconds (median step {med:g} with "
+                f"{' and '.join(evidence)}; {gaps}): give t_s in seconds, e.g. {fix}",
+            )
+        ]
+    if med > gap_s:
+        return [
+            Finding(
+                "error",
+                "time_steps_too_long",
+                f"the median step of t_s is {med:g} s, longer than the engine's gap threshold "
+                f"({gaps}, over which it assumes rest): if t_s is in milliseconds give it in "
+                f"seconds (e.g. {fix}), else raise --tuning gap_s",
+            )
+        ]
+    return []
+
+
+# ----------------------------------------------------------------------------- current sign
+@dataclass(frozen=True)
+class SignEvidence:
+    """Correlation of voltage steps with current steps (median over cells) and the steps used."""
+
+    corr: float
+    n_steps: int
+
+
+def current_sign_evidence(
+    t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray
+) -> SignEvidence:
+    """corr(dV, dI) over the record's current steps (see the module docstring); NaN when the
+    record has fewer than 3 usable steps. ``voltages_V`` has shape (n,) or (n, cells)."""
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    v = np.asarray(voltages_V, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    if t.size < 4:
+        return SignEvidence(math.nan, 0)
+    di = np.diff(i)
+    dt = np.diff(t)
+    peak = float(np.max(np.abs(i)))
+    steps = (np.abs(di) >= STEP_SHARE * peak) & (dt > 0) & (dt <= SIGN_MAX_DT_S) & (peak > 0)
+    corrs: list[float] = []
+    n_used = 0
+    for c in range(v.shape[1]):
+        dv = np.diff(v[:, c])
+        use = steps & np.isfinite(dv) & np.isfinite(di)
+        n = int(np.count_nonzero(use))
+        if n < 3 or np.std(dv[use]) == 0 or np.std(di[use]) == 0:
+            continue
+        corrs.append(float(np.corrcoef(dv[use], di[use])[0, 1]))
+        n_used = max(n_used, n)
+    if not corrs:
+        return SignEvidence(math.nan, 0)
+    return SignEvidence(float(np.median(corrs)), n_used)
+
+
+def check_current_sign(
+    t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, charge_positive: bool = False
+) -> list[Finding]:
+    """An error (strong evidence) or warning (weak) when voltage steps follow current steps.
+
+    ``charge_positive``: the user already flipped the sign, so the hint is to drop the flag.
+    """
+    ev = current_sign_evidence(t_s, current_A, voltages_V)
+    if math.isnan(ev.corr):
+        return []
+    fix = "drop --charge-positive" if charge_positive else "pass --charge-positive"
+    stat = f"corr(dV, dI) = {ev.corr:+.2f} over {ev.n_steps} current steps"
+    if ev.corr >= SIGN_ERROR_CORR and ev.n_steps >= SIGN_ERROR_MIN_STEPS:
+        return [
+            Finding(
+                "error",
+                "current_sign",
+                f"current sign looks flipped (voltage rises when the current rises: {stat}): {fix}",
+            )
+        ]
+    if ev.corr >= SIGN_WARN_CORR and ev.n_steps >= SIGN_WARN_MIN_STEPS:
+        return [
+            Finding(
+                "warning",
+                "current_sign",
+                f"current sign may be flipped ({stat}; with positive = discharge it is "
+                f"negative): check it; {fix} if it is",
+            )
+        ]
+    return []
+
+
+# ----------------------------------------------------------------------------- capacity
+def check_capacity(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    capacity_Ah: float,
+    *,
+    assumed: bool = False,
+    gap_s: float = GAP_S,
+) -> list[Finding]:
+    """Warnings when the record's one-direction charge does not fit ``capacity_Ah``.
+
+    ``assumed``: the capacity is not the user's (no cell config, no ``--capacity-ah``); then a
+    record moving more than 1x, or less than ``TINY_SHARE`` of it at low C-rates, is worth a
+    line.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    if t.size < 2 or not capacity_Ah > 0:
+        return []
+    ex = max_excursion(coulomb_Ah(t, i, gap_s))
+    ratio = ex.charge_Ah / capacity_Ah
+    what = "the assumed capacity" if assumed else "the capacity"
+    fix = "give --capacity-ah or --cell-config" if assumed else "check the capacity"
+    where = f"t = {t[ex.start]:g}..{t[ex.end]:g} s"
+    if ratio > (1.0 if assumed else CAPACITY_SLACK):
+        return [
+            Finding(
+                "warning",
+                "capacity_exceeded",
+                f"the record moves {ex.charge_Ah:.4g} Ah in one direction ({ex.direction}, "
+                f"{where}), {ratio:.2g}x {what} {capacity_Ah:g} Ah: {fix}, the current unit "
+                "and the time unit",
+            )
+        ]
+    peak_C = float(np.max(np.abs(i))) / capacity_Ah
+    if assumed and ratio < TINY_SHARE and peak_C < TINY_PEAK_C:  # a short record peaks higher
+        return [
+            Finding(
+                "warning",
+                "capacity_tiny",
+                f"the record moves only {ex.charge_Ah:.3g} Ah ({100 * ratio:.1f} % of the "
+                f"assumed {capacity_Ah:g} Ah) with peaks of {peak_C:.2g} C: a smaller cell? "
+                f"{fix}",
+            )
+        ]
+    return []
+
+
+def excited_share(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    capacity_Ah: float,
+    excitation_C: float = 0.02,
+    window_s: float = 300.0,
+) -> tuple[float, float]:
+    """Share of samples the engine would call excited, and the peak RMS current variation (A).
+
+    Mirrors the tick assembler's running variance of the current (time constant ``window_s``)
+    at the raw rate; a tick is excited when that RMS is at least ``excitation_C x capacity``.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    n = t.size
+    if n == 0:
+        return 0.0, 0.0
+    g = np.concatenate([[0.0], 1.0 - np.exp(-np.clip(np.diff(t), 0.0, None) / window_s)])
+    mean = var = 0.0
+    std = np.empty(n)
+    # A recursion (the mean enters the variance): ~0.3 us per sample in plain floats.
+    for k, (gk, ik) in enumerate(zip(g.tolist(), i.tolist(), strict=True)):
+        mean += gk * (ik - mean)
+        var += gk * ((ik - mean) ** 2 - var)
+        std[k] = math.sqrt(max(var, 0.0))
+    threshold = excitation_C * capacity_Ah
+    return float(np.mean(std >= threshold)), float(np.max(std))
+
+
+def check_excitation(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    capacity_Ah: float,
+    *,
+    excitation_C: float = 0.02,
+    window_s: float = 300.0,
+    assumed: bool = False,
+) -> list[Finding]:
+    """A warning when almost no sample passes the engine's excitation threshold, which is
+    relative to the capacity (so a capacity far too large starves the estimator)."""
+    share, peak = excited_share(t_s, current_A, capacity_Ah, excitation_C, window_s)
+    if len(t_s) < 2 or share >= EXCITED_SHARE_MIN:
+        return []
+    what = "assumed " if assumed else ""
+    hint = "; give the cell's capacity (--capacity-ah or --cell-config)" if assumed else ""
+    return [
+        Finding(
+            "warning",
+            "poorly_excited",
+            f"only {100 * share:.1f} % of the record is excited enough to identify: the "
+            f"current's running RMS variation peaks at {peak:.3g} A against a threshold of "
+            f"excitation_C {excitation_C:g} x the {what}capacity {capacity_Ah:g} Ah = "
+            f"{excitation_C * capacity_Ah:.3g} A (the threshold is relative to the capacity); "
+            f"parameters stay near their start values and the swarm may never run{hint}",
+        )
+    ]
+
+
+def coulomb_soc(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    capacity_Ah: float,
+    soc0: float,
+    gap_s: float = GAP_S,
+) -> FloatArray:
+    """SOC (fraction) by coulomb count from ``soc0``, efficiency 1, unclamped."""
+    return soc0 - coulomb_Ah(t_s, current_A, gap_s) / capacity_Ah
+
+
+def check_soc_range(soc: FloatArray, capacity_Ah: float, start: str) -> list[Finding]:
+    """A warning when a coulomb-counted SOC (fraction, any shape) leaves [0, 1] by more than
+    ``SOC_SLACK``: a hint at a flipped sign, a wrong capacity or a wrong start (``start`` says
+    where the start SOC came from, e.g. ``--soc0``)."""
+    z = np.asarray(soc, dtype=np.float64)
+    z = z[np.isfinite(z)]
+    if z.size == 0:
+        return []
+    lo, hi = float(np.min(z)), float(np.max(z))
+    if lo >= -SOC_SLACK and hi <= 1.0 + SOC_SLACK:
+        return []
+    return [
+        Finding(
+            "warning",
+            "soc_out_of_range",
+            f"SOC by coulomb count from {start} spans {100 * lo:.0f}..{100 * hi:.0f} %: the "
+            f"current sign (--charge-positive), the capacity ({capacity_Ah:g} Ah) or the start "
+            "SOC is off",
+        )
+    ]
+
+
+@dataclass(frozen=True)
+class CapacityEstimate:
+    """A capacity read off a full-to-empty discharge in the record (Ah, a lower bound)."""
+
+    capacity_Ah: float
+    v_full_V: float
+    v_empty_V: float
+    chemistry: Literal["NMC", "LFP"]
+
+    def text(self) -> str:
+        return (
+            f"a full-to-empty discharge in the record ({self.v_full_V:.3f} V at rest to "
+            f"{self.v_empty_V:.3f} V, {self.chemistry}-like) moves {self.capacity_Ah:.3g} Ah"
+        )
+
+
+def derive_capacity(
+    t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, gap_s: float = GAP_S
+) -> CapacityEstimate | None:
+    """The capacity (Ah) when the record discharges a cell from full to empty, else None.
+
+    Full: at rest (|I| below ``REST_SHARE`` of the peak) at >= 4.1 V, or on an LFP-like flat
+    plateau (3.40-3.65 V at rest, the whole record below 3.7 V, the resting voltage in the middle
+    of the discharge within 0.15 V). Empty: the weakest cell at or below the cut-off (3.0 V;
+    LFP 2.7 V) at the end of the discharge. Packs use the cell mean (full) and minimum (empty).
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    v = np.asarray(voltages_V, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    if t.size < 10 or not np.all(np.isfinite(v)):
+        return None
+    q = coulomb_Ah(t, i, gap_s)
+    ex = max_excursion(q)
+    if ex.direction != "discharge" or ex.charge_Ah <= 0:
+        return None
+    peak = float(np.max(np.abs(i)))
+    a, b = ex.start, ex.end
+    if abs(i[a]) > REST_SHARE * peak:
+        return None
+    v_full = float(np.mean(v[a]))
+    v_empty = float(np.min(v[b]))
+    if v_full >= FULL_NMC_V and v_empty <= EMPTY_NMC_V:
+        return CapacityEstimate(ex.charge_Ah, v_full, v_empty, "NMC")
+    if not (FULL_LFP_V <= v_full <= LFP_MAX_V and float(np.max(v)) <= LFP_MAX_V + 0.05):
+        return None
+    if v_empty > EMPTY_LFP_V:
+        return None
+    seg = slice(a, b + 1)
+    qs, vs, rest = q[seg] - q[a], np.mean(v[seg], axis=1), np.abs(i[seg]) <= REST_SHARE * peak
+    middle = rest & (qs >= 0.2 * ex.charge_Ah) & (qs <= 0.8 * ex.charge_Ah)
+    if np.count_nonzero(middle) < 3:
+        return None
+    lo, hi = np.percentile(vs[middle], [5, 95])
+    if hi - lo > LFP_PLATEAU_SPAN_V:
+        return None
+    return CapacityEstimate(ex.charge_Ah, v_full, v_empty, "LFP")
+
+
+def assumed_cell(
+    name: str,
+    capacity_Ah: float,
+    *,
+    capacity_from: Literal["cell", "option", "record"] = "cell",
+    chemistry: str = "NMC",
+    record_chemistry: str | None = None,
+) -> Finding:
+    """The loud line for a run without a cell config: which cell and capacity are assumed.
+
+    ``capacity_from``: the assumed cell's own capacity, ``--capacity-ah``, or the record (a
+    full-to-empty discharge, :func:`derive_capacity`, whose ``record_chemistry`` is named when
+    it differs from the assumed cell's ``chemistry``: its OCV cannot fit).
+    """
+    source = {
+        "cell": f"its {capacity_Ah:g} Ah",
+        "option": f"{capacity_Ah:g} Ah from --capacity-ah",
+        "record": f"{capacity_Ah:.3g} Ah read off the record",
+    }[capacity_from]
+    mismatch = ""
+    if record_chemistry is not None and record_chemistry != chemistry:
+        mismatch = f" (the record looks {record_chemistry}-like: the {chemistry} OCV cannot fit it)"
+    return Finding(
+        "warning",
+        "no_cell_config",
+        f"no --cell-config: assuming the paper's cell {name!r} (Table 1 OCV, 15 mV hysteresis) "
+        f"with {source}{mismatch}; another cell needs its own config (bmsid fit-ocv) or at "
+        "least --capacity-ah",
+    )
+
+
+def check_consistency(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    *,
+    capacity_Ah: float,
+    capacity_assumed: bool = False,
+    soc0: float | None = None,
+    charge_positive: bool = False,
+    excitation_C: float = 0.02,
+    excitation_window_s: float = 300.0,
+    gap_s: float = GAP_S,
+) -> list[Finding]:
+    """The checks that need a right time axis: current sign, capacity, excitation and (with a
+    known start ``soc0``) the coulomb-counted SOC range."""
+    out = check_current_sign(t_s, current_A, voltages_V, charge_positive)
+    out += check_capacity(t_s, current_A, capacity_Ah, assumed=capacity_assumed, gap_s=gap_s)
+    out += check_excitation(
+        t_s, current_A, capacity_Ah, excitation_C=excitation_C,
+        window_s=excitation_window_s, assumed=capacity_assumed,
+    )  # fmt: skip
+    if soc0 is not None:
+        z = coulomb_soc(t_s, current_A, capacity_Ah, soc0, gap_s)
+        out += check_soc_range(z, capacity_Ah, f"--soc0 {100 * soc0:g} %")
+    return out
+
+
+def check_record(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    *,
+    capacity_Ah: float,
+    capacity_assumed: bool = False,
+    soc0: float | None = None,
+    charge_positive: bool = False,
+    excitation_C: float = 0.02,
+    excitation_window_s: float = 300.0,
+    gap_s: float = GAP_S,
+    time_fix: str = "--columns t_s=t_s*0.001",
+) -> list[Finding]:
+    """:func:`check_time_unit`, then (unless it found an error: every other number would be
+    computed on a wrong time axis) :func:`check_consistency`."""
+    out = check_time_unit(t_s, current_A, capacity_Ah, time_fix, gap_s)
+    if first_error(out):
+        return out
+    return out + check_consistency(
+        t_s, current_A, voltages_V, capacity_Ah=capacity_Ah, capacity_assumed=capacity_assumed,
+        soc0=soc0, charge_positive=charge_positive, excitation_C=excitation_C,
+        excitation_window_s=excitation_window_s, gap_s=gap_s,
+    )  # fmt: skip
+
+
+def lines(findings: Sequence[Finding]) -> list[str]:
+    """The printable lines of ``findings``, in order."""
+    return [f.line() for f in findings]

@@ -1,0 +1,74 @@
+"""Start values and bounds measured on the record (estimate/startvalues.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bmsid.config.cell import paper_cell
+from bmsid.config.engine import cell_model, ocv_model
+from bmsid.estimate.startvalues import start_values_from_record, step_resistances
+from bmsid.estimate.tuning import EstimatorTuning
+from bmsid.model.simulator import simulate
+from bmsid.profiles import dst_current
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    r0_ah=st.floats(0.005, 0.2),  # R0 x capacity, ohm Ah: 1 mOhm at 20 Ah .. 100 mOhm at 2 Ah
+    r1_share=st.floats(0.1, 2.0),
+    tau1=st.floats(5.0, 100.0),
+    capacity=st.floats(1.0, 200.0),
+)
+def test_r0_from_the_steps_of_a_drive_cycle(
+    r0_ah: float, r1_share: float, tau1: float, capacity: float
+) -> None:
+    """The median one-sample -dV/dI of a DST drive recovers R0 within the share of R1 that
+    one second of the fast branch adds (1 - exp(-1/tau1)), plus 5 % for the OCV, hysteresis
+    and branch drift over that second."""
+    r0 = r0_ah / capacity
+    t = np.arange(0.0, 1800.0)
+    i = dst_current(t, capacity / 2.0)  # 2C peak
+    r1 = r1_share * r0
+    sim = simulate(t, i, ocv_model(paper_cell()), capacity_Ah=capacity, R0_ohm=r0, R1_ohm=r1,
+                   tau1_s=tau1, R2_ohm=r0, tau2_s=600.0, soc0=0.9)  # fmt: skip
+    sv = start_values_from_record(t, i, sim.v_V[0])
+    assert sv is not None and sv.n_steps >= 3
+    extra = r1_share * (1.0 - np.exp(-1.0 / tau1)) + (1.0 - np.exp(-1.0 / 600.0))
+    assert abs(sv.R0_ohm - r0) <= r0 * (extra + 0.05)
+
+
+def test_no_steps_no_start_values() -> None:
+    t = np.arange(0.0, 600.0)
+    assert start_values_from_record(t, np.full(600, 2.0), np.full(600, 3.6)) is None
+
+
+def test_nan_samples_and_slow_steps_do_not_count() -> None:
+    t = np.array([0.0, 1.0, 2.0, 10.0, 11.0])
+    i = np.array([0.0, 10.0, 0.0, 10.0, 0.0])
+    v = np.array([3.7, 3.69, np.nan, 3.69, 3.7])
+    r = step_resistances(t, i, v)
+    np.testing.assert_allclose(r, [1e-3, 1e-3])  # 0->10 A and 10->0 A; the 8 s step is out
+
+
+def test_bounds_follow_the_measured_r0_and_the_tick_rate() -> None:
+    """Config without [initial]/[bounds]: start values and bounds from the record."""
+    cell = paper_cell().model_copy(update={"initial": None, "bounds": None})
+    t = np.arange(0.0, 1200.0)
+    i = dst_current(t, 35.0)
+    sim = simulate(t, i, ocv_model(cell), capacity_Ah=70.0, R0_ohm=5e-3, R1_ohm=2e-3,
+                   tau1_s=20.0, R2_ohm=3e-3, tau2_s=500.0, soc0=0.9)  # fmt: skip
+    sv = start_values_from_record(t, i, sim.v_V[0])
+    assert sv is not None
+    tun = EstimatorTuning(id_period_s=2.0, window_s=1200.0)
+    m = cell_model(cell, 3, sv, tun)
+    lo, hi = m.bound("R0_ohm")
+    assert lo[0] == pytest.approx(sv.R0_ohm / 4) and hi[0] == pytest.approx(sv.R0_ohm * 4)
+    assert m.bound("tau1_s")[0][0] == 4.0  # two ticks of 2 s
+    assert m.bound("tau2_s")[1][0] == 1200.0  # no slower than the swarm window
+    assert m.start("R0_ohm")[0] == sv.R0_ohm
+    # a config that gives them keeps them
+    fixed = cell_model(paper_cell(), 1, sv, tun)
+    assert fixed.start("R0_ohm")[0] == 2e-3 and fixed.bound("R0_ohm")[1][0] == 0.5

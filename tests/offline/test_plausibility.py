@@ -1,0 +1,378 @@
+"""Inputs checked before they are identified (issue 15, "What was measured" items 1 and 7):
+each case is fed to the pure check and to ``bmsid identify``, which must print one clear line
+and stop (exit 2) where the result would be garbage or warn where it is only doubtful."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bmsid.canbus.logs import csv_to_messages, write_log
+from bmsid.canbus.mapping import default_mapping
+from bmsid.cli.main import main
+from bmsid.config.cell import paper_cell, save_cell_config
+from bmsid.config.engine import ocv_model
+from bmsid.model.simulator import simulate
+from bmsid.offline import plausibility as pl
+from bmsid.offline.csvio import TesterData, read_tester_csv, write_tester_csv
+from bmsid.offline.inputs import open_input
+from bmsid.profiles import dst_current
+
+FloatArray = npt.NDArray[np.float64]
+REPO = Path(__file__).resolve().parents[2]
+DEMO_LOG = REPO / "service" / "bmsid" / "data" / "demo_pack.log"
+FAST = ["--algorithm", "non-hy-affrls"]
+
+
+def cell_record(
+    n: int = 1800, capacity_Ah: float = 2.0, peak_C: float = 2.0, soc0: float = 0.9, seed: int = 0
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A cell of ``capacity_Ah`` (the paper's OCV) after 60 s rest on DST at ``peak_C``, 1 s
+    samples: (t s, current A + = discharge, voltage V with 1 mV noise)."""
+    t = np.arange(n, dtype=np.float64)
+    i = np.where(t < 60, 0.0, dst_current(t - 60, peak_C * capacity_Ah))
+    r = 1.2e-3 * 70.0 / capacity_Ah  # the paper cell's resistances, scaled to this capacity
+    sim = simulate(
+        t, i, ocv_model(paper_cell()), capacity_Ah=capacity_Ah, gamma=30.0, soc0=soc0,
+        R0_ohm=r, R1_ohm=0.7 * r, tau1_s=30.0, R2_ohm=0.8 * r, tau2_s=600.0,
+    )  # fmt: skip
+    v = sim.v_V[0] + np.random.default_rng(seed).normal(0.0, 1e-3, n)
+    return t, i, v
+
+
+def write(path: Path, t: FloatArray, i: FloatArray, v: FloatArray) -> Path:
+    write_tester_csv(TesterData(t, i, v[:, None] if v.ndim == 1 else v, ["voltage_V"]), path)
+    return path
+
+
+def cell_config_file(path: Path, capacity_Ah: float) -> Path:
+    save_cell_config(paper_cell().model_copy(update={"capacity_Ah": capacity_Ah}), path)
+    return path
+
+
+def identify(
+    capsys: pytest.CaptureFixture[str], src: Path, out: Path, *extra: str
+) -> tuple[int, list[str], str]:
+    """Exit code, stdout lines and the stderr text of ``bmsid identify``."""
+    rc = main(["identify", str(src), "--out", str(out), *FAST, *extra])
+    cap = capsys.readouterr()
+    return rc, cap.out.splitlines(), cap.err.strip()
+
+
+def warnings(lines: list[str]) -> list[str]:
+    return [line for line in lines if line.startswith("WARNING: ")]
+
+
+# ----------------------------------------------------------------------------- item 1: repeats
+def test_identify_merges_repeated_timestamps_and_reports_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(1200)
+    rows = np.sort(np.concatenate([np.arange(t.size), [300, 301, 900]]))  # 3 rows logged twice
+    src = write(tmp_path / "rep.csv", t[rows], i[rows], v[rows])
+    cfg = cell_config_file(tmp_path / "cell.toml", 2.0)
+    rc, out, _ = identify(capsys, src, tmp_path / "o", "--cell-config", str(cfg))
+    assert rc == 0
+    assert out[0].startswith(f"{src}: 1200 samples, 1 cell(s), median dt 1 s, 0 gap(s) > 30 s;")
+    assert "merged 3 rows with repeated timestamps (the last row of each time is kept)" in out
+    src_in = open_input(src)  # what the library puts into metrics.json
+    assert src_in.merged_repeats == 3
+    assert src_in.input_report["merged_repeats"] == 3
+    assert src_in.input_report["median_dt_s"] == 1.0
+
+
+def test_identify_reports_gaps_and_rate_changes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(1200)
+    t = np.where(t < 600, t, t + 3600.0)  # an hour's pause after 600 s
+    t[:100] = np.arange(100) * 0.5  # and 2 Hz at the start
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    src = write(tmp_path / "gap.csv", t[keep], i[keep], v[keep])
+    cfg = cell_config_file(tmp_path / "cell.toml", 2.0)
+    rc, out, _ = identify(capsys, src, tmp_path / "o", "--cell-config", str(cfg))
+    assert rc == 0
+    assert ", median dt 1 s, 2 gap(s) > 30 s;" in out[0]  # the pause and the 2 Hz -> 1 Hz joint
+
+
+# ----------------------------------------------------------------------------- no cell config
+def test_no_cell_config_says_what_it_assumes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(1200, capacity_Ah=70.0)
+    rc, out, _ = identify(capsys, write(tmp_path / "p.csv", t, i, v), tmp_path / "o")
+    assert rc == 0
+    assert warnings(out) == [
+        "WARNING: no --cell-config: assuming the paper's cell 'paper-70Ah-NMC' (Table 1 OCV, "
+        "15 mV hysteresis) with its 70 Ah; another cell needs its own config (bmsid fit-ocv) "
+        "or at least --capacity-ah"
+    ]
+
+
+def test_small_cell_without_config_is_told_about_the_relative_threshold(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(1800, capacity_Ah=2.0, peak_C=1.0)
+    rc, out, _ = identify(capsys, write(tmp_path / "small.csv", t, i, v), tmp_path / "o")
+    assert rc == 0
+    w = warnings(out)
+    assert w[0].startswith("WARNING: no --cell-config: assuming the paper's cell")
+    assert w[1].startswith("WARNING: the record moves only ") and "of the assumed 70 Ah" in w[1]
+    assert "a smaller cell? give --capacity-ah or --cell-config" in w[1]
+    assert w[2].startswith("WARNING: only 0.0 % of the record is excited enough to identify")
+    assert "excitation_C 0.02 x the assumed capacity 70 Ah = 1.4 A" in w[2]
+    assert "(the threshold is relative to the capacity)" in w[2]
+    # The same record with its capacity: nothing doubtful left but the assumed OCV.
+    rc, out, _ = identify(capsys, tmp_path / "small.csv", tmp_path / "o2", "--capacity-ah", "2")
+    assert rc == 0
+    assert [w.split(":")[1] for w in warnings(out)] == [" no --cell-config"]
+    assert "with 2 Ah from --capacity-ah" in warnings(out)[0]
+
+
+def test_capacity_is_read_off_a_full_to_empty_discharge(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    n = 4000
+    t = np.arange(n, dtype=np.float64)
+    i = np.where(t < 100, 0.0, 2.0)  # 1C of a 2 Ah cell after a rest at full
+    q = np.clip((t - 100) * 2.0 / 3600, 0, None)
+    v = np.where(t < 100, 4.18, 4.05 - 0.5 * q - 0.4 * np.maximum(q - 1.8, 0) ** 0.5)
+    est = pl.derive_capacity(t, i, v)
+    assert est is not None and est.chemistry == "NMC"
+    assert est.capacity_Ah == pytest.approx(2.0 * (n - 101) / 3600)
+    assert pl.derive_capacity(t[:2000], i[:2000], v[:2000]) is None  # not down to empty
+    rc, out, _ = identify(capsys, write(tmp_path / "full.csv", t, i, v), tmp_path / "o")
+    assert rc == 0
+    assert "capacity 2.166 Ah (a full-to-empty discharge in the record (4.180 V at rest" in out[0]
+    assert "with 2.17 Ah read off the record;" in warnings(out)[0]
+
+
+# ----------------------------------------------------------------------------- time in ms
+def test_time_in_milliseconds_is_refused_with_the_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(3000, capacity_Ah=2.0)
+    src = write(tmp_path / "ms.csv", t * 1000.0, i, v)
+    rc, out, err = identify(capsys, src, tmp_path / "o")
+    assert rc == 2
+    assert out[0].startswith(f"{src}: 3000 samples, 1 cell(s), median dt 1000 s, 2999 gap(s)")
+    assert err == (
+        f"bmsid identify: error: {src}: t_s looks like milliseconds (median step 1000 with a "
+        "current that changes at 5 % of the steps; 2999 of 2999 steps are gaps > 30 s): give "
+        "t_s in seconds, e.g. --columns t_s=t_s*0.001"
+    )
+    rc, out, _ = identify(capsys, src, tmp_path / "o", "--columns", "t_s=t_s*0.001")
+    assert rc == 0 and ", median dt 1 s, 0 gap(s) > 30 s;" in out[0]
+
+
+def test_time_unit_check_uses_the_coulomb_count_when_the_capacity_is_known() -> None:
+    t, i, _ = cell_record(3000, capacity_Ah=2.0)
+    i = np.where(t < 60, 0.0, 1.0)  # constant current: no dynamic evidence, only the count
+    (f,) = pl.check_time_unit(t * 1000, i, 2.0)
+    assert f.level == "error" and f.code == "time_unit_ms"
+    moved = pl.max_excursion(pl.coulomb_Ah(t, i)).charge_Ah
+    assert f"a coulomb count in seconds that moves {1000 * moved:.4g} Ah of a 2 Ah cell (" in (
+        f.message
+    )
+    assert pl.check_time_unit(t, i, 2.0) == []
+    (slow,) = pl.check_time_unit(t * 60, i, 70.0)  # 60 s steps: gaps in any unit
+    assert slow.code == "time_steps_too_long" and "raise --tuning gap_s" in slow.message
+    assert pl.check_time_unit(t * 60, i, 70.0, gap_s=120.0) == []
+
+
+# ----------------------------------------------------------------------------- current sign
+def test_flipped_current_sign_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(1800)
+    cfg = cell_config_file(tmp_path / "cell.toml", 2.0)
+    src = write(tmp_path / "flip.csv", t, -i, v)  # a tester counting charge positive
+    rc, _, err = identify(capsys, src, tmp_path / "o", "--cell-config", str(cfg))
+    assert rc == 2
+    assert err.startswith(
+        f"bmsid identify: error: {src}: current sign looks flipped (voltage rises when the "
+        "current rises: corr(dV, dI) = +"
+    )
+    assert err.endswith("current steps): pass --charge-positive")
+    rc, out, _ = identify(
+        capsys, src, tmp_path / "o", "--cell-config", str(cfg), "--charge-positive"
+    )
+    assert rc == 0 and warnings(out) == []
+
+
+def test_weak_sign_evidence_is_a_warning_and_the_flag_hint_follows_the_flag() -> None:
+    rng = np.random.default_rng(1)
+    t = np.arange(400.0)
+    i = np.repeat(rng.choice([-2.0, 0.0, 2.0], 40), 10)
+    dv = np.concatenate([[0.0], 0.3e-3 * np.diff(i)])  # +0.3 mOhm against 2 mV noise
+    v = 3.7 + np.cumsum(dv) + rng.normal(0, 2e-3, t.size)
+    (f,) = pl.check_current_sign(t, i, v)
+    assert f.level == "warning" and f.message.startswith("current sign may be flipped (corr(")
+    (g,) = pl.check_current_sign(t, i, 3.7 + 5e-3 * i, charge_positive=True)
+    assert g.level == "error" and g.message.endswith(": drop --charge-positive")
+    assert pl.check_current_sign(t, i, 3.7 - 5e-3 * i) == []
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), r0=st.floats(1e-4, 0.05))
+def test_sign_evidence_flips_with_the_current(seed: int, r0: float) -> None:
+    rng = np.random.default_rng(seed)
+    t = np.arange(300.0)
+    i = np.repeat(rng.uniform(-5, 5, 30), 10)
+    v = 3.7 - r0 * i + rng.normal(0, 1e-4, t.size)
+    a = pl.current_sign_evidence(t, i, v)
+    b = pl.current_sign_evidence(t, -i, v)
+    assert a.n_steps == b.n_steps
+    assert a.corr == pytest.approx(-b.corr, abs=1e-9)
+    assert a.corr < 0
+
+
+# ----------------------------------------------------------------------------- capacity, SOC
+def test_capacity_that_the_record_exceeds_is_a_warning_with_numbers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(3600, capacity_Ah=2.0, peak_C=2.0, soc0=0.98)  # moves 0.50 Ah
+    (f,) = pl.check_capacity(t, i, 0.3)
+    assert f.level == "warning" and f.code == "capacity_exceeded"
+    moved = pl.max_excursion(pl.coulomb_Ah(t, i)).charge_Ah
+    assert f.message.startswith(f"the record moves {moved:.4g} Ah in one direction (discharge,")
+    assert f"{moved / 0.3:.2g}x the capacity 0.3 Ah: check the capacity" in f.message
+    assert pl.check_capacity(t, i, 2.0) == []
+    cfg = cell_config_file(tmp_path / "cell.toml", 0.3)
+    rc, out, _ = identify(capsys, write(tmp_path / "c.csv", t, i, v), tmp_path / "o",
+                          "--cell-config", str(cfg))  # fmt: skip
+    assert rc == 0
+    assert any(w.startswith("WARNING: the record moves ") for w in warnings(out))
+
+
+def test_soc_leaving_its_range_from_a_known_start_is_a_warning() -> None:
+    t, i, _ = cell_record(3600, capacity_Ah=2.0, soc0=0.9)
+    z = pl.coulomb_soc(t, -i, 2.0, 0.9)  # the flipped sign charges an almost full cell
+    (f,) = pl.check_soc_range(z, 2.0, "--soc0 90 %")
+    assert f.message.startswith("SOC by coulomb count from --soc0 90 % spans 90..")
+    assert "the current sign (--charge-positive), the capacity (2 Ah)" in f.message
+    assert pl.check_soc_range(pl.coulomb_soc(t, i, 2.0, 0.9), 2.0, "x") == []
+
+
+@settings(max_examples=50, deadline=None)
+@given(q=st.lists(st.floats(-50, 50), min_size=1, max_size=40))
+def test_max_excursion_is_the_widest_swing(q: list[float]) -> None:
+    a = np.array(q)
+    ex = pl.max_excursion(a)
+    brute = max(abs(a[j] - a[k]) for k in range(a.size) for j in range(k, a.size))
+    assert ex.charge_Ah == pytest.approx(brute)
+    assert ex.start <= ex.end
+    assert abs(a[ex.end] - a[ex.start]) == pytest.approx(brute)
+
+
+# ----------------------------------------------------------------------------- CAN logs
+def test_bundled_log_without_n_cells_reports_eight_cells(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rc, out, _ = identify(capsys, DEMO_LOG, tmp_path / "o")
+    assert rc == 0
+    assert out[0].startswith(f"{DEMO_LOG}: 3600 samples, 8 cell(s), median dt 1 s,")
+    assert out[1] == (
+        "demo_pack.log holds can0: 10800 frames, 2 id(s) (0x100 x3600, 0x110 x7200); "
+        "10800 decoded by the mapping, 8 cell(s)"
+    )
+    assert out[2] == "8 cells found in the log"
+    doc = json.loads((tmp_path / "o" / "metrics.json").read_text(encoding="utf-8"))
+    assert len(doc["cells"]) == 8
+    assert open_input(DEMO_LOG).input_report["cells_in_log"] == 8
+
+
+def test_n_cells_that_disagrees_with_the_log(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = two_channel_log(tmp_path / "one.log", channels=(("can0", 3, 1.0),))
+    rc, _, err = identify(capsys, log, tmp_path / "o", "--n-cells", "5", "--capacity-ah", "20")
+    assert rc == 2
+    assert err == (
+        "bmsid identify: error: --n-cells 5 but the log carries voltages of 3 cells (cells 4-5 "
+        "never have one): every sample would be incomplete; pass --n-cells 3 or leave it out"
+    )
+    rc, out, _ = identify(capsys, log, tmp_path / "o", "--n-cells", "2", "--capacity-ah", "20")
+    assert rc == 0
+    assert "WARNING: --n-cells 2 but the log carries 3 cells: only cells 1-2 analysed (leave "\
+        "--n-cells out for all)" in out  # fmt: skip
+
+
+def two_channel_log(
+    path: Path,
+    channels: tuple[tuple[str, int, float], ...] = (("can0", 3, 1.0), ("can1", 2, 0.5)),
+) -> Path:
+    """A candump -l capture of buses (name, cells, current scale) of a 20 Ah pack, by time."""
+    t, i, v = cell_record(400, capacity_Ah=20.0)
+    lines: list[str] = []
+    for name, cells, scale in channels:
+        part = path.with_suffix(f".{name}")
+        volts = np.repeat(v[:, None], cells, axis=1)
+        msgs = csv_to_messages(t, scale * i, volts, default_mapping(), t0_s=1.7e9)
+        write_log(part, msgs, channel=name)
+        lines += part.read_text().splitlines()
+    lines.sort(key=lambda line: float(line[1 : line.index(")")]))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_several_channels_need_channel(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = two_channel_log(tmp_path / "two.log")
+    rc, _, err = identify(capsys, log, tmp_path / "o", "--capacity-ah", "20")
+    assert rc == 2
+    assert err == (
+        f"bmsid identify: error: {log}: frames of mapping 'bmsid' on 2 CAN channels (can0: 800, "
+        "can1: 800 frames): pass --channel NAME (one of can0, can1); mixed they give samples of "
+        "neither"
+    )
+    rc, out, _ = identify(capsys, log, tmp_path / "o", "--capacity-ah", "20", "--channel", "can1")
+    assert rc == 0
+    assert out[0].startswith(f"{log}: 400 samples, 2 cell(s),")
+    assert out[1].startswith("two.log holds can0: 800 frames, 2 id(s) (0x100 x400, 0x110 x400)")
+    assert out[2] == "2 cells found in the log on can1"
+
+
+# ----------------------------------------------------------------------------- other exports
+def test_identify_maps_foreign_column_names(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(900)
+    src = tmp_path / "arbin.csv"
+    rows = [
+        f"{k + 1},{1000 * a:.0f},{-b:.6f},{c:.6f}"
+        for k, (a, b, c) in enumerate(zip(t, i, v, strict=True))
+    ]
+    src.write_text("Data_Point,Test_Time(ms),Current(A),Voltage(V)\n" + "\n".join(rows) + "\n")
+    cfg = cell_config_file(tmp_path / "cell.toml", 2.0)
+    cols = "t_s=Test_Time(ms)*0.001,current_A=Current(A),voltage_V=Voltage(V)"
+    argv = ["--cell-config", str(cfg), "--columns", cols, "--charge-positive"]
+    rc, out, _ = identify(capsys, src, tmp_path / "o", *argv)
+    assert rc == 0 and warnings(out) == []
+    tidy = write(tmp_path / "tidy.csv", np.round(t, 3), np.round(i, 6), np.round(v, 6))
+    assert identify(capsys, tidy, tmp_path / "ref", "--cell-config", str(cfg))[0] == 0
+    params = (tmp_path / "o" / "params.csv").read_text()
+    assert params == (tmp_path / "ref" / "params.csv").read_text()  # cells named voltage_V
+    rc, _, err = identify(capsys, src, tmp_path / "o", "--columns", "time=Test_Time(ms)")
+    assert rc == 2 and "--columns: unknown name 'time'" in err
+
+
+# ----------------------------------------------------------------------------- real records
+def test_real_records_pass_every_check(real_data_dir: Path) -> None:
+    """No measured record of ours (right sign, seconds, its own capacity) gives an error or a
+    capacity warning; with the sign flipped every dynamic one is refused."""
+    for path in sorted(real_data_dir.glob("*/*.csv.gz")):
+        d = read_tester_csv(path)
+        cap = 2.07 if "a123" in path.name else 2.0
+        t, i, v = d.t_s, d.current_A, d.cell_voltages_V
+        found = pl.check_record(t, i, v, capacity_Ah=cap)
+        assert pl.first_error(found) is None, (path.name, found)
+        assert not [f for f in found if f.code.startswith("capacity")], (path.name, found)
+        if "OCV" not in path.name:
+            flipped = pl.check_record(t, -i, v, capacity_Ah=cap)
+            assert [f.code for f in flipped if f.level == "error"] == ["current_sign"], path.name
