@@ -138,20 +138,22 @@ class ArxRlsStage:
         self.arx_ok |= good
 
     def outputs(self) -> dict[str, FloatArray]:
+        # Every array here is rebound by each step (np.where), never written in place: the
+        # estimates may hold them without a copy.
         zeros = np.zeros(self.n)
         out = {
-            "R0_ohm": self.R0.copy(),
-            "R1_ohm": self.R1.copy(),
+            "R0_ohm": self.R0,
+            "R1_ohm": self.R1,
             "C1_F": self.tau1 / self.R1,
-            "R2_ohm": self.R2.copy(),
+            "R2_ohm": self.R2,
             "C2_F": self.tau2 / self.R2,
-            "tau1_s": self.tau1.copy(),
-            "tau2_s": self.tau2.copy(),
+            "tau1_s": self.tau1,
+            "tau2_s": self.tau2,
             "lambda_": self.lam**self.lam_exp,  # per second: in [lambda_min, 1]
-            "M_V": self._m_table.copy() if self.hysteresis else zeros.copy(),
-            "ocv_offset_V": zeros.copy(),
-            "arx_error_V": self.arx_err.copy(),
-            "v_model_V": self.v_model.copy(),
+            "M_V": self._m_table if self.hysteresis else zeros,
+            "ocv_offset_V": zeros,
+            "arx_error_V": self.arx_err,
+            "v_model_V": self.v_model,
         }
         if not self.hysteresis:
             out["h"] = zeros  # the model has no hysteresis: report none

@@ -314,18 +314,20 @@ class FusionStage:
     # ------------------------------------------------------------------ protocol
     def outputs(self) -> dict[str, FloatArray]:
         return {
-            "R0_ohm": self.R0.copy(),
-            "R1_ohm": self.R1.copy(),
+            # R*, Ms, off are fresh each tick (_publish_linear), arx_err and v_model rebound;
+            # the taus are written in place by a finished swarm: copied.
+            "R0_ohm": self.R0,
+            "R1_ohm": self.R1,
             "C1_F": self.tau1 / self.R1,
-            "R2_ohm": self.R2.copy(),
+            "R2_ohm": self.R2,
             "C2_F": self.tau2 / self.R2,
             "tau1_s": self.tau1.copy(),
             "tau2_s": self.tau2.copy(),
             "lambda_": self.lam**self.lam_exp,  # per second: in [lambda_min, 1]
             "M_V": np.asarray(self.Ms * self._m_table * 1.0),
-            "ocv_offset_V": self.off.copy(),
-            "arx_error_V": self.arx_err.copy(),
-            "v_model_V": self.v_model.copy(),
+            "ocv_offset_V": self.off,
+            "arx_error_V": self.arx_err,
+            "v_model_V": self.v_model,
         }
 
     _PER_CELL = ("x1", "x2", "tau1", "tau2", "theta", "P", "lam", "sig_e", "arx_err")

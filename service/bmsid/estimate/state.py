@@ -16,6 +16,26 @@ from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.ticks import Tick
 from bmsid.model.ecm import hysteresis_kappa, hysteresis_step, soc_step
+from bmsid.model.ocv import OcvModel
+
+
+def learnable_soc_range(ocv: OcvModel, knee_slope_factor: float) -> tuple[float, float]:
+    """The SOC range (fractions) around mid-SOC where |dOCV/dz| stays within
+    ``knee_slope_factor`` x its median over 20-80 %: outside it lie the OCV curve's knees."""
+    grid = np.linspace(ocv.soc_min, ocv.soc_max, 2001)
+    slope = np.abs(ocv.docv_dz(grid))
+    limit = knee_slope_factor * float(np.median(np.abs(ocv.docv_dz(np.linspace(0.2, 0.8, 61)))))
+    ok = slope <= limit
+    mid = int(np.argmin(np.abs(grid - 0.5)))
+    if not ok[mid]:
+        return float(grid[0]), float(grid[-1])  # no flat middle: learn everywhere
+    lo = mid
+    while lo > 0 and ok[lo - 1]:
+        lo -= 1
+    hi = mid
+    while hi < grid.shape[0] - 1 and ok[hi + 1]:
+        hi += 1
+    return float(grid[lo]), float(grid[hi])
 
 
 class CoulombState:
@@ -43,20 +63,25 @@ class CoulombState:
         self.soc_init_method = "pending"
         self._capacity_As = model.capacity_As
         self._pending = np.ones(self.n, dtype=bool)  # cells whose SOC starts at the next tick
-        ocv = model.ocv
-        mid = np.abs(ocv.docv_dz(np.linspace(0.2, 0.8, 61)))
-        self._knee_slope = knee_slope_factor * float(np.median(mid))  # V per unit SOC
+        self._learn_lo, self._learn_hi = learnable_soc_range(model.ocv, knee_slope_factor)
+        # kappa (Eq. 6) depends on the current's sign only: both once, not every tick.
+        self._kappa_discharge = hysteresis_kappa(
+            model.gamma, self._capacity_As, model.efficiency, 1.0
+        )
+        self._kappa_charge = hysteresis_kappa(
+            model.gamma, self._capacity_As, model.efficiency, -1.0
+        )
 
     def step(self, ctx: TickContext) -> None:
         tick = ctx.tick
         m = self.model
         if self._pending.any():
             self._start(tick, self._pending)
-        for i, dt in zip(tick.coulomb_i_A.tolist(), tick.coulomb_dt_s.tolist(), strict=True):
+        for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, m.efficiency)
         ip = tick.i_prev_A
         if tick.dt_s > 0:
-            kappa = hysteresis_kappa(m.gamma, self._capacity_As, m.efficiency, ip)
+            kappa = self._kappa_charge if ip < 0 else self._kappa_discharge
             self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
         ocv = m.ocv
         zc = np.minimum(np.maximum(self.z, ocv.soc_min), ocv.soc_max)
@@ -65,7 +90,7 @@ class CoulombState:
         ctx.m_table_V = ocv.hysteresis_M(zc)
         ctx.hm_V = self.h * ctx.m_table_V
         ctx.v_safe_V = np.where(tick.ok, tick.v_V, ctx.ocv_V)
-        ctx.learn = tick.ok & (np.abs(ocv.docv_dz(zc)) <= self._knee_slope)
+        ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
 
     def _start(self, tick: Tick, cells: BoolArray) -> None:
         """SOC of ``cells`` from the caller's soc0, else the voltage at rest, else a default."""
@@ -94,7 +119,7 @@ class CoulombState:
         self._pending = np.zeros(self.n, dtype=bool)
 
     def outputs(self) -> dict[str, FloatArray]:
-        return {"soc": self.z.copy(), "h": self.h.copy()}
+        return {"soc": self.z, "h": self.h}  # rebound every step, never written in place
 
     def reset(self, mask: BoolArray) -> None:
         """The masked cells start again at the next tick (SOC by the start policy, h = 0)."""

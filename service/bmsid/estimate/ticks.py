@@ -29,8 +29,6 @@ from bmsid.estimate.tuning import EstimatorTuning
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-_NO_STEPS = np.zeros(0)
-
 
 @dataclass(frozen=True, slots=True)
 class Tick:
@@ -45,7 +43,8 @@ class Tick:
         period_s: nominal tick period (running mean of the tick steps, >= ``id_period_s``).
         v_V: per-cell mean voltage over the bin, NaN where no valid voltage, shape (n,).
         ok: cells with a valid voltage in the bin, shape (n,).
-        coulomb_i_A, coulomb_dt_s: the raw held-current steps since the previous tick, in order.
+        coulomb_steps: the raw (held current A, interval s) steps since the previous tick, in
+            order (plain floats: usually one or a few, cheaper than arrays).
         current_std_A: running RMS variation of the current (time constant
             ``excitation_window_s``): the excitation measure.
         first: the first sample of the run (SOC starts here).
@@ -59,8 +58,7 @@ class Tick:
     period_s: float
     v_V: FloatArray
     ok: BoolArray
-    coulomb_i_A: FloatArray
-    coulomb_dt_s: FloatArray
+    coulomb_steps: tuple[tuple[float, float], ...]
     current_std_A: float
     first: bool
     new_segment: bool
@@ -186,12 +184,9 @@ class TickAssembler:
         g = 1.0 - np.exp(-max(dt, 0.0) / tun.excitation_window_s) if dt > 0 else 0.0
         self.i_mean += g * (i - self.i_mean)
         self.i_var += g * ((i - self.i_mean) ** 2 - self.i_var)
-        if self._steps_i:
-            steps_i, steps_dt = np.array(self._steps_i), np.array(self._steps_dt)
-            self._steps_i.clear()
-            self._steps_dt.clear()
-        else:
-            steps_i = steps_dt = _NO_STEPS
+        steps = tuple(zip(self._steps_i, self._steps_dt, strict=True))
+        self._steps_i.clear()
+        self._steps_dt.clear()
         tick = Tick(
             t_s=t,
             current_A=i,
@@ -200,8 +195,7 @@ class TickAssembler:
             period_s=self.period_s,
             v_V=v,
             ok=ok,
-            coulomb_i_A=steps_i,
-            coulomb_dt_s=steps_dt,
+            coulomb_steps=steps,
             current_std_A=float(np.sqrt(self.i_var)),
             first=first,
             new_segment=new_segment,

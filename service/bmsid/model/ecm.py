@@ -23,21 +23,21 @@ FloatArray = npt.NDArray[np.float64]
 Num = float | FloatArray
 
 
-def charge_efficiency(current_A: Num, eta: Num) -> FloatArray:
+def charge_efficiency(current_A: Num, eta: Num) -> Num:
     """Coulombic efficiency that applies to ``current_A``: ``eta`` on charge, 1 on discharge."""
+    if isinstance(current_A, float):  # one held current (the estimators' case): no array op
+        return eta if current_A < 0 else 1.0
     return np.asarray(np.where(np.asarray(current_A) < 0, eta, 1.0), dtype=np.float64)
 
 
 def soc_delta(current_A: Num, dt_s: Num, capacity_As: Num, eta: Num) -> FloatArray:
     """Change of SOC (fraction) over ``dt_s`` at the held ``current_A`` (Eq. 2)."""
-    return np.asarray(
-        -charge_efficiency(current_A, eta) * current_A * dt_s / capacity_As, dtype=np.float64
-    )
+    return -charge_efficiency(current_A, eta) * current_A * dt_s / capacity_As  # type: ignore[return-value]
 
 
 def soc_step(z: Num, current_A: Num, dt_s: Num, capacity_As: Num, eta: Num) -> FloatArray:
     """SOC after ``dt_s`` at the held ``current_A`` (Eq. 2); not clamped (see ``OcvModel``)."""
-    return np.asarray(z + soc_delta(current_A, dt_s, capacity_As, eta), dtype=np.float64)
+    return z + soc_delta(current_A, dt_s, capacity_As, eta)
 
 
 def rc_decay(dt_s: Num, tau_s: Num) -> FloatArray:
@@ -51,7 +51,7 @@ def rc_step(u: Num, a: Num, current_A: Num, gain: Num = 1.0) -> FloatArray:
     ``gain`` = R (ohm) steps the branch voltage in V; the default 1 steps the unit-gain state
     (A), whose voltage is R x: the form the estimators use, linear in R.
     """
-    return np.asarray(a * u + gain * (1.0 - a) * current_A, dtype=np.float64)
+    return a * u + gain * (1.0 - a) * current_A  # type: ignore[return-value]
 
 
 def rc_filter(current_A: FloatArray, a: float) -> FloatArray:
@@ -70,4 +70,4 @@ def hysteresis_kappa(gamma: Num, capacity_As: Num, eta: Num, current_A: Num) -> 
 def hysteresis_step(h: Num, current_A: Num, dt_s: Num, kappa: Num) -> FloatArray:
     """Advance the hysteresis state over ``dt_s`` with the current held (Eq. 8, last row)."""
     decay = np.exp(-np.abs(np.asarray(kappa) * current_A) * dt_s)
-    return np.asarray(decay * h - (1.0 - decay) * np.sign(current_A), dtype=np.float64)
+    return decay * h - (1.0 - decay) * np.sign(current_A)
