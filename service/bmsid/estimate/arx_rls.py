@@ -22,6 +22,7 @@ from bmsid.estimate.stage import (
     TickContext,
     adapt_innovation,
     is_quiet,
+    per_cell_limit,
 )
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.tuning import EstimatorTuning
@@ -50,6 +51,7 @@ class ArxRlsStage:
         self.v_model = np.zeros(self.n)
         self._m_table = np.zeros(self.n)
         self._bounds = (model.lo[:, :5].T, model.hi[:, :5].T)  # R0, R1, R2, tau1, tau2
+        self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
 
     def _start_values(self) -> None:
         """Every per-cell array at its start value (start values clamped to the bounds)."""
@@ -89,7 +91,7 @@ class ArxRlsStage:
             self.x2 = rc_step(self.x2, rc_decay(dt, self.tau2), ip)
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
-        quiet = is_quiet(tick, self.model, tun)
+        quiet = is_quiet(tick, self._rest_limit_A)
         self.clamped[:] = False
         self._m_table = ctx.m_table_V
         ok, v, ocv_v = tick.ok, ctx.v_safe_V, ctx.ocv_V

@@ -32,7 +32,7 @@ from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.fusion import FusionStage
-from bmsid.estimate.stage import ParameterStage, TickContext, is_excited
+from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, per_cell_limit
 from bmsid.estimate.state import CoulombState
 from bmsid.estimate.ticks import Tick, TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
@@ -103,6 +103,7 @@ class EstimatorBank:
         self.ticks = TickAssembler(n, self.tuning)
         self.state = CoulombState(model, soc0, self.tuning.knee_slope_factor)
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
+        self._excitation_limit_A = per_cell_limit(self.tuning.excitation_C, model)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -126,20 +127,39 @@ class EstimatorBank:
         of every tick the block completes (possibly none). Never raises on bad numbers."""
         if block.n_cells != self.n:
             raise ValueError(f"block has {block.n_cells} cells, the bank {self.n}")
-        rows: list[Estimates] = []
+        times: list[float] = []
+        currents: list[float] = []
+        cols: dict[str, list[FloatArray]] = {k: [] for k in FIELD_NAMES}
+        quality: list[npt.NDArray[np.int64]] = []
         v = block.cell_voltages_V
         for k, (t, i) in enumerate(zip(block.t_s.tolist(), block.current_A.tolist(), strict=True)):
             tick = self.ticks.push(t, i, v[k])
-            if tick is not None:
-                rows.append(self._run_tick(tick))
-        return EstimateBlock.from_rows(rows, self.n)
+            if tick is None:
+                continue
+            cells, q = self._run_tick(tick)
+            times.append(tick.t_s)
+            currents.append(tick.current_A)
+            for name, col in cols.items():
+                col.append(cells[name])
+            quality.append(q)
+        if not times:
+            return EstimateBlock.empty(self.n)
+        return EstimateBlock(
+            t_s=np.array(times),
+            current_A=np.array(currents),
+            cells={name: np.stack(col) for name, col in cols.items()},
+            quality=np.stack(quality),
+        )
 
     def update(self, t_s: float, current_A: float, voltages_V: npt.ArrayLike) -> Estimates | None:
         """Feed one raw sample (time s, pack current A, cell voltages V); returns the estimates
         when an identification tick completes, else None. Never raises on bad numbers."""
         v = np.asarray(voltages_V, dtype=np.float64).reshape(self.n)
         tick = self.ticks.push(t_s, current_A, v)
-        return None if tick is None else self._run_tick(tick)
+        if tick is None:
+            return None
+        cells, q = self._run_tick(tick)
+        return Estimates(t_s=tick.t_s, current_A=tick.current_A, cells=cells, quality=q)
 
     def reset(self, mask: npt.ArrayLike) -> None:
         """Re-initialise the masked cells (SOC by the start policy at the next tick, parameters
@@ -149,7 +169,8 @@ class EstimatorBank:
         self.params.reset(m)
 
     # ------------------------------------------------------------------ one tick
-    def _run_tick(self, tick: Tick) -> Estimates:
+    def _run_tick(self, tick: Tick) -> tuple[dict[str, FloatArray], npt.NDArray[np.int64]]:
+        """The stages over one tick: every output field (n_cells,) and the quality codes."""
         ctx = TickContext(tick)
         self.state.step(ctx)
         self.params.step(ctx)
@@ -157,15 +178,10 @@ class EstimatorBank:
         cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
         cells["v_error_V"] = cells["v_meas_V"] - cells["v_model_V"]
         q = np.full(self.n, int(Quality.CONVERGED), dtype=np.int64)
-        q[~is_excited(tick, self.model, self.tuning)] = Quality.POORLY_EXCITED
+        q[~np.asarray(is_excited(tick, self._excitation_limit_A))] = Quality.POORLY_EXCITED
         q[self.params.clamped] = Quality.OUT_OF_BOUNDS
         q[~self.params.converged] = Quality.CONVERGING
-        return Estimates(
-            t_s=tick.t_s,
-            current_A=tick.current_A,
-            cells={k: cells[k] for k in FIELD_NAMES},
-            quality=q,
-        )
+        return cells, q
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

@@ -30,6 +30,7 @@ from bmsid.estimate.stage import (
     adapt_innovation,
     is_excited,
     is_quiet,
+    per_cell_limit,
 )
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
@@ -98,6 +99,8 @@ class FusionStage:
         self._m_table = np.zeros(n)
         self._excited = np.zeros(n, dtype=bool)
         self._period_s = tuning.id_period_s
+        self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
+        self._excitation_limit_A = per_cell_limit(tuning.excitation_C, model)
         self._start_values()
 
     def _start_values(self) -> None:
@@ -130,7 +133,7 @@ class FusionStage:
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
         self._period_s = tick.period_s
-        self._excited = is_excited(tick, self.model, tun)
+        self._excited = np.broadcast_to(is_excited(tick, self._excitation_limit_A), (self.n,))
         self.clamped[:] = False
         self._m_table = ctx.m_table_V
         ok, v, ocv_v, hm = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V
@@ -143,7 +146,7 @@ class FusionStage:
         v_model = ocv_v + (phi * (self.theta * self.scale)).sum(axis=1)
         e = v - v_model
         self.arx_err = np.where(ok, e, 0.0)
-        quiet = is_quiet(tick, self.model, tun)
+        quiet = is_quiet(tick, self._rest_limit_A)
         learn = ctx.learn
         e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, learn, quiet, dt, forget, tun)
         # The OCV offset is not tracked per tick (see fusion_covariance): column zeroed.

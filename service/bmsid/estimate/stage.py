@@ -87,21 +87,27 @@ class ParameterStage(Stage, Protocol):
     clamped: BoolArray
 
 
-def is_quiet(tick: Tick, model: CellModel, tuning: EstimatorTuning) -> BoolArray:
-    """Cells at rest with no current change this tick: no forgetting (lambda = 1), since a
-    resting cell carries no new information about R0 and P must not grow."""
-    lim = tuning.rest_current_C * model.capacity_Ah
-    return np.asarray(
-        (abs(tick.current_A) < lim) & (abs(tick.current_A - tick.i_prev_A) < lim), dtype=bool
-    )
+def per_cell_limit(share_C: float, model: CellModel) -> float | FloatArray:
+    """``share_C`` x each cell's capacity, in A: one float when every cell has the same
+    capacity (the usual pack), so the per-tick comparisons stay on Python scalars."""
+    lim = share_C * model.capacity_Ah
+    return float(lim[0]) if np.all(lim == lim[0]) else lim
 
 
-def is_excited(tick: Tick, model: CellModel, tuning: EstimatorTuning) -> BoolArray:
-    """Cells whose current varies enough (RMS >= ``excitation_C`` x capacity) to identify."""
-    return np.asarray(tick.current_std_A >= tuning.excitation_C * model.capacity_Ah, dtype=bool)
+def is_quiet(tick: Tick, rest_limit_A: float | FloatArray) -> bool | BoolArray:
+    """Cells at rest with no current change this tick (|I| and |dI| below ``rest_limit_A``):
+    no forgetting (lambda = 1), since a resting cell carries no new information about R0 and P
+    must not grow."""
+    i = tick.current_A
+    return (abs(i) < rest_limit_A) & (abs(i - tick.i_prev_A) < rest_limit_A)
 
 
-@dataclass(frozen=True, slots=True)
+def is_excited(tick: Tick, excitation_limit_A: float | FloatArray) -> bool | BoolArray:
+    """Cells whose current varies enough (RMS >= ``excitation_limit_A``) to identify."""
+    return tick.current_std_A >= excitation_limit_A
+
+
+@dataclass(slots=True)
 class Forgetting:
     """Per-tick forgetting limits (Eq. 21 with per-second constants raised to the tick's data
     time) and the exponent that reports a per-tick lambda per second."""
@@ -121,7 +127,7 @@ def adapt_innovation(
     e: FloatArray,
     sig_e: FloatArray,
     ok: BoolArray,
-    quiet: BoolArray,
+    quiet: bool | BoolArray,
     dt_s: float,
     forgetting: Forgetting,
     tuning: EstimatorTuning,

@@ -19,6 +19,10 @@ from bmsid.model.ecm import hysteresis_kappa, hysteresis_step, soc_step
 from bmsid.model.ocv import OcvModel
 
 
+def _uniform(x: FloatArray) -> float | FloatArray:
+    return float(x[0]) if np.all(x == x[0]) else x
+
+
 def learnable_soc_range(ocv: OcvModel, knee_slope_factor: float) -> tuple[float, float]:
     """The SOC range (fractions) around mid-SOC where |dOCV/dz| stays within
     ``knee_slope_factor`` x its median over 20-80 %: outside it lie the OCV curve's knees."""
@@ -61,16 +65,16 @@ class CoulombState:
         self.z = np.full(self.n, 0.5)
         self.h = np.zeros(self.n)
         self.soc_init_method = "pending"
-        self._capacity_As = model.capacity_As
+        # One float per constant when every cell shares it (the usual pack): the per-tick
+        # arithmetic then stays on Python scalars, as cheap as before per-cell arrays existed.
+        self._capacity_As = _uniform(model.capacity_As)
+        self._efficiency = _uniform(model.efficiency)
         self._pending = np.ones(self.n, dtype=bool)  # cells whose SOC starts at the next tick
         self._learn_lo, self._learn_hi = learnable_soc_range(model.ocv, knee_slope_factor)
         # kappa (Eq. 6) depends on the current's sign only: both once, not every tick.
-        self._kappa_discharge = hysteresis_kappa(
-            model.gamma, self._capacity_As, model.efficiency, 1.0
-        )
-        self._kappa_charge = hysteresis_kappa(
-            model.gamma, self._capacity_As, model.efficiency, -1.0
-        )
+        gamma = _uniform(model.gamma)
+        self._kappa_discharge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, 1.0)
+        self._kappa_charge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, -1.0)
 
     def step(self, ctx: TickContext) -> None:
         tick = ctx.tick
@@ -78,7 +82,7 @@ class CoulombState:
         if self._pending.any():
             self._start(tick, self._pending)
         for i, dt in tick.coulomb_steps:
-            self.z = soc_step(self.z, i, dt, self._capacity_As, m.efficiency)
+            self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
         ip = tick.i_prev_A
         if tick.dt_s > 0:
             kappa = self._kappa_charge if ip < 0 else self._kappa_discharge

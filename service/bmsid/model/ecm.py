@@ -42,7 +42,7 @@ def soc_step(z: Num, current_A: Num, dt_s: Num, capacity_As: Num, eta: Num) -> F
 
 def rc_decay(dt_s: Num, tau_s: Num) -> FloatArray:
     """ZOH pole ``a = exp(-dt / tau)`` of an RC branch (Eq. 7)."""
-    return np.asarray(np.exp(-np.asarray(dt_s) / tau_s), dtype=np.float64)
+    return np.exp(-dt_s / np.asarray(tau_s))
 
 
 def rc_step(u: Num, a: Num, current_A: Num, gain: Num = 1.0) -> FloatArray:
@@ -64,7 +64,7 @@ def rc_filter(current_A: FloatArray, a: float) -> FloatArray:
 def hysteresis_kappa(gamma: Num, capacity_As: Num, eta: Num, current_A: Num) -> FloatArray:
     """The paper's decay factor kappa in 1/(A s) (Eq. 6) from Plett's dimensionless rate gamma:
     ``kappa = eta gamma / Q`` with eta applied on charge only."""
-    return np.asarray(gamma / capacity_As * charge_efficiency(current_A, eta), dtype=np.float64)
+    return gamma / capacity_As * charge_efficiency(current_A, eta)  # type: ignore[return-value]
 
 
 def hysteresis_step(h: Num, current_A: Num, dt_s: Num, kappa: Num) -> FloatArray:
