@@ -10,7 +10,7 @@ compares. Every stage keeps its state in plain per-cell arrays, so a checkpoint 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -25,7 +25,10 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 
-@dataclass(slots=True)
+_EMPTY: FloatArray = np.zeros(0)
+_EMPTY_BOOL: BoolArray = np.zeros(0, dtype=bool)
+
+
 class TickContext:
     """One tick and what the state stage derived from it for the parameter stages.
 
@@ -40,13 +43,18 @@ class TickContext:
             the OCV curve's knees: ``EstimatorTuning.knee_slope_factor``).
     """
 
-    tick: Tick
-    soc_clamped: FloatArray = field(default_factory=lambda: np.zeros(0))
-    ocv_V: FloatArray = field(default_factory=lambda: np.zeros(0))
-    m_table_V: FloatArray = field(default_factory=lambda: np.zeros(0))
-    hm_V: FloatArray = field(default_factory=lambda: np.zeros(0))
-    v_safe_V: FloatArray = field(default_factory=lambda: np.zeros(0))
-    learn: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    __slots__ = ("hm_V", "learn", "m_table_V", "ocv_V", "soc_clamped", "tick", "v_safe_V")
+
+    def __init__(self, tick: Tick) -> None:
+        # Filled by the state stage; the shared empty placeholders cost nothing per tick (a
+        # dataclass would need a factory, i.e. six allocations per tick).
+        self.tick = tick
+        self.soc_clamped: FloatArray = _EMPTY
+        self.ocv_V: FloatArray = _EMPTY
+        self.m_table_V: FloatArray = _EMPTY
+        self.hm_V: FloatArray = _EMPTY
+        self.v_safe_V: FloatArray = _EMPTY
+        self.learn: BoolArray = _EMPTY_BOOL
 
 
 class Stage(Protocol):
