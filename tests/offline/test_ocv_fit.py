@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 from pathlib import Path
 
 import numpy as np
@@ -313,3 +314,17 @@ def test_cli_bad_files_exit_2_with_one_line(
     assert code == 2
     assert expected in err
     assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_fit_ocv_reports_merged_repeated_timestamps(tmp_path: Path) -> None:
+    """A tester logging a record twice at a step change: the OCV test still fits, and the
+    report says how many rows were merged."""
+    from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
+
+    src = REPO / "data" / "physics" / "dfn_nmc_ocv_c20_25C.csv.gz"
+    lines = gzip.decompress(src.read_bytes()).decode().splitlines()
+    doubled = [*lines[:1000], lines[999], *lines[1000:]]  # one record logged twice
+    path = tmp_path / "ocv_repeat.csv"
+    path.write_text("\n".join(doubled) + "\n", encoding="utf-8")
+    fit = fit_ocv_files([path], OcvFitSpec("repeat"))
+    assert any("merged 1 rows with repeated timestamps" in line for line in fit.info)

@@ -27,7 +27,7 @@ from bmsid.estimate.stage import (
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.arx import MapStatus, params_to_theta, theta_to_params
-from bmsid.model.ecm import rc_decay, rc_step
+from bmsid.model.ecm import branches_step
 
 
 class ArxRlsStage:
@@ -86,9 +86,7 @@ class ArxRlsStage:
         if tick.new_segment:
             self.hist_n = 0
         dt, ip, i = tick.dt_s, tick.i_prev_A, tick.current_A
-        if dt > 0:
-            self.x1 = rc_step(self.x1, rc_decay(dt, self.tau1), ip)
-            self.x2 = rc_step(self.x2, rc_decay(dt, self.tau2), ip)
+        self.x1, self.x2 = branches_step(self.x1, self.x2, self.tau1, self.tau2, ip, dt)
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
         quiet = is_quiet(tick, self._rest_limit_A)

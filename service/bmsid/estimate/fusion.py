@@ -36,7 +36,7 @@ from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.varpro import Window, fit_linear
-from bmsid.model.ecm import rc_decay, rc_step
+from bmsid.model.ecm import branches_step
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
@@ -97,7 +97,7 @@ class FusionStage:
         self.lam_exp = 1.0
         self.v_model = np.zeros(n)
         self._m_table = np.zeros(n)
-        self._excited = np.zeros(n, dtype=bool)
+        self._excited: bool | BoolArray = False
         self._period_s = tuning.id_period_s
         self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
         self._excitation_limit_A = per_cell_limit(tuning.excitation_C, model)
@@ -127,13 +127,11 @@ class FusionStage:
             self.buffer.clear()
             self.schedule.new_segment(tick.t_s)
         dt, ip, i = tick.dt_s, tick.i_prev_A, tick.current_A
-        if dt > 0:
-            self.x1 = rc_step(self.x1, rc_decay(dt, self.tau1), ip)
-            self.x2 = rc_step(self.x2, rc_decay(dt, self.tau2), ip)
+        self.x1, self.x2 = branches_step(self.x1, self.x2, self.tau1, self.tau2, ip, dt)
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
         self._period_s = tick.period_s
-        self._excited = np.broadcast_to(is_excited(tick, self._excitation_limit_A), (self.n,))
+        self._excited = is_excited(tick, self._excitation_limit_A)  # one bool for a uniform pack
         self.clamped[:] = False
         self._m_table = ctx.m_table_V
         ok, v, ocv_v, hm = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V
@@ -209,7 +207,8 @@ class FusionStage:
             # Learnable data in the window, s: ticks in the OCV knees or without a voltage
             # carry no weight in the fits, so they do not count towards min_window_s.
             span = self.buffer.n_valid(c) * self._period_s
-            if span >= tun.min_window_s and self._excited[c]:
+            excited = self._excited if isinstance(self._excited, bool) else self._excited[c]
+            if span >= tun.min_window_s and excited:
                 self._start_swarm(c)
         if sched.n_running() == 0:
             return

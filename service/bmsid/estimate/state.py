@@ -71,6 +71,9 @@ class CoulombState:
         self._efficiency = _uniform(model.efficiency)
         self._pending = np.ones(self.n, dtype=bool)  # cells whose SOC starts at the next tick
         self._learn_lo, self._learn_hi = learnable_soc_range(model.ocv, knee_slope_factor)
+        self._learn_everywhere = (
+            self._learn_lo <= model.ocv.soc_min and self._learn_hi >= model.ocv.soc_max
+        )
         # kappa (Eq. 6) depends on the current's sign only: both once, not every tick.
         gamma = _uniform(model.gamma)
         self._kappa_discharge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, 1.0)
@@ -94,7 +97,10 @@ class CoulombState:
         ctx.m_table_V = ocv.hysteresis_M(zc)
         ctx.hm_V = self.h * ctx.m_table_V
         ctx.v_safe_V = np.where(tick.ok, tick.v_V, ctx.ocv_V)
-        ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
+        if self._learn_everywhere:
+            ctx.learn = tick.ok
+        else:
+            ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
 
     def _start(self, tick: Tick, cells: BoolArray) -> None:
         """SOC of ``cells`` from the caller's soc0, else the voltage at rest, else a default."""

@@ -54,6 +54,22 @@ def rc_step(u: Num, a: Num, current_A: Num, gain: Num = 1.0) -> FloatArray:
     return a * u + gain * (1.0 - a) * current_A  # type: ignore[return-value]
 
 
+def branches_step(
+    x1: FloatArray,
+    x2: FloatArray,
+    tau1_s: FloatArray,
+    tau2_s: FloatArray,
+    current_A: float,
+    dt_s: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Both unit-gain branch states of the 2RC model over ``dt_s`` at the held current (Eq. 8);
+    unchanged when ``dt_s`` <= 0 (the first sample, a time base that jumped back)."""
+    if dt_s <= 0:
+        return x1, x2
+    return (rc_step(x1, rc_decay(dt_s, tau1_s), current_A),
+            rc_step(x2, rc_decay(dt_s, tau2_s), current_A))  # fmt: skip
+
+
 def rc_filter(current_A: FloatArray, a: float) -> FloatArray:
     """``rc_step`` with unit gain iterated over a whole window from x_0 = 0: ``x_k = a x_(k-1) +
     (1 - a) i_(k-1)`` for k = 0..W-1 (state *before* sample k's current acts). One C-level

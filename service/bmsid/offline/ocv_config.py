@@ -118,8 +118,14 @@ def fit_test_files(
         The fit, the capacity (Ah) and efficiency used, and report lines on them.
     """
     parts: list[OcvTestPart] = []
+    input_notes: list[str] = []
     for path in paths:
         data = read_tester_csv(path, charge_positive=spec.charge_positive)
+        if data.merged_repeats or data.time_restarts:
+            input_notes.append(
+                f"{path}: merged {data.merged_repeats} rows with repeated timestamps (the last "
+                f"row of each time is kept); {len(data.time_restarts)} clock restart(s) stitched"
+            )
         if spec.cell is not None:
             if spec.cell not in data.cell_names:
                 raise UserError(f"{path}: no voltage column {spec.cell!r}")
@@ -141,6 +147,7 @@ def fit_test_files(
     tp, pol = br.throughput, br.polarisation
     steps = ", ".join(f"{1e3 * r:.1f}" for r in pol.step_resistances_ohm)
     info = [
+        *input_notes,
         f"capacity measured from the test: {br.measured_capacity_Ah:.4f} Ah "
         f"(used: {br.capacity_Ah:.4f} Ah)",
         f"throughput: discharge {tp.discharge_Ah:.4f} Ah, charge {tp.charge_Ah:.4f} Ah, "
