@@ -34,8 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bmsid.estimate.tuning import EstimatorTuning, Variant
-from bmsid.offline.identify import IdentifySpec, bound_findings, identify_file, probe_start_values
-from bmsid.offline.inputs import load_config, open_input, parse_tuning
+from bmsid.offline.identify import IdentifySpec, bound_findings, identify_file
+from bmsid.offline.inputs import load_config, parse_tuning
 from bmsid.offline.scoring import EvalWindow, SocReference, score
 
 REPO = Path(__file__).resolve().parents[1]
@@ -85,9 +85,7 @@ def run(case: Case, tuning: EstimatorTuning) -> Row:
                         window=window)  # fmt: skip
     res = identify_file(case.path, spec)
     s = score(res.trace, window).pooled
-    src = open_input(case.path)
-    start = probe_start_values(src.blocks(), cell)
-    found = bound_findings(res.trace, cell, start, tuning, res.cell_names)
+    found = bound_findings(res.trace, cell, res.start_values, tuning, res.cell_names)
     ends = found["ends_on_a_bound"]
     assert isinstance(ends, dict)
     return Row(case, s.window.rmse_V, s.overall.rmse_V, s.startup.rmse_V,

@@ -135,3 +135,11 @@ def test_no_module_outside_the_cli_imports_it() -> None:
             if any(n == "bmsid.cli" or n.startswith("bmsid.cli.") for n in names):
                 offenders.append(str(path.relative_to(REPO)))
     assert not offenders
+
+
+def test_result_carries_the_start_values_measured_on_the_record(short_csv: Path) -> None:
+    """A config without [initial]/[bounds]: the run measures them and says which it used."""
+    cell = paper_cell().model_copy(update={"initial": None, "bounds": None})
+    res = identify_file(short_csv, IdentifySpec(cell=cell, variant="hy-affrls"))
+    assert res.start_values is not None and res.start_values.R0_ohm > 0
+    assert identify_file(short_csv, IdentifySpec(cell=paper_cell())).start_values is None

@@ -23,6 +23,7 @@ engine's entry point; its per-sample loop is where a compiled kernel (issue 12) 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -45,20 +46,14 @@ FloatArray = npt.NDArray[np.float64]
 STATE_FORMAT = 2
 
 
+@dataclass(frozen=True)
 class StageSetup:
     """What a parameter stage is built from (the bank's arguments)."""
 
-    def __init__(
-        self,
-        model: CellModel,
-        tuning: EstimatorTuning,
-        cell_ids: npt.NDArray[np.int64],
-        n_stagger: int,
-    ) -> None:
-        self.model = model
-        self.tuning = tuning
-        self.cell_ids = cell_ids
-        self.n_stagger = n_stagger
+    model: CellModel
+    tuning: EstimatorTuning
+    cell_ids: npt.NDArray[np.int64]
+    n_stagger: int
 
 
 #: Each variant's parameter stage (the state stage and tick assembly are common to all).

@@ -154,6 +154,7 @@ def run_blocks(
         runtime_s=runtime,
         n_samples=n,
         cell_names=names,
+        start_values=start,
     )
 
 

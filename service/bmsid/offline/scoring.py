@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
+from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.metrics import VoltageMetrics, voltage_metrics
@@ -326,6 +327,9 @@ class IdentifyResult:
         Input samples fed to the bank.
     cell_names : list of str
         Name of each cell column.
+    start_values : StartValues or None
+        Start values measured on the record for what the cell config left out (None: the
+        config gave them, or the record had too few current steps).
     """
 
     variant: Variant
@@ -335,6 +339,7 @@ class IdentifyResult:
     runtime_s: float
     n_samples: int
     cell_names: list[str] = field(default_factory=list)
+    start_values: StartValues | None = None
 
 
 def _parts(s: ScoreSet, n_ticks: int, n_startup: int) -> dict[str, Any]:
