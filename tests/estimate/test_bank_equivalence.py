@@ -1,4 +1,8 @@
-"""A 96-cell bank equals 96 single-cell estimators (one vectorised call per sample)."""
+"""A 96-cell bank equals 96 single-cell estimators (one vectorised call per sample).
+
+The SOC observer couples the cells of a bank through one thing only, the pack's current offset
+(one sensor); with the offset pinned to 0 by its prior, the cells must be independent.
+"""
 
 from __future__ import annotations
 
@@ -6,13 +10,16 @@ import numpy as np
 import pytest
 
 from bmsid.config.engine import build_bank
+from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.synthetic import paper_dst_case
 
 N_CELLS = 96
 # Short windows: every cell runs (staggered) swarms within the 240 samples.
 TUNING = EstimatorTuning(window_s=120.0, min_window_s=40.0, swarm_period_s=60.0, n_iter=3,
-                         n_iter_first=4, n_particles=4)  # fmt: skip
+                         n_iter_first=4, n_particles=4,
+                         observer=ObserverTuning(offset_prior_C=1e-12,
+                                                 offset_walk_C_per_sqrt_day=0.0))  # fmt: skip
 
 
 @pytest.mark.parametrize("variant", ["hy-affrls-lpso", "non-hy-affrls"])

@@ -33,6 +33,7 @@ from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.fusion import FusionStage
+from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, per_cell_limit
 from bmsid.estimate.state import CoulombState
 from bmsid.estimate.ticks import Tick, TickAssembler
@@ -96,7 +97,12 @@ class EstimatorBank:
         self.cell_ids = np.arange(n) if cell_ids is None else np.asarray(cell_ids, dtype=np.int64)
         setup = StageSetup(model, self.tuning, self.cell_ids, n_stagger or n)
         self.ticks = TickAssembler(n, self.tuning)
-        self.state = CoulombState(model, soc0, self.tuning.knee_slope_factor)
+        tun = self.tuning
+        self.state: CoulombState = (
+            ObserverState(model, soc0, tun.knee_slope_factor, tun.observer, tun.rest_current_C)
+            if tun.observer.enabled
+            else CoulombState(model, soc0, tun.knee_slope_factor)
+        )
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
         self._excitation_limit_A = per_cell_limit(self.tuning.excitation_C, model)
 
@@ -170,7 +176,10 @@ class EstimatorBank:
         ctx = TickContext(tick)
         self.state.step(ctx)
         self.params.step(ctx)
-        cells = {**self.state.outputs(), **self.params.outputs()}
+        p_out = self.params.outputs()
+        if isinstance(self.state, ObserverState):
+            self.state.correct(ctx, p_out, self.params.converged)
+        cells = {**self.state.outputs(), **p_out}
         cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
         cells["v_error_V"] = cells["v_meas_V"] - cells["v_model_V"]
         q = np.full(self.n, int(Quality.CONVERGED), dtype=np.int64)

@@ -103,33 +103,51 @@ class CoulombState:
             ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
 
     def _start(self, tick: Tick, cells: BoolArray) -> None:
-        """SOC of ``cells`` from the caller's soc0, else the voltage at rest, else a default."""
+        """SOC of ``cells`` from the caller's soc0, else the first voltage through the OCV
+        (IR-corrected with the start R0 when a current flows: a gateway that restarts under
+        the 12 V converter's load, or mid-drive), else the config's soc0 or a default."""
         si = self.model.soc_start
         fallback = si.soc0 if si.soc0 is not None else 0.5
         if self.soc0 is not None:
             z = np.broadcast_to(np.asarray(self.soc0, dtype=float), (self.n,)).copy()
             method = "given"
+        elif si.policy == "fixed" and si.soc0 is not None:
+            z = np.full(self.n, si.soc0)
+            method = "config"
         else:
             rest = abs(tick.current_A) <= si.rest_current_C * self.model.capacity_Ah
-            from_ocv = self.model.ocv.soc_from_ocv(
-                np.where(np.isfinite(tick.v_V), tick.v_V, np.nan)
-            )
-            use_ocv = (si.policy == "ocv_at_rest") & rest
-            z = np.where(use_ocv, np.where(np.isfinite(from_ocv), from_ocv, fallback), fallback)
-            if use_ocv[cells].all():
+            v_eq = tick.v_V + self.model.start("R0_ohm") * tick.current_A
+            from_ocv = self.model.ocv.soc_from_ocv(np.where(np.isfinite(v_eq), v_eq, np.nan))
+            known = np.isfinite(from_ocv)
+            z = np.where(known, from_ocv, fallback)
+            if not known[cells].all():
+                method = "config" if si.soc0 is not None else "default_0.5"
+            elif np.all(rest):
                 method = "ocv_at_rest"
-            elif si.soc0 is not None:
-                method = "config"
             else:
-                method = "default_0.5"
+                method = "ocv_ir_corrected"
         self.z = np.where(cells, z, self.z)
         self.h = np.where(cells, 0.0, self.h)
         if cells.all() or self.soc_init_method == "pending":
             self.soc_init_method = method
         self._pending = np.zeros(self.n, dtype=bool)
+        self.start_variance(tick, method, z)
+
+    def start_variance(self, tick: Tick, method: str, z: FloatArray) -> None:
+        """Hook for a stage that keeps SOC uncertainty (the observer); none here."""
 
     def outputs(self) -> dict[str, FloatArray]:
-        return {"soc": self.z, "h": self.h}  # rebound every step, never written in place
+        # Rebound every step, never written in place. A plain count knows no uncertainty,
+        # capacity beyond the config, nor offset: NaN (null) and the configured values.
+        n = self.n
+        return {
+            "soc": self.z,
+            "h": self.h,
+            "soc_std": np.full(n, np.nan),
+            "capacity_Ah": self.model.capacity_Ah,
+            "capacity_std_Ah": np.zeros(n),
+            "current_offset_A": np.zeros(n),
+        }
 
     def reset(self, mask: BoolArray) -> None:
         """The masked cells start again at the next tick (SOC by the start policy, h = 0)."""

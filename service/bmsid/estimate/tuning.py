@@ -10,6 +10,8 @@ from typing import Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from bmsid.estimate.observer_tuning import ObserverTuning
+
 Variant = Literal["non-hy-affrls", "hy-affrls", "hy-affrls-lpso"]
 VARIANTS_T: tuple[Variant, ...] = ("non-hy-affrls", "hy-affrls", "hy-affrls-lpso")
 
@@ -76,6 +78,9 @@ class EstimatorTuning(BaseModel):
     identify_hysteresis_scale: bool = True
     """Identify a scale on the configured M(z) table (Eq. 32) instead of trusting it."""
 
+    observer: ObserverTuning = ObserverTuning()
+    """The SOC observer: SOC, the current-sensor offset and capacity from the voltage."""
+
     # --- LPSO, Eq. 24-30 ---------------------------------------------------------------
     window_s: float = Field(1800.0, gt=0.0)
     """Sliding window the swarm fits, s: 30 min holds several DST/bus cycles and 3 slow tau."""
@@ -112,6 +117,30 @@ class EstimatorTuning(BaseModel):
     seed: int = 0
     """Seed of the swarms' random numbers (combined with each cell's index): runs repeat exactly."""
 
+    # --- divergence guard (estimate/guard.py) ------------------------------------------
+    divergence_sigmas: float = Field(5.0, gt=1.0)
+    """The model error is far beyond its running scale when its recent RMS (time constant
+    ``divergence_fast_s``) exceeds this many times the running RMS (``divergence_scale_s``):
+    25x the error power. A converged model's minute-scale error RMS rarely reaches 3x its
+    hour-scale RMS even over a drive cycle's peaks; a diverged one sits there for good."""
+    divergence_floor_V: float = Field(1.0e-3, gt=0.0)
+    """Floor of the running model-error scale, V: a model that tracks to 0.2 mV on a quiet
+    bench must not call 5 mV a divergence (ADC resolution and OCV-table error are ~1 mV)."""
+    divergence_fast_s: float = Field(60.0, gt=0.0)
+    """Time constant of the recent model-error RMS, s: long enough that the error of one
+    current pulse, or an error that changes sign, does not decide; short against the hold."""
+    divergence_scale_s: float = Field(3600.0, gt=0.0)
+    """Time constant of the running model-error RMS (the scale), s: several drive cycles. It
+    learns only while the cell is not converging and not in excess (frozen in excess, so a
+    divergence cannot teach it that large errors are normal), and starts again after a
+    re-initialisation."""
+    divergence_hold_s: float = Field(1800.0, gt=0.0)
+    """A model error in excess for this long (s of data) is a divergence: a few slow time
+    constants (tau2 ~ 100-1000 s), so a transient the model absorbs never trips it."""
+    divergence_soc_margin: float = Field(0.01, ge=0.0, le=0.5)
+    """SOC (fraction) may leave [0, 1] by this much before it is a divergence: a coulomb count
+    a per cent past full at the end of a charge is the capacity's error, not a lost state."""
+
     @model_validator(mode="after")
     def _check(self) -> Self:
         if self.lambda_min > self.lambda_max:
@@ -120,4 +149,6 @@ class EstimatorTuning(BaseModel):
             raise ValueError("w_min must be <= w_max")
         if self.min_window_s > self.window_s:
             raise ValueError("min_window_s must be <= window_s")
+        if self.divergence_fast_s >= self.divergence_scale_s:
+            raise ValueError("divergence_fast_s must be < divergence_scale_s")
         return self

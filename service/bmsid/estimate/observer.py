@@ -1,0 +1,319 @@
+"""The SOC observer: SOC of every cell and the pack's current-sensor offset corrected from the
+measured voltages through the identified model, capacity from rest anchors.
+
+An extended Kalman filter over ``x = [z_1 .. z_n, b]`` (SOC of each cell, fraction; the offset of
+the one current sensor the cells share, A), following Plett's bias-state EKF (Plett, "Battery
+Management Systems Vol. II", ch. 3-4):
+
+* prediction (Eq. 2 with the offset removed): ``z_c+ = z_c - eta dt (i_meas - b) / Q_c``, so
+  ``dz_c/db = eta dt / Q_c``; SOC random-walks with the current gain error and what the model
+  cannot know (``soc_walk_per_sqrt_h``), the offset with sensor drift;
+* measurement (Eq. 9): ``v_c = OCV(z_c) + M h - R0 (i - b) - R1 x1 - R2 x2``; the innovation is
+  the parameter stage's a-priori model error, ``H = [dOCV/dz, R0 + R1 + R2]``.
+
+Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but
+only while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved
+SOC error would be learnt as R2); the observer updates every ``update_period_s`` with a model
+error of ``v_sigma_V``, so it corrects drifts over minutes to hours, not the dynamics the
+parameters describe. A rest long enough for the identified branches to relax is an *anchor*: an
+update with a rested cell's small error, counted, which also measures capacity
+(``capacity.py``). A gap longer than ``restart_gap_s`` (a restart after downtime) re-anchors
+from the first voltage after it. The state (SOC, h) is the coulomb-count stage's, corrected in
+place; the covariance predictions are accumulated between updates, which keeps the per-tick cost
+at a few scalar operations.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bmsid.estimate.capacity import CapacityTracker
+from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
+from bmsid.estimate.state import CoulombState, _uniform
+from bmsid.estimate.statedict import load_arrays
+from bmsid.estimate.ticks import Tick
+from bmsid.model.ecm import hysteresis_kappa
+
+#: Start SOC uncertainty sources, V: what the first voltage cannot tell beyond hysteresis
+#: and the IR drop (relaxation left from before the start, sensor offset).
+START_V_SIGMA_V = 0.01
+
+
+class ObserverState(CoulombState):
+    """SOC, hysteresis and current offset with covariance (see the module docstring).
+
+    Args:
+        model: per-cell capacity, efficiency, hysteresis rate, OCV curve, start values.
+        soc0: start SOC (fraction) the caller knows; None: from the first voltage.
+        knee_slope_factor: see ``EstimatorTuning.knee_slope_factor``.
+        tuning: the observer's constants.
+        rest_current_C: below this |I| (C-rate) the pack rests.
+    """
+
+    def __init__(
+        self,
+        model: CellModel,
+        soc0: float | FloatArray | None,
+        knee_slope_factor: float,
+        tuning: ObserverTuning,
+        rest_current_C: float,
+    ) -> None:
+        super().__init__(model, soc0, knee_slope_factor)
+        n = self.n
+        self.tun = tuning
+        q_mean_Ah = float(np.mean(model.capacity_Ah))
+        self.b = 0.0
+        self.P = np.zeros((n + 1, n + 1))
+        self.P[n, n] = (tuning.offset_prior_C * q_mean_Ah) ** 2
+        self._b_max = tuning.offset_max_C * q_mean_Ah
+        self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
+        self.capacity = CapacityTracker(
+            model.capacity_Ah, tuning.capacity_prior_rel, tuning.capacity_min_dsoc,
+            tuning.capacity_fade_rel_per_sqrt_day,
+        )  # fmt: skip
+        self._q_As = np.asarray(model.capacity_As, dtype=np.float64).copy()
+        self._eff = np.broadcast_to(np.asarray(model.efficiency, dtype=np.float64), (n,)).copy()
+        # Accumulated since the last update: dz/db, SOC and offset process noise, data time.
+        self._g = np.zeros(n)
+        self._qz = np.zeros(n)
+        self._qb = 0.0
+        self._since_s = 0.0
+        self._rest_s = 0.0
+        self._i_load_A = np.zeros(n)
+        self._tau_load_s = np.asarray(model.start("tau2_s"), dtype=np.float64).copy()
+        self._anchored = np.zeros(n, dtype=bool)
+        self._reanchor = False
+        self._learn_gate = np.ones(n, dtype=bool)
+        self._start_var = np.zeros(n)
+        self.counters.update(
+            {"observer_updates": 0, "observer_gated": 0, "anchors": 0, "reanchors": 0}
+        )
+
+    # ------------------------------------------------------------------ per tick
+    def step(self, ctx: TickContext) -> None:
+        tick = ctx.tick
+        self._remove_offset(tick)
+        self._accumulate(tick)
+        super().step(ctx)
+        if not self._learn_gate.all():
+            ctx.learn = ctx.learn & self._learn_gate
+        # |I| the branches still carry: a running mean over each cell's slow time constant.
+        i_abs = abs(tick.current_A)
+        a = np.exp(-tick.dt_s / self._tau_load_s)
+        self._i_load_A = np.maximum(i_abs, a * self._i_load_A + (1 - a) * i_abs)
+        if i_abs < self._rest_limit_A:
+            self._rest_s += tick.dt_s
+        elif self._rest_s:
+            self._rest_s = 0.0
+            self._anchored = np.zeros(self.n, dtype=bool)
+        if tick.new_segment and not tick.first and tick.dt_s >= self.tun.restart_gap_s:
+            self._reanchor = True
+
+    def _remove_offset(self, tick: Tick) -> None:
+        """Measured current -> true current (the tick is rebuilt every tick: edited in place)."""
+        b = self.b
+        if b == 0.0:
+            return
+        tick.current_A -= b
+        gap = tick.new_segment and not tick.first  # the pack is assumed at rest over a gap
+        if not gap:
+            tick.i_prev_A -= b
+        tick.coulomb_steps = tuple((i - b, dt) for i, dt in tick.coulomb_steps)
+
+    def _accumulate(self, tick: Tick) -> None:
+        """dz/db, process noise and charge throughput of this tick's coulomb steps (Eq. 2)."""
+        tun = self.tun
+        for i, dt in tick.coulomb_steps:
+            eta = self._eff if i < 0 else 1.0
+            dz = eta * dt / self._q_As
+            self._g = self._g + dz
+            self._qz = self._qz + tun.current_gain_sigma**2 * np.abs(i) * dz
+            self.capacity.count(eta * i * dt / 3600.0)
+        dt_s = tick.dt_s
+        self._qz = self._qz + tun.soc_walk_per_sqrt_h**2 * dt_s / 3600.0
+        q_mean_Ah = float(np.mean(self.capacity.q_Ah))
+        self._qb += (tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2 * dt_s / 86400.0
+        self._since_s += dt_s
+
+    # ------------------------------------------------------------------ correction
+    def correct(
+        self, ctx: TickContext, params: dict[str, FloatArray], converged: BoolArray
+    ) -> None:
+        """The measurement update, when one is due (period, anchor or restart), from the
+        parameter stage's a-priori model voltage and parameters of this tick. Cells whose
+        parameters have not converged once update only at anchors and restarts (their model
+        error is the start values', not SOC's)."""
+        tun = self.tun
+        tau2 = params["tau2_s"]
+        self._tau_load_s = tau2
+        anchor = ~self._anchored & (
+            self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
+        )
+        any_anchor = bool(anchor.any())
+        if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
+            return
+        self._predict()
+        tick, n = ctx.tick, self.n
+        zc = ctx.soc_clamped
+        hz = self.model.ocv.docv_dz(zc)
+        hb = params["R0_ohm"] + params["R1_ohm"] + params["R2_ohm"]
+        e = tick.v_V - params["v_model_V"]
+        if self._reanchor:  # the branches' state after downtime is unknown
+            r_rc = abs(tick.current_A) * (params["R1_ohm"] + params["R2_ohm"])
+            r = tun.v_sigma_V**2 + r_rc**2
+        else:
+            r_load = self._i_load_A * tun.r_dc_rel_sigma * hb
+            r = tun.v_sigma_V**2 + r_load**2
+        r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
+        r = np.where(anchor, r_anchor, r)
+        valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
+        forced = anchor | self._reanchor
+        valid &= converged | forced
+        self._update(np.flatnonzero(valid), hz, hb, e, r, forced)
+        anchored = anchor & valid
+        if anchored.any():
+            z_ocv = self.model.ocv.soc_from_ocv(ctx.ocv_V + e)
+            z_var = r / np.maximum(hz**2, 1e-12)
+            self.capacity.anchor(tick.t_s, z_ocv, z_var, float(self.P[n, n]), anchored)
+            self._use_capacity()
+            self._anchored = self._anchored | anchored
+            self.counters["anchors"] += int(anchored.sum())
+        if self._reanchor:
+            self.counters["reanchors"] += 1
+            self._reanchor = False
+        self._gate_learning()
+
+    def _predict(self) -> None:
+        """Apply the accumulated prediction: P <- F P F' + Q with F = I + g e_b' (Eq. 2)."""
+        n, g, P = self.n, self._g, self.P
+        pb = P[:n, n].copy()
+        pbb = P[n, n]
+        P[:n, :n] += np.outer(g, pb) + np.outer(pb, g) + pbb * np.outer(g, g)
+        P[:n, n] = P[n, :n] = pb + g * pbb
+        P[np.arange(n), np.arange(n)] += self._qz
+        P[n, n] += self._qb
+        self._g = np.zeros(n)
+        self._qz = np.zeros(n)
+        self._qb = 0.0
+        self._since_s = 0.0
+
+    def _update(
+        self, idx: np.ndarray[Any, np.dtype[np.intp]], hz: FloatArray, hb: FloatArray,
+        e: FloatArray, r: FloatArray, forced: BoolArray | bool,
+    ) -> None:  # fmt: skip
+        """Joint EKF update of the cells ``idx`` (Joseph form: P stays symmetric PSD); cells
+        not ``forced`` (anchor, restart) are gated on their innovation."""
+        n, P = self.n, self.P
+        if idx.size:
+            s_diag = hz[idx] ** 2 * P[idx, idx] + 2 * hz[idx] * hb[idx] * P[idx, n]
+            s_diag = s_diag + hb[idx] ** 2 * P[n, n] + r[idx]
+            inside = (e[idx] ** 2 <= self.tun.gate_sigmas**2 * s_diag) | np.broadcast_to(
+                forced, (n,)
+            )[idx]
+            self.counters["observer_gated"] += int((~inside).sum())
+            idx = idx[inside]
+        if idx.size == 0:
+            return
+        m = idx.size
+        H = np.zeros((m, n + 1))
+        H[np.arange(m), idx] = hz[idx]
+        H[:, n] = hb[idx]
+        PHt = P @ H.T
+        S = H @ PHt + np.diag(r[idx])
+        try:
+            K = np.linalg.solve(S, PHt.T).T
+        except np.linalg.LinAlgError:
+            return
+        dx = K @ e[idx]
+        if not np.all(np.isfinite(dx)):
+            return
+        A = np.eye(n + 1) - K @ H
+        P = A @ P @ A.T + (K * r[idx]) @ K.T
+        self.P = 0.5 * (P + P.T)
+        self.z = np.clip(self.z + dx[:n], 0.0, 1.0)
+        self.b = float(np.clip(self.b + dx[n], -self._b_max, self._b_max))
+        self.counters["observer_updates"] += 1
+
+    def _use_capacity(self) -> None:
+        """The coulomb count and the hysteresis rate (Eq. 6) follow the measured capacity."""
+        self._q_As = self.capacity.q_Ah * 3600.0
+        self._capacity_As = _uniform(self._q_As)
+        gamma = _uniform(self.model.gamma)
+        self._kappa_discharge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, 1.0)
+        self._kappa_charge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, -1.0)
+
+    # ------------------------------------------------------------------ start
+    def _start(self, tick: Tick, cells: BoolArray) -> None:
+        super()._start(tick, cells)
+        n = self.n
+        sigma = np.where(cells, np.sqrt(self._start_var), np.sqrt(np.diag(self.P)[:n]))
+        keep = ~cells
+        self.P[:n, :n] *= np.outer(keep, keep)  # a restarted cell forgets its correlations
+        self.P[:n, n] *= keep
+        self.P[n, :n] *= keep
+        self.P[np.arange(n), np.arange(n)] = sigma**2
+        self._gate_learning()
+
+    def _gate_learning(self) -> None:
+        """Cells whose SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV."""
+        n, ocv = self.n, self.model.ocv
+        slope = np.abs(ocv.docv_dz(np.clip(self.z, ocv.soc_min, ocv.soc_max)))
+        sd = np.sqrt(np.maximum(np.diag(self.P)[:n], 0.0))
+        self._learn_gate = slope * sd <= self.tun.learn_ocv_sigma_V
+
+    def start_variance(self, tick: Tick, method: str, z: FloatArray) -> None:
+        """Variance of the start SOC (fraction^2): from the voltage's uncertainty (hysteresis,
+        unknown relaxation, IR drop) through the OCV slope, or that of a given value."""
+        tun = self.tun
+        if method in ("given", "config"):
+            self._start_var = np.full(self.n, tun.given_soc_sigma**2)
+            return
+        m = self.model
+        slope = np.abs(m.ocv.docv_dz(np.clip(z, m.ocv.soc_min, m.ocv.soc_max)))
+        r_rc = m.start("R1_ohm") + m.start("R2_ohm")
+        sigma_v = m.ocv.hysteresis_M(z) + abs(tick.current_A) * r_rc + START_V_SIGMA_V
+        sigma = np.minimum(sigma_v / np.maximum(slope, 1e-9), tun.start_soc_sigma_max)
+        self._start_var = np.maximum(sigma, tun.given_soc_sigma) ** 2
+
+    # ------------------------------------------------------------------ outputs, checkpoints
+    def outputs(self) -> dict[str, FloatArray]:
+        n = self.n
+        return {
+            "soc": self.z,
+            "h": self.h,
+            "soc_std": np.sqrt(np.maximum(np.diag(self.P)[:n], 0.0)),
+            "capacity_Ah": self.capacity.q_Ah,
+            "capacity_std_Ah": np.sqrt(self.capacity.var_Ah2),
+            "current_offset_A": np.full(n, self.b),
+        }
+
+    _ARRAYS = ("P", "_g", "_qz", "_learn_gate", "_q_As", "_i_load_A", "_tau_load_s", "_anchored")
+    _SCALARS = ("b", "_qb", "_since_s", "_rest_s")
+
+    def state_dict(self) -> dict[str, Any]:
+        st = super().state_dict()
+        st["observer"] = {
+            **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS},
+            **{k.lstrip("_"): float(getattr(self, k)) for k in self._SCALARS},
+            "reanchor": self._reanchor,
+            "capacity": self.capacity.state_dict(),
+        }
+        return st
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        super().load_state_dict(st)
+        obs = st.get("observer")
+        if obs is None:  # a checkpoint from before the observer: its SOC, a fresh covariance
+            self._reanchor = True
+            return
+        renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
+        load_arrays(self, renamed, self._ARRAYS, "state/observer")
+        for k in self._SCALARS:
+            setattr(self, k, float(obs[k.lstrip("_")]))
+        self._reanchor = bool(obs["reanchor"])
+        self.capacity.load_state_dict(obs["capacity"])
+        self._use_capacity()

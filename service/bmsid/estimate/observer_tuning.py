@@ -1,0 +1,69 @@
+"""Tuning of the SOC observer (``observer.py``) and the capacity estimate (``capacity.py``).
+
+Every constant is physical and stated in the unit a battery engineer reasons in (V of model
+error, C-rate of current offset, SOC per hour); none was fitted to one record.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class ObserverTuning(BaseModel):
+    """The extended Kalman filter over [SOC of each cell, pack current offset]."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    enabled: bool = True
+    """Correct SOC, the current offset and capacity from the voltage. Off: SOC is a plain
+    coulomb count from its start (the paper's Eq. 2), as before the observer existed."""
+    update_period_s: float = Field(10.0, gt=0.0)
+    """A measurement update every this many seconds of data. SOC moves by parts per thousand
+    per minute; the model error is correlated over tens of seconds, so faster updates would
+    only count the same error many times (and cost time)."""
+    v_sigma_V: float = Field(5e-3, gt=0.0)
+    """Std of the model error the observer assumes, V: an equivalent circuit on a real cell
+    tracks within 2-10 mV; this keeps SOC from chasing the dynamics' residual."""
+    r_dc_rel_sigma: float = Field(0.3, ge=0.0)
+    """Relative std of the identified DC resistance R0 + R1 + R2 as the observer sees it: the
+    model error under load grows as |I| x this x R_dc (resistance varies this much with SOC and
+    temperature within a drive). Under a steady mean current a SOC error and an R2 error look
+    alike; this makes SOC learn from light load and rests, where they do not."""
+    v_sigma_floor_V: float = Field(1e-3, gt=0.0)
+    """Lower bound of the assumed model error at an anchor, V (a rested cell's voltage noise)."""
+    gate_sigmas: float = Field(5.0, gt=1.0)
+    """A cell whose innovation exceeds this many predicted std is left out of the update (a
+    transient the model does not know, a glitch): counted as ``observer_gated``."""
+    soc_walk_per_sqrt_h: float = Field(0.003, ge=0.0)
+    """SOC random walk, fraction per sqrt(hour): what the model cannot know (self-discharge,
+    OCV drift with temperature)."""
+    current_gain_sigma: float = Field(0.01, ge=0.0)
+    """Relative error of the current sensor's gain: SOC uncertainty grows by this per unit of
+    SOC moved (a 1 % gain error is 1 point per full cycle)."""
+    offset_prior_C: float = Field(0.01, gt=0.0)
+    """Prior std of the pack current-sensor offset, C-rate (1 % of 1C: a plain Hall sensor)."""
+    offset_walk_C_per_sqrt_day: float = Field(0.001, ge=0.0)
+    """Random walk of the offset, C-rate per sqrt(day) (sensor drift with temperature)."""
+    offset_max_C: float = Field(0.05, gt=0.0)
+    """The offset estimate is bounded to this, C-rate (a larger one is a broken sensor)."""
+    start_soc_sigma_max: float = Field(0.3, gt=0.0, le=1.0)
+    """Upper bound of the start SOC's std (a voltage that says nothing: a flat LFP plateau)."""
+    given_soc_sigma: float = Field(0.01, gt=0.0)
+    """Std of a start SOC the caller gives (``--soc0``, a checkpoint): a cycler's counter."""
+    learn_ocv_sigma_V: float = Field(0.02, gt=0.0)
+    """Parameters learn only while the OCV uncertainty |dOCV/dz| x std(SOC) is below this, V:
+    a SOC error the observer has not removed yet would otherwise be learnt as resistance."""
+    anchor_rest_taus: float = Field(3.0, gt=0.0)
+    """A rest anchors SOC to the OCV once it has lasted this many identified slow time
+    constants (the branches have relaxed to within exp(-3) = 5 %)."""
+    anchor_min_rest_s: float = Field(600.0, ge=0.0)
+    """... and at least this long, s."""
+    restart_gap_s: float = Field(600.0, gt=0.0)
+    """A gap in the data (a restart after downtime) longer than this re-anchors SOC from the
+    first voltage after it, s."""
+    capacity_prior_rel: float = Field(0.05, gt=0.0)
+    """Relative std of the configured capacity (the capacity estimate's prior)."""
+    capacity_min_dsoc: float = Field(0.2, gt=0.0, lt=1.0)
+    """Two anchors this far apart in SOC (fraction) measure the capacity."""
+    capacity_fade_rel_per_sqrt_day: float = Field(0.005, ge=0.0)
+    """Random walk of the capacity estimate, relative per sqrt(day): ageing and temperature."""
