@@ -1,10 +1,11 @@
 """Regenerate the physics-based reference data in ``data/physics/`` with PyBaMM.
 
 A DFN model (lumped thermal) of the LG M50 cell (PyBaMM's bundled ``ORegan2022`` set) runs the
-DST and a bus-like stop-and-go profile (``bmsid.profiles``) at 15, 25 and 35 C ambient, plus a
-C/20 discharge/charge OCV test at 25 C. The simulated current, voltage and temperature get seeded
-tester noise and resolution; the model's true SOC is kept as an extra column. See
-``data/README.md``.
+DST and a bus-like stop-and-go profile (``bmsid.profiles``) at 15, 25 and 35 C ambient, a
+C/20 discharge/charge OCV test at 25 C and a two-day gateway record at 25 C (drives, rests,
+CC-CV charges; it starts under an auxiliary load). The simulated current, voltage and
+temperature get seeded tester noise and resolution; the model's true SOC is kept as an extra
+column. See ``data/README.md``.
 
 PyBaMM is the ``physics`` extra (``pip install -e '.[physics]'``) and is needed by this script
 only. The script installs nothing and refuses any network connection, so it fails rather than
@@ -28,7 +29,7 @@ import sys
 import time
 import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
@@ -59,6 +60,24 @@ OCV_REST_H = 2.0
 OCV_CURVE_POINTS = 201
 REFERENCE_TEMPERATURE_C = 25.0
 
+# Gateway record: a vehicle's days as its gateway logs them (record time 0 = gateway start).
+GATEWAY_DAYS = 2
+GATEWAY_NAME = f"dfn_nmc_gateway_{GATEWAY_DAYS}days_25C"
+GATEWAY_SOC0 = 0.75  # equilibrium SOC before the auxiliary load came on (before the record)
+AUX_LOAD_A = 0.17  # auxiliaries on while the gateway restarts: the record starts under load
+AUX_PREROLL_S = 1800.0  # the load ran this long before the record starts (not logged)
+AUX_LOGGED_S = 900.0  # ... and this long into the record
+DAY_S = 86400.0
+DRIVE1_START_S = 3600.0  # morning drive, from the start of each day
+DRIVE1_CYCLES = 15  # bus-like cycles of 300 s: 1.25 h (its regeneration is mild at full charge)
+MIDDAY_REST_S = 7.0 * 3600.0
+DRIVE2_CYCLES = 12  # DST cycles of 360 s: 1.2 h
+EVENING_REST_S = 2.0 * 3600.0  # between the second drive and the charge
+CHARGE_A = NOMINAL_CAPACITY_AH / 3.0  # CC at C/3 to V_MAX_V ...
+CV_END_A = NOMINAL_CAPACITY_AH / 20.0  # ... then CV at V_MAX_V until C/20
+REST_FINE_S = 600.0  # the first 10 min of a rest are logged every 1 s ...
+REST_PERIOD_S = 10.0  # ... the rest of it every 10 s
+
 # Tester model: Gaussian noise then quantisation to the logger's resolution.
 VOLTAGE_NOISE_V = 1e-3
 CURRENT_NOISE_A = 1e-3 * NOMINAL_CAPACITY_AH  # 0.1 % of the 1C current = 5 mA
@@ -82,6 +101,8 @@ class Trace:
     temperature_C: FloatArray
     soc: FloatArray
     ended_by: str
+    #: Phases of a composed record (gateway): kind, day, start/end in record time and facts.
+    schedule: tuple[dict[str, Any], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -172,24 +193,27 @@ def cycle_steps(
     return one * cycles
 
 
-def run(pybamm: Any, ambient_C: float, experiment: Any, soc0: float, window: Window) -> Trace:
-    """Solve the lumped-thermal DFN for an experiment and return its samples."""
+def simulation(pybamm: Any, ambient_C: float, experiment: Any) -> Any:
+    """The lumped-thermal DFN set up for an experiment."""
     model = pybamm.lithium_ion.DFN({"thermal": "lumped"})
-    sim = pybamm.Simulation(
+    return pybamm.Simulation(
         model,
         parameter_values=parameter_values(pybamm, ambient_C),
         experiment=experiment,
         solver=pybamm.IDAKLUSolver(rtol=1e-6, atol=1e-8),
     )
-    sol = sim.solve(initial_soc=soc0)
+
+
+def trace_of(sol: Any, window: Window, t_from_s: float = 0.0) -> Trace:
+    """A solution's samples from simulation time ``t_from_s`` on, with that time as zero."""
     t = np.asarray(sol["Time [s]"].entries, dtype=np.float64)
     x = np.asarray(sol["Average negative particle stoichiometry"].entries, dtype=np.float64)
     # At a step change the solution holds the end of one step and the start of the next at the
     # same time: keep the later one, as a tester logs the new step's first record.
-    keep = np.append(np.diff(t) > 1e-9, True)
+    keep = np.append(np.diff(t) > 1e-9, True) & (t >= t_from_s - 1e-9)
     last = sol.termination
     return Trace(
-        t_s=t[keep],
+        t_s=t[keep] - t_from_s,
         current_A=np.asarray(sol["Current [A]"].entries, dtype=np.float64)[keep],
         voltage_V=np.asarray(sol["Voltage [V]"].entries, dtype=np.float64)[keep],
         temperature_C=np.asarray(
@@ -198,6 +222,12 @@ def run(pybamm: Any, ambient_C: float, experiment: Any, soc0: float, window: Win
         soc=(x[keep] - window.x0) / (window.x100 - window.x0),
         ended_by="end of test" if last == "final time" else str(last),
     )
+
+
+def run(pybamm: Any, ambient_C: float, experiment: Any, soc0: float, window: Window) -> Trace:
+    """Solve the lumped-thermal DFN for an experiment and return its samples."""
+    sol = simulation(pybamm, ambient_C, experiment).solve(initial_soc=soc0)
+    return trace_of(sol, window)
 
 
 def until_soc(trace: Trace, soc_end: float) -> Trace:
@@ -246,6 +276,144 @@ def ocv_test_trace(pybamm: Any, window: Window) -> Trace:
         ]
     )
     return run(pybamm, REFERENCE_TEMPERATURE_C, experiment, 1.0, window)
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One part of the gateway record: one experiment cycle (its steps) and what it is."""
+
+    kind: str  # "aux_load", "rest", "drive" or "charge"
+    day: int
+    steps: tuple[Any, ...]
+    facts: dict[str, Any]
+
+
+def rest_steps(pybamm: Any, duration_s: float) -> tuple[Any, ...]:
+    """A rest logged every 1 s for its first REST_FINE_S or so, then every REST_PERIOD_S.
+
+    The coarse part is a whole number of periods, so both parts keep their exact sample spacing
+    (PyBaMM spreads a step's samples evenly over its duration).
+    """
+    coarse = max(0.0, math.floor((duration_s - REST_FINE_S) / REST_PERIOD_S) * REST_PERIOD_S)
+    fine = duration_s - coarse
+    steps = [pybamm.step.rest(duration=fine, period=1.0)]
+    if coarse > 0.0:
+        steps.append(pybamm.step.rest(duration=coarse, period=REST_PERIOD_S))
+    return tuple(steps)
+
+
+def realign_step(pybamm: Any, t_s: float) -> tuple[Any, float]:
+    """A rest step from ``t_s`` to a whole second 0.5-1.5 s later, and its duration.
+
+    A charge ends on a condition (voltage, current) between whole seconds; the rest after it
+    starts with this step so that every later sample is on whole seconds again.
+    """
+    align_s = math.ceil(t_s) - t_s
+    if align_s < 0.5:
+        align_s += 1.0
+    return pybamm.step.rest(duration=align_s, period=align_s), align_s
+
+
+def day_phases(pybamm: Any, day: int) -> list[Phase]:
+    """A day from its first drive to the end of its evening charge."""
+    return [
+        Phase(
+            "drive",
+            day,
+            tuple(cycle_steps(pybamm, BBDST_STEPS, BBDST_STEP1_A, DRIVE1_CYCLES)),
+            {"profile": "bbdst", "scale_A": BBDST_STEP1_A},
+        ),
+        Phase("rest", day, rest_steps(pybamm, MIDDAY_REST_S), {}),
+        Phase(
+            "drive",
+            day,
+            tuple(cycle_steps(pybamm, DST_STEPS, DST_PEAK_A, DRIVE2_CYCLES)),
+            {"profile": "dst", "scale_A": DST_PEAK_A},
+        ),
+        Phase("rest", day, rest_steps(pybamm, EVENING_REST_S), {}),
+        Phase(
+            "charge",
+            day,
+            (
+                pybamm.step.current(-CHARGE_A, termination=f"{V_MAX_V} V", period=1.0),
+                pybamm.step.voltage(V_MAX_V, termination=f"{CV_END_A} A", period=1.0),
+            ),
+            {"current_A": -CHARGE_A, "voltage_V": V_MAX_V, "end_current_A": CV_END_A},
+        ),
+    ]
+
+
+def check_complete(sol: Any, phases: Sequence[Phase]) -> None:
+    """Fail unless every phase and every step of the last one ran (no cut-off event hit)."""
+    ended = sol.termination == "final time" or str(sol.termination).endswith("[experiment]")
+    if (
+        not ended
+        or len(sol.cycles) != len(phases)
+        or len(sol.cycles[-1].steps) != len(phases[-1].steps)
+    ):
+        raise RuntimeError(f"gateway run stopped early: {sol.termination}")
+
+
+def gateway_trace(pybamm: Any, window: Window) -> Trace:
+    """GATEWAY_DAYS days at 25 C: drives, rests and evening charges; starts under a load.
+
+    Simulation time 0 is the equilibrium at GATEWAY_SOC0 when the auxiliary load comes on; the
+    record starts AUX_PREROLL_S later. Solved in pieces, each from the end of the previous one,
+    cut after each charge: the overnight rest then lasts until the next day's first drive, so the
+    days keep their clock (day k starts at (k - 1) * DAY_S in record time).
+    """
+    off = AUX_PREROLL_S
+    phases = [
+        Phase(
+            "aux_load",
+            1,
+            (
+                pybamm.step.current(AUX_LOAD_A, duration=AUX_PREROLL_S, period=REST_PERIOD_S),
+                pybamm.step.current(AUX_LOAD_A, duration=AUX_LOGGED_S, period=1.0),
+            ),
+            {"current_A": AUX_LOAD_A, "on_before_record_s": AUX_PREROLL_S},
+        ),
+        Phase("rest", 1, rest_steps(pybamm, DRIVE1_START_S - AUX_LOGGED_S), {}),
+        *day_phases(pybamm, 1),
+    ]
+    sol = None
+    solved = 0
+    for day in range(2, GATEWAY_DAYS + 2):
+        experiment = pybamm.Experiment([p.steps for p in phases[solved:]])
+        sim = simulation(pybamm, REFERENCE_TEMPERATURE_C, experiment)
+        sol = (
+            sim.solve(initial_soc=GATEWAY_SOC0) if sol is None else sim.solve(starting_solution=sol)
+        )
+        check_complete(sol, phases)
+        solved = len(phases)
+        # Overnight rest: from the end of the charge to the next day's first drive (the last
+        # one to the end of the record).
+        t_end_s = float(sol["Time [s]"].entries[-1])
+        next_s = off + (day - 1) * DAY_S + (DRIVE1_START_S if day <= GATEWAY_DAYS else 0.0)
+        align, align_s = realign_step(pybamm, t_end_s)
+        rest_s = round(next_s - t_end_s - align_s)
+        phases.append(Phase("rest", day - 1, (align, *rest_steps(pybamm, rest_s)), {}))
+        if day <= GATEWAY_DAYS:
+            phases += day_phases(pybamm, day)
+    experiment = pybamm.Experiment([p.steps for p in phases[solved:]])
+    sol = simulation(pybamm, REFERENCE_TEMPERATURE_C, experiment).solve(starting_solution=sol)
+    check_complete(sol, phases)
+
+    schedule = []
+    for phase, cycle in zip(phases, sol.cycles, strict=True):
+        t = cycle["Time [s]"].entries
+        entry: dict[str, Any] = {
+            "kind": phase.kind,
+            "day": phase.day,
+            "start_s": round(max(float(t[0]) - off, 0.0), 3),
+            "end_s": round(float(t[-1]) - off, 3),
+            **phase.facts,
+        }
+        if phase.kind == "charge":
+            entry["cv_start_s"] = round(float(cycle.steps[0]["Time [s]"].entries[-1]) - off, 3)
+        schedule.append(entry)
+    trace = trace_of(sol, window, t_from_s=off)
+    return replace(trace, schedule=tuple(schedule))
 
 
 def measured(trace: Trace, seed: int) -> FloatArray:
@@ -317,6 +485,18 @@ def dataset_builders(
             "sample_period_s": OCV_TEST_PERIOD_S,
         },
         partial(ocv_test_trace, pybamm, window),
+    )
+    out[GATEWAY_NAME] = (
+        {
+            "profile": "gateway",
+            "ambient_C": REFERENCE_TEMPERATURE_C,
+            "days": GATEWAY_DAYS,
+            "soc_before_aux_load": GATEWAY_SOC0,
+            "sample_period_s": 1.0,
+            "rest_sample_period_s": REST_PERIOD_S,
+            "rest_fine_s": REST_FINE_S,
+        },
+        partial(gateway_trace, pybamm, window),
     )
     return out
 
@@ -409,6 +589,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if info["profile"] == "ocv_c20":
             datasets[name]["discharge_capacity_Ah"] = round(branch_capacity_Ah(trace, 1.0), 4)
             datasets[name]["charge_capacity_Ah"] = round(branch_capacity_Ah(trace, -1.0), 4)
+        if trace.schedule:
+            datasets[name]["soc_min"] = round(float(trace.soc.min()), 4)
+            datasets[name]["soc_max"] = round(float(trace.soc.max()), 4)
+            datasets[name]["schedule"] = list(trace.schedule)
         print(
             f"{name}: {rows.shape[0]} rows, SOC {trace.soc[0]:.3f}->{trace.soc[-1]:.3f},"
             f" {trace.ended_by}, wall {wall_s:.1f} s",

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from bmsid.canbus import dbcgen
 from bmsid.canbus.codec import decode_raw, encode_saturating, raw_range
 from bmsid.canbus.mapping import PACKAGE_DBC_DIR
+from bmsid.estimate.types import Quality
 
 REPO = Path(__file__).resolve().parents[2]
 DB = cantools.database.load_file(str(PACKAGE_DBC_DIR / "bmsid.dbc"), strict=True)
@@ -61,6 +62,56 @@ def test_ids_fd_and_capacity() -> None:
     groups = DB.get_message_by_name("BMSID_CellVoltages").get_signal_by_name("CellVoltage0")
     assert len(groups.multiplexer_ids) * dbcgen.CELLS_PER_VOLTAGE_FRAME >= 512
     assert groups.scale == 0.001
+
+
+#: bmsid 0.1's output frames (29-bit ids; the 11-bit twins are 0x300 + the low byte): id, bytes,
+#: signal -> (start bit, length, scale). Receivers decode these: signals are added, never moved.
+LAYOUT_0_1: dict[str, tuple[int, int, dict[str, tuple[int, int, float]]]] = {
+    "BMSID_CellR": (0x18FF5101, 8, {"CellIndex": (0, 10, 1), "R0": (10, 18, 2e-06),
+                    "R1": (28, 18, 2e-06), "R2": (46, 18, 2e-06)}),
+    "BMSID_CellTau": (0x18FF5102, 8, {"CellIndex": (0, 10, 1), "Tau1": (10, 18, 0.001),
+                      "Tau2": (28, 18, 0.05), "Lambda": (46, 16, 2e-05)}),
+    "BMSID_CellState": (0x18FF5103, 8, {"CellIndex": (0, 10, 1), "H": (10, 12, 0.0005),
+                        "SOC": (22, 12, 0.00025), "VError": (34, 16, 0.0001),
+                        "Quality": (50, 3, 1), "Saturated": (53, 11, 1)}),
+    "BMSID_PackSummary": (0x18FF5104, 8, {"R0Min": (0, 16, 1e-05), "R0Mean": (16, 16, 1e-05),
+                          "R0Max": (32, 16, 1e-05), "WeakestCell": (48, 10, 1),
+                          "Health": (58, 4, 1), "Saturated": (62, 1, 1)}),
+    "BMSID_CellParamsFD": (0x18FF5110, 48, {"CellIndex": (0, 16, 1), "R0": (16, 32, 1e-07),
+                           "R1": (48, 32, 1e-07), "R2": (80, 32, 1e-07),
+                           "Tau1": (112, 32, 0.0001), "Tau2": (144, 32, 0.0001),
+                           "C1": (176, 32, 0.01), "C2": (208, 32, 0.01),
+                           "Lambda": (240, 32, 1e-09), "H": (272, 16, 5e-05),
+                           "SOC": (288, 16, 2e-05), "VError": (304, 32, 1e-06),
+                           "Quality": (336, 8, 1), "Saturated": (344, 16, 1)}),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(LAYOUT_0_1))
+def test_existing_output_frames_keep_their_ids_and_signals(name: str) -> None:
+    frame_id, length, signals = LAYOUT_0_1[name]
+    twin = 0x300 + (frame_id & 0xFF)
+    for m, ident in ((DB.get_message_by_name(name), frame_id),
+                     (DB.get_message_by_name(name + "_11bit"), twin)):  # fmt: skip
+        assert (m.frame_id, m.length) == (ident, length)
+        for sig, (start, n_bits, scale) in signals.items():
+            s = m.get_signal_by_name(sig)
+            assert (s.start, s.length, s.scale) == (start, n_bits, scale), (name, sig)
+
+
+def test_new_outputs_fit_without_overlap_and_name_the_quality_codes() -> None:
+    ids = [m.frame_id for m in DB.messages]
+    assert len(ids) == len(set(ids))
+    assert DB.get_message_by_name("BMSID_CellCapacity").frame_id == 0x18FF5105
+    assert DB.get_message_by_name("BMSID_PackState_11bit").frame_id == 0x306
+    cap = DB.get_message_by_name("BMSID_CellParamsFD").get_signal_by_name("Capacity")
+    assert cap.unit == "Ah" and cap.maximum >= 300  # large prismatic cells (280 Ah LFP)
+    for name in ("BMSID_CellState", "BMSID_CellParamsFD"):
+        quality = DB.get_message_by_name(name).get_signal_by_name("Quality")
+        assert dict(quality.choices or {}) == {q.value: q.name.lower() for q in Quality}
+    # strict loading above already rejected overlapping signals; every mask bit fits a mask
+    fd_mask = DB.get_message_by_name("BMSID_CellParamsFD").get_signal_by_name("Saturated")
+    assert max(dbcgen.SATURATION_BITS.values()) < fd_mask.length
 
 
 def test_ranges_serve_prismatic_and_18650_cells() -> None:

@@ -9,9 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bmsid.canbus.dbcgen import SATURATION_BITS
-from bmsid.canbus.encoder import ParameterEncoder
-from bmsid.estimate.types import Estimates
+from bmsid.canbus.dbcgen import CLASSIC_STATE_MASK_BITS, SATURATION_BITS
+from bmsid.canbus.encoder import CLASSIC_PAGES, PACK_PAGES, ParameterEncoder
+from bmsid.estimate.types import Estimates, Quality
+from bmsid.publish import payloads
 
 
 def estimates(n: int = 3, **over: float) -> Estimates:
@@ -29,6 +30,10 @@ def estimates(n: int = 3, **over: float) -> Estimates:
         lambda_=0.995,
         h=-0.7,
         soc=0.63,
+        soc_std=0.021,
+        capacity_Ah=2.43,
+        capacity_std_Ah=0.05,
+        current_offset_A=-0.0123,
         v_model_V=3.30,
         v_meas_V=3.3021,
         arx_error_V=0.0,
@@ -50,6 +55,8 @@ EXPECT = {
     "lambda": 0.995,
     "h": -0.7,
     "soc": 0.63,
+    "soc_std": 0.021,
+    "capacity_Ah": 2.43,
     "v_error_V": 0.0021,
     "quality": 1.0,
 }
@@ -65,7 +72,7 @@ def _merged(enc: ParameterEncoder, est: Estimates, cell: int) -> dict[str, float
 
 
 @pytest.mark.parametrize(
-    ("ext", "fd", "n_frames"), [(True, False, 3), (False, False, 3), (True, True, 1)]
+    ("ext", "fd", "n_frames"), [(True, False, 4), (False, False, 4), (True, True, 1)]
 )
 def test_cell_frames_round_trip(ext: bool, fd: bool, n_frames: int) -> None:
     enc = ParameterEncoder(extended_id=ext, fd=fd)
@@ -91,6 +98,40 @@ def test_out_of_range_saturates_and_flags() -> None:
     )
 
 
+@pytest.mark.parametrize("fd", [False, True])
+def test_new_signals_saturate_into_the_masks_that_have_room(fd: bool) -> None:
+    """Capacity (bit 12) and SOCStd (bit 11) saturate like the others; in classic CAN only the
+    16-bit mask of ``CellCapacity`` has room for them, ``CellState``'s 11 bits keep bits 0-10."""
+    enc = ParameterEncoder(fd=fd)
+    est = estimates(capacity_Ah=1000.0, soc_std=0.4, R0_ohm=2.0 if not fd else 1e-3)
+    new_bits = (1 << SATURATION_BITS["Capacity"]) | (1 << SATURATION_BITS["SOCStd"])
+    masks = {}
+    for f in enc.cell_frames(est, [0]):
+        d = enc.decode(f)
+        assert d is not None
+        if "saturated_mask" in d:
+            masks[f.arbitration_id & 0xFF] = int(d["saturated_mask"])
+        if "capacity_Ah" in d:
+            assert d["capacity_Ah"] == pytest.approx(655.34)
+            assert d["soc_std"] == pytest.approx(0.254)
+    if fd:
+        assert masks == {0x10: new_bits}
+    else:
+        r0_bit = 1 << SATURATION_BITS["R0"]
+        assert masks == {0x03: r0_bit, 0x05: r0_bit | new_bits}
+        assert max(SATURATION_BITS.values()) >= CLASSIC_STATE_MASK_BITS  # why two masks
+
+
+def test_classic_and_fd_send_the_same_new_fields() -> None:
+    est = estimates(soc_std=0.0123, capacity_Ah=280.17)
+    for fd in (False, True):
+        got = _merged(ParameterEncoder(fd=fd), est, 1)
+        assert got["soc_std"] == pytest.approx(0.012, abs=5e-4)
+        assert got["capacity_Ah"] == pytest.approx(280.17, abs=5e-3)
+        assert "capacity_std_Ah" not in got and "current_offset_A" not in got  # not cell signals
+    assert CLASSIC_PAGES[:3] == ("CellR", "CellTau", "CellState")  # the old pages keep their order
+
+
 def test_nan_is_sent_as_not_available() -> None:
     enc = ParameterEncoder()
     got = _merged(enc, estimates(R1_ohm=math.nan), 1)
@@ -106,6 +147,53 @@ def test_pack_frame() -> None:
     assert d is not None
     assert d["R0_min_ohm"] == pytest.approx(1e-3) and d["R0_max_ohm"] == pytest.approx(3e-3)
     assert d["R0_mean_ohm"] == pytest.approx(2e-3) and d["weakest_cell"] == 1 and d["health"] == 2
+
+
+@pytest.mark.parametrize("ext", [True, False])
+def test_pack_frames_carry_the_current_offset_and_every_health_bit(ext: bool) -> None:
+    enc = ParameterEncoder(extended_id=ext)
+    est = estimates(4, current_offset_A=0.0421)
+    quality = np.array([1, 4, 3, 0])
+    est = Estimates(est.t_s, est.current_A, est.cells, quality)
+    health = payloads.health_bits(est) | payloads.HEALTH_INPUT_STALE
+    assert health == 1 | 4 | 8 | payloads.HEALTH_DIVERGED
+    frames = enc.pack_frames(est, health)
+    assert len(frames) == len(PACK_PAGES) == 2
+    summary, state = (enc.decode(f) for f in frames)
+    assert summary is not None and state is not None
+    assert summary["health"] == health
+    assert summary["R0_mean_ohm"] == pytest.approx(1.2e-3)
+    assert state == {"current_offset_A": pytest.approx(0.0421, abs=5e-6), "saturated_mask": 0}
+    assert enc.decode(enc.pack_frame(est, health)) == summary  # the first of the pack frames
+    # MQTT says the same
+    body = payloads.pack_payload(est, "p", 0, health)
+    assert body["current_offset_A"] == pytest.approx(0.0421)
+    assert body["health"] == health and body["quality_counts"]["diverged"] == 1
+
+
+@pytest.mark.parametrize("health", [0, 1, 15, 16, 17, 31])
+def test_health_round_trips_through_both_signals(health: int) -> None:
+    enc = ParameterEncoder()
+    d = enc.decode(enc.pack_frame(estimates(), health))
+    assert d is not None and d["health"] == health
+
+
+def test_pack_state_sends_nan_offset_as_not_available_and_saturates() -> None:
+    enc = ParameterEncoder()
+    nan = enc.decode(enc.pack_frames(estimates(current_offset_A=math.nan), 0)[1])
+    assert nan is not None and math.isnan(nan["current_offset_A"]) and nan["saturated_mask"] == 0
+    big = enc.decode(enc.pack_frames(estimates(current_offset_A=-500.0), 0)[1])
+    assert big is not None and big["saturated_mask"] == 1
+    assert big["current_offset_A"] == pytest.approx(-83.88607)
+
+
+def test_diverged_quality_is_sent_as_its_code() -> None:
+    est = estimates(2)
+    est = Estimates(est.t_s, est.current_A, est.cells, np.array([Quality.DIVERGED, 1]))
+    for fd in (False, True):
+        enc = ParameterEncoder(fd=fd)
+        assert _merged(enc, est, 0)["quality"] == Quality.DIVERGED == 4
+        assert _merged(enc, est, 1)["quality"] == 1
 
 
 def test_decode_rejects_foreign_and_malformed_frames() -> None:

@@ -16,7 +16,7 @@ from typing import Any
 import can
 import numpy as np
 
-from bmsid.canbus.encoder import CLASSIC_PAGES
+from bmsid.canbus.encoder import CLASSIC_PAGES, PACK_PAGES
 from bmsid.canbus.frames_to_samples import FrameToSamples
 from bmsid.canbus.logs import read_log
 from bmsid.canbus.mapping import default_mapping
@@ -197,7 +197,7 @@ async def full_can_output_cycle(daemon: Daemon, timeout_s: float = 30.0) -> None
     per_round = daemon.cycler.per_round
     rounds = -(-daemon.cycler.n_cells // per_round) + 1
     frames_per_cell = 1 if daemon.settings.can.output_fd else len(CLASSIC_PAGES)
-    frames_per_round = 1 + per_round * frames_per_cell  # the pack frame, then the cells'
+    frames_per_round = len(PACK_PAGES) + per_round * frames_per_cell  # pack frames, then cells'
     target = daemon.counters["can_frames_sent"] + rounds * frames_per_round
     await wait_for(
         lambda: daemon.counters["can_frames_sent"] >= target, timeout_s, "a full CAN output cycle"

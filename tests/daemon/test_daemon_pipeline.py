@@ -28,6 +28,7 @@ from daemon_helpers import (
 
 from bmsid.canbus.encoder import ParameterEncoder
 from bmsid.daemon.core import Daemon
+from bmsid.publish.discovery import discovery_messages
 
 
 def _validators() -> dict[str, jsonschema.Draft202012Validator]:
@@ -273,7 +274,7 @@ def test_home_assistant_discovery_and_republish_on_ha_birth(
             "url": f"mqtt://127.0.0.1:{mosquitto_broker.port}",
         },
     )
-    n_configs = 8 * 12 + 3
+    n_configs = len(discovery_messages("homeassistant", "bmsid", "testpack", 8, "x"))
 
     def configs() -> list[dict[str, Any]]:
         return [p for t, p in cap.messages("homeassistant/sensor/") if t.endswith("/config")]

@@ -93,9 +93,9 @@ def test_kill_9_then_restart_continues(
     first = start_daemon(config, log)
     try:
         _wait(
-            lambda: any(p["t_s"] - T0_S >= 420 for p in _cell0(cap)) and ckpt.exists(),
+            lambda: any(p["t_s"] - T0_S >= 480 for p in _cell0(cap)) and ckpt.exists(),
             60,
-            "420 s of data and a checkpoint",
+            "480 s of data and a checkpoint",
             first,
             log,
         )

@@ -96,6 +96,10 @@ def _estimates(n: int, rng: np.random.Generator) -> Estimates:
         "lambda_": r(0.9, 1.0),
         "h": r(-1, 1),
         "soc": r(0, 1),
+        "soc_std": r(0, 0.1),
+        "capacity_Ah": r(1, 300),
+        "capacity_std_Ah": r(0, 5),
+        "current_offset_A": np.full(n, float(rng.uniform(-1, 1))),  # one per pack
         "v_model_V": v_model,
         "v_meas_V": v_meas,
         "v_error_V": v_meas - v_model,
@@ -107,7 +111,7 @@ def _estimates(n: int, rng: np.random.Generator) -> Estimates:
         t_s=1.7e9 + rng.uniform(0, 1e5),
         current_A=float(rng.uniform(-300, 300)),
         cells=cells,
-        quality=rng.integers(0, 4, n).astype(np.int64),
+        quality=rng.integers(0, 5, n).astype(np.int64),
     )
 
 
@@ -125,6 +129,7 @@ def test_payloads_validate_against_published_schemas(seed: int, n: int) -> None:
     jsonschema.validate(pack, schemas["pack"])
     assert pack["weakest_cell"] == int(np.argmax(e.R0_ohm))
     assert sum(pack["quality_counts"].values()) == n
+    assert pack["current_offset_A"] == pytest.approx(float(e.current_offset_A[0]))
 
 
 def test_status_payloads_validate() -> None:

@@ -17,7 +17,7 @@ from bmsid.synthetic import paper_dst_case
 N_CELLS = 96
 # Short windows: every cell runs (staggered) swarms within the 240 samples.
 TUNING = EstimatorTuning(window_s=120.0, min_window_s=40.0, swarm_period_s=60.0, n_iter=3,
-                         n_iter_first=4, n_particles=4,
+                         n_iter_first=4, n_particles=4, swarm_min_steps=0,
                          observer=ObserverTuning(offset_prior_C=1e-12,
                                                  offset_walk_C_per_sqrt_day=0.0))  # fmt: skip
 

@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid import docgen
-from bmsid.canbus.encoder import DECODED_NAMES, ParameterEncoder
+from bmsid.canbus.encoder import CLASSIC_PAGES, DECODED_NAMES, FD_PAGE, ParameterEncoder
 from bmsid.canbus.mapping import DEFAULT_DBC_PATH
 from bmsid.errors import UserError
 from bmsid.estimate import fields
@@ -32,34 +32,35 @@ from bmsid.publish import discovery, payloads
 
 REPO = Path(__file__).resolve().parents[2]
 
-#: What the issue wants to add next: a fraction without an HA sensor or CAN signal ...
-SOC_STD = FieldSpec("soc_std", "", "%.6f", "SOC standard deviation (observer)", positive=True)
+#: A field one might add next: a fraction without an HA sensor or CAN signal ...
+NIS = FieldSpec("nis", "", "%.6f", "normalised innovation squared (observer)", positive=True)
 #: ... and a quantity with a unit and a Home Assistant sensor.
-CAPACITY = FieldSpec(
-    "capacity_Ah",
-    "Ah",
+ENERGY = FieldSpec(
+    "energy_Wh",
+    "Wh",
     "%.5g",
-    "identified capacity",
-    ha=HaSensor("capacity", "Ah", digits=2),
+    "identified energy",
+    ha=HaSensor("energy", "Wh", digits=2),
     positive=True,
     nullable=True,
 )
 #: A CAN signal that bmsid.dbc does not define.
-OFFSET = FieldSpec("current_offset_A", "A", "%.6g", "current sensor offset", can_signal="IOffset")
+DRIFT = FieldSpec("shunt_drift_A", "A", "%.6g", "shunt drift", can_signal="IShuntDrift")
 
 #: Today's Home Assistant sensors of a cell (entity ids users have: must never change).
 TODAYS_OBJECT_IDS = {
     f"cell0_{k}"
     for k in (
         "r0_ohm", "r1_ohm", "r2_ohm", "tau1_s", "tau2_s", "c1_f", "c2_f", "soc", "quality",
-        "lambda", "h", "v_error_v",
+        "lambda", "h", "v_error_v", "soc_std", "capacity_ah", "capacity_std_ah", "current_offset_a",
     )
 }  # fmt: skip
 
-#: params.csv's columns before the table (the first 12 fields were its columns before it).
+#: params.csv's columns (the first 12 fields were its columns before the table).
 TODAYS_HEADER = (
-    "t_s,cell,R0_ohm,R1_ohm,C1_F,R2_ohm,C2_F,tau1_s,tau2_s,lambda,h,soc,v_model_V,v_meas_V,"
-    "v_error_V,M_V,ocv_offset_V,arx_error_V,quality"
+    "t_s,cell,R0_ohm,R1_ohm,C1_F,R2_ohm,C2_F,tau1_s,tau2_s,lambda,h,soc,soc_std,capacity_Ah,"
+    "capacity_std_Ah,current_offset_A,v_model_V,v_meas_V,v_error_V,M_V,ocv_offset_V,arx_error_V,"
+    "quality"
 )
 
 
@@ -87,8 +88,8 @@ def _read_csv(path: Path) -> list[dict[str, str]]:
 
 @pytest.fixture
 def added(monkeypatch: pytest.MonkeyPatch) -> tuple[FieldSpec, ...]:
-    """The table with SOC_STD and CAPACITY appended (one patch: consumers read it when called)."""
-    new = (SOC_STD, CAPACITY)
+    """The table with NIS and ENERGY appended (one patch: consumers read it when called)."""
+    new = (NIS, ENERGY)
     monkeypatch.setattr(fields, "CELL_FIELDS", (*fields.CELL_FIELDS, *new))
     return new
 
@@ -98,7 +99,7 @@ def test_added_field_appears_in_params_csv(added: tuple[FieldSpec, ...], tmp_pat
     block = _block(3, 2)
     write_params_csv(block, ["a", "b"], tmp_path / "params.csv")
     header = (tmp_path / "params.csv").read_text(encoding="utf-8").splitlines()[0]
-    assert header == TODAYS_HEADER.replace(",quality", ",soc_std,capacity_Ah,quality")
+    assert header == TODAYS_HEADER.replace(",quality", ",nis,energy_Wh,quality")
     rows = _read_csv(tmp_path / "params.csv")
     assert len(rows) == 6 and [r["cell"] for r in rows] == ["a", "b"] * 3
     for spec in added:
@@ -115,27 +116,27 @@ def test_added_field_appears_in_payload_and_schema(added: tuple[FieldSpec, ...])
         for spec in added:
             assert body[spec.out_key] == float(est[spec.name][i])
     props = schema["properties"]
-    assert props["soc_std"] == {
+    assert props["nis"] == {
         "type": "number",
         "exclusiveMinimum": 0,
-        "description": "SOC standard deviation (observer)",
+        "description": "normalised innovation squared (observer)",
     }
-    assert props["capacity_Ah"]["type"] == ["number", "null"]
-    assert props["capacity_Ah"]["description"] == "identified capacity [Ah]"
-    assert {"soc_std", "capacity_Ah"} <= set(schema["required"])
+    assert props["energy_Wh"]["type"] == ["number", "null"]
+    assert props["energy_Wh"]["description"] == "identified energy [Wh]"
+    assert {"nis", "energy_Wh"} <= set(schema["required"])
     # the shipped file is the table's schema: it is stale now, and docgen says so
     assert json.loads(payloads.CELL_SCHEMA_PATH.read_text()) != schema
     assert payloads.CELL_SCHEMA_PATH in docgen.stale_files(REPO)
 
 
 def test_added_field_appears_in_home_assistant_discovery(added: tuple[FieldSpec, ...]) -> None:
-    assert discovery.cell_sensor_keys()[-3:] == ["v_error_V", "capacity_Ah", "quality"]
+    assert discovery.cell_sensor_keys()[-3:] == ["v_error_V", "energy_Wh", "quality"]
     msgs = dict(discovery.discovery_messages("homeassistant", "bmsid", "p1", 2, "0"))
-    cfg = json.loads(msgs["homeassistant/sensor/bmsid_p1/cell1_capacity_ah/config"])
-    assert cfg["name"] == "cell 1 capacity" and cfg["unit_of_measurement"] == "Ah"
-    assert cfg["value_template"] == "{{ (value_json.capacity_Ah) | round(2) }}"
+    cfg = json.loads(msgs["homeassistant/sensor/bmsid_p1/cell1_energy_wh/config"])
+    assert cfg["name"] == "cell 1 energy" and cfg["unit_of_measurement"] == "Wh"
+    assert cfg["value_template"] == "{{ (value_json.energy_Wh) | round(2) }}"
     assert cfg["state_topic"] == "bmsid/p1/cell/1" and cfg["state_class"] == "measurement"
-    assert not any("soc_std" in t for t in msgs)  # no ha entry: no sensor
+    assert not any("nis" in t for t in msgs)  # no ha entry: no sensor
 
 
 def test_added_field_without_can_signal_leaves_can_frames_alone(
@@ -145,13 +146,13 @@ def test_added_field_without_can_signal_leaves_can_frames_alone(
     for fd in (False, True):
         enc = ParameterEncoder(fd=fd)
         decoded = [enc.decode(f) for f in enc.cell_frames(est, [0, 1])]
-        assert all(d is not None and "soc_std" not in d for d in decoded)
+        assert all(d is not None and "nis" not in d for d in decoded)
 
 
 def test_added_can_signal_the_dbc_lacks_fails_loudly(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(fields, "CELL_FIELDS", (*fields.CELL_FIELDS, OFFSET))
+    monkeypatch.setattr(fields, "CELL_FIELDS", (*fields.CELL_FIELDS, DRIFT))
     for fd in (False, True):
-        with pytest.raises(UserError, match=r"lacks cell signal\(s\) IOffset in BMSID_Cell"):
+        with pytest.raises(UserError, match=r"lacks cell signal\(s\) IShuntDrift in BMSID_Cell"):
             ParameterEncoder(fd=fd)
 
 
@@ -228,11 +229,13 @@ def test_shipped_schema_is_the_generated_one() -> None:
 
 
 def _payload_value(spec: FieldSpec) -> st.SearchStrategy[float]:
-    """Any value the schema must accept: within bounds, or anything at all where nullable."""
-    if spec.nullable:
-        return st.floats(allow_nan=True, allow_infinity=True)
+    """Any value the schema must accept: within bounds, or anything not finite where nullable."""
     lo = spec.lo if spec.lo is not None else (0.0 if spec.positive else None)
-    return st.floats(lo, spec.hi, exclude_min=spec.positive, allow_nan=False, allow_infinity=False)
+    finite = st.floats(lo, spec.hi, exclude_min=spec.positive, allow_nan=False,
+                       allow_infinity=False)  # fmt: skip
+    if spec.nullable:
+        return st.one_of(finite, st.sampled_from([math.nan, math.inf, -math.inf]))
+    return finite
 
 
 @settings(max_examples=200, deadline=None)
@@ -275,7 +278,7 @@ def test_discovery_offers_the_table_with_todays_entity_ids() -> None:
 def test_can_frames_carry_every_can_field_in_its_unit(fd: bool) -> None:
     db = cantools.database.load_file(str(DEFAULT_DBC_PATH))
     assert isinstance(db, cantools.database.can.Database)
-    pages = ["CellParamsFD"] if fd else ["CellR", "CellTau", "CellState"]
+    pages = [FD_PAGE] if fd else list(CLASSIC_PAGES)
     signals = {s.name: s for p in pages for s in db.get_message_by_name(f"BMSID_{p}").signals}
     enc = ParameterEncoder(fd=fd)
     est = _block(1, 2, seed=3).row(0)

@@ -24,7 +24,7 @@ DATA = Path(__file__).parent / "data"
 # The observer couples the cells of a bank only through the pack's current offset: pinned to 0
 # by its prior here, so cells can be compared one by one.
 FAST = EstimatorTuning(window_s=120.0, min_window_s=40.0, swarm_period_s=60.0, n_iter=3,
-                       n_iter_first=4, n_particles=4,
+                       n_iter_first=4, n_particles=4, swarm_min_steps=0,
                        observer=ObserverTuning(offset_prior_C=1e-12,
                                                offset_walk_C_per_sqrt_day=0.0))  # fmt: skip
 #: The engine of bmsid 0.1 had no observer: its checkpoints continue as it did without one.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -82,3 +83,20 @@ def test_ocv_never_takes_the_log_of_a_nonpositive_number(z: float) -> None:
 def test_soc_from_ocv_inverts_the_curve() -> None:
     z = np.linspace(0.05, 0.95, 19)
     np.testing.assert_allclose(OCV.soc_from_ocv(OCV.ocv(z)), z, atol=1e-3)
+
+
+def test_a_capacity_per_sample_counts_against_the_present_capacity() -> None:
+    t = np.arange(0.0, 900.0, 1.0)
+    i = np.where(t < 600, 70.0, -35.0)
+    q = 70.0 * (1.0 - 0.2 * t / t[-1])  # a (fast) fade
+    kw = {"R0_ohm": 1.2e-3, "R1_ohm": 0.8e-3, "tau1_s": 32.0, "R2_ohm": 1e-3, "tau2_s": 600.0,
+          "gamma": 30.0, "soc0": 0.9}  # fmt: skip
+    sim = simulate(t, i, OCV, capacity_Ah=q, **kw)
+    z = 0.9 + np.concatenate(([0.0], np.cumsum(-i[:-1] / (q[:-1] * 3600.0))))
+    np.testing.assert_allclose(sim.soc, z, rtol=0, atol=1e-14)
+    same = simulate(t, i, OCV, capacity_Ah=np.full_like(t, 70.0), **kw)
+    scalar = simulate(t, i, OCV, capacity_Ah=70.0, **kw)
+    np.testing.assert_array_equal(same.v_V, scalar.v_V)
+    np.testing.assert_array_equal(same.h, scalar.h)
+    with pytest.raises(ValueError, match="one value per sample"):
+        simulate(t, i, OCV, capacity_Ah=q[:-1], **kw)

@@ -1,4 +1,5 @@
-"""OCV fitting: Eq. 4 recovery and bounds, branch extraction, IR-corrected M(z), CLI errors."""
+"""OCV fitting: Eq. 4 recovery and bounds, branch extraction, polarisation-corrected M(z), CLI
+errors (the hysteresis against known-truth tests: ``test_ocv_fit_hysteresis.py``)."""
 
 from __future__ import annotations
 
@@ -162,7 +163,9 @@ def test_c20_test_recovers_a_15_mV_half_gap_with_polarisation(
     # The polarisation is a real part of the raw gap (issue 11: one IR drop zeroed M).
     assert np.median(res.half_gap_raw_V) > 0.017
     np.testing.assert_allclose(res.m_fit_V[inner], 0.015, atol=0.003)
-    assert np.all(res.m_ci95_V[inner] < 0.005)
+    # Mid knots are tight; the branch-start knots (2 %, 98 %) carry gamma's effect (not fitted).
+    mid = (res.m_soc > 0.1) & (res.m_soc < 0.9)
+    assert np.all(res.m_ci95_V[mid] < 0.005)
     assert np.all(np.abs(res.m_fit_V[inner] - 0.015) <= res.m_ci95_V[inner] + 1e-3)
     # The rested voltages at both ends are found and the extended curve reaches them.
     assert res.v_empty_V is not None and res.v_full_V is not None

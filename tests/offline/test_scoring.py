@@ -15,6 +15,8 @@ from test_identify_cli import synthetic_columns, write_csv
 
 from bmsid.config.cell import paper_cell
 from bmsid.estimate.fields import FIELD_NAMES
+from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import EstimateBlock
 from bmsid.metrics import VoltageMetrics
 from bmsid.offline.identify import IdentifySpec, identify_file, run_arrays
@@ -152,12 +154,14 @@ def test_score_soc0_is_a_hand_coulomb_count() -> None:
 
 
 def test_score_soc0_equals_the_estimators_count_from_the_same_start() -> None:
-    """1 s samples, one tick each: the reference is the estimator's own (unclamped) count."""
+    """1 s samples, one tick each: the reference is the estimator's own (unclamped) count when
+    no observer corrects it from the voltage."""
     n = 600
     t = np.arange(float(n))
     i = 70.0 * np.sin(t / 40.0)  # charge and discharge of the paper's 70 Ah cell
     cell = paper_cell()
-    res = run_arrays(t, i, np.full(n, 3.7), cell, "non-hy-affrls", soc0=0.9)
+    count_only = EstimatorTuning(observer=ObserverTuning(enabled=False))
+    res = run_arrays(t, i, np.full(n, 3.7), cell, "non-hy-affrls", count_only, soc0=0.9)
     ref = SocReference.from_cell(cell, 0.9).soc(res.trace)
     np.testing.assert_allclose(ref, res.trace["soc"][:, 0], rtol=0, atol=1e-12)
 

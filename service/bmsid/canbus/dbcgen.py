@@ -15,6 +15,8 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
+from bmsid.estimate.types import Quality
+
 #: Bit positions of the ``Saturated`` mask in the per-cell frames (classic and FD).
 SATURATION_BITS: dict[str, int] = {
     "R0": 0,
@@ -28,7 +30,16 @@ SATURATION_BITS: dict[str, int] = {
     "VError": 8,
     "C1": 9,
     "C2": 10,
+    "SOCStd": 11,
+    "Capacity": 12,
 }
+#: Bits of ``SATURATION_BITS`` that ``CellState``'s 11-bit mask has room for (0..10); the
+#: ``CellCapacity`` and ``CellParamsFD`` masks carry every bit.
+CLASSIC_STATE_MASK_BITS = 11
+
+#: ``Quality`` codes as value descriptions (``VAL_``), named as MQTT's ``quality_name``.
+QUALITY_CHOICES: tuple[tuple[int, str], ...] = tuple((int(q), q.name.lower()) for q in Quality)
+QUALITY_COMMENT = ", ".join(f"{int(q)} {q.name.lower().replace('_', ' ')}" for q in Quality)
 
 #: Largest number of cells bmsid's own frames address (cell voltages and cell parameters).
 MAX_CELLS = 512
@@ -52,6 +63,7 @@ class SignalSpec:
     mux: str = ""  # "M" for the multiplexer, "m" for a signal present under every mux value
     maximum: float | None = None  # overrides the raw-range maximum (multiplexers)
     comment: str = ""
+    choices: tuple[tuple[int, str], ...] = ()  # raw value -> name (VAL_)
 
     def raw_range(self) -> tuple[int, int]:
         """Valid raw values (the SNA value excluded)."""
@@ -191,19 +203,40 @@ def _cell_state() -> tuple[SignalSpec, ...]:
             mux="m",
             comment="measured minus model terminal voltage",
         ),
-        SignalSpec(
-            "Quality",
-            50,
-            3,
-            mux="m",
-            comment="0 converging, 1 converged, 2 poorly excited, 3 out of bounds",
-        ),
+        SignalSpec("Quality", 50, 3, mux="m", comment=QUALITY_COMMENT, choices=QUALITY_CHOICES),
         SignalSpec(
             "Saturated",
             53,
             11,
             mux="m",
-            comment="bit i set: signal i saturated at its range (see dbc/README.md)",
+            comment="bit i set: signal i saturated at its range (see dbc/README.md); bits 0-10",
+        ),
+    )
+
+
+def _soc_std(start: int) -> SignalSpec:
+    return SignalSpec(
+        "SOCStd", start, 8, 0.001, sna=True, mux="m", comment="1-sigma uncertainty of SOC, fraction"
+    )
+
+
+def _capacity(start: int) -> SignalSpec:
+    return SignalSpec(
+        "Capacity", start, 16, 0.01, unit="Ah", sna=True, mux="m", comment="cell capacity"
+    )
+
+
+def _cell_capacity() -> tuple[SignalSpec, ...]:
+    return (
+        _cell_index(10),
+        _capacity(10),
+        _soc_std(26),
+        SignalSpec(
+            "Saturated",
+            34,
+            16,
+            mux="m",
+            comment="bit i set: signal i saturated at its range (see dbc/README.md); every bit",
         ),
     )
 
@@ -216,6 +249,23 @@ def _pack_summary() -> tuple[SignalSpec, ...]:
         SignalSpec("WeakestCell", 48, 10, sna=True, comment="index of the cell with largest R0"),
         SignalSpec("Health", 58, 4, comment="estimator health code, 0 = ok"),
         SignalSpec("Saturated", 62, 1, comment="a summary value saturated at its range"),
+        SignalSpec("Diverged", 63, 1, comment="a cell diverged (health bit 16)"),
+    )
+
+
+def _pack_state() -> tuple[SignalSpec, ...]:
+    return (
+        SignalSpec(
+            "CurrentOffset",
+            0,
+            24,
+            1e-5,
+            signed=True,
+            unit="A",
+            sna=True,
+            comment="pack current-sensor offset, positive = reads too much discharge",
+        ),
+        SignalSpec("Saturated", 24, 1, comment="a value saturated at its range"),
     )
 
 
@@ -233,8 +283,10 @@ def _cell_params_fd() -> tuple[SignalSpec, ...]:
         SignalSpec("H", 272, 16, 5e-5, signed=True, sna=True, mux="m"),
         SignalSpec("SOC", 288, 16, 2e-5, sna=True, mux="m"),
         SignalSpec("VError", 304, 32, 1e-6, signed=True, unit="V", sna=True, mux="m"),
-        SignalSpec("Quality", 336, 8, mux="m"),
+        SignalSpec("Quality", 336, 8, mux="m", comment=QUALITY_COMMENT, choices=QUALITY_CHOICES),
         SignalSpec("Saturated", 344, 16, mux="m"),
+        _soc_std(360),
+        _capacity(368),
     )
 
 
@@ -310,6 +362,16 @@ def messages() -> tuple[MessageSpec, ...]:
         ),
         ("PackSummary", 0x04, _pack_summary(), "pack summary", None, 8, False),
         (
+            "CellCapacity",
+            0x05,
+            _cell_capacity(),
+            "per-cell capacity and SOC uncertainty",
+            (0, 511),
+            8,
+            False,
+        ),
+        ("PackState", 0x06, _pack_state(), "pack states: current-sensor offset", None, 8, False),
+        (
             "CellParamsFD",
             0x10,
             _cell_params_fd(),
@@ -367,6 +429,7 @@ def dbc_text() -> str:
     ]
     comments: list[str] = []
     mux_vals: list[str] = []
+    value_tables: list[str] = []
     fd_attrs: list[str] = []
     for m in messages():
         sender = "BMS" if m.direction == "in" else "BMSID"
@@ -382,6 +445,9 @@ def dbc_text() -> str:
             )
             if s.comment:
                 comments.append(f'CM_ SG_ {_dbc_id(m)} {s.name} "{s.comment}";')
+            if s.choices:
+                names = " ".join(f'{v} "{name}"' for v, name in s.choices)
+                value_tables.append(f"VAL_ {_dbc_id(m)} {s.name} {names} ;")
             if s.mux == "m" and m.mux_range is not None:
                 mux_name = next(x.name for x in m.signals if x.mux == "M")
                 mux_vals.append(
@@ -402,6 +468,7 @@ def dbc_text() -> str:
     out.append(f'BA_DEF_ BO_ "VFrameFormat" ENUM {formats};')
     out.append('BA_DEF_DEF_ "VFrameFormat" "StandardCAN";')
     out += fd_attrs
+    out += value_tables
     out += mux_vals
     return "\n".join(out) + "\n"
 

@@ -1,11 +1,14 @@
-"""Estimates -> bmsid's output frames (per-cell parameters multiplexed by cell index, pack summary).
+"""Estimates -> bmsid's output frames (per-cell parameters multiplexed by cell index, pack frames).
 
-Classic CAN: three 8-byte frames per cell (``CellR``, ``CellTau``, ``CellState``); CAN FD: one
-48-byte ``CellParamsFD`` frame per cell. The values sent are the ``CELL_FIELDS`` entries with a
-``can_signal`` (those with ``can_classic=False`` only in CAN FD). Values outside a signal's range
-are clamped and their bits set in the cell's ``Saturated`` mask (``dbcgen.SATURATION_BITS``); NaN
-is sent as the signal's not-available value. Ids are 29-bit by default, keeping bmsid out of the
-11-bit space most BMSs use; ``extended_id=False`` selects the ``*_11bit`` twins.
+Classic CAN: four 8-byte frames per cell (``CellR``, ``CellTau``, ``CellState``,
+``CellCapacity``); CAN FD: one 48-byte ``CellParamsFD`` frame per cell. The values sent are the
+``CELL_FIELDS`` entries with a ``can_signal`` (those with ``can_classic=False`` only in CAN FD).
+Values outside a signal's range are clamped and their bits set in the cell's ``Saturated`` mask
+(``dbcgen.SATURATION_BITS``; ``CellState``'s mask has room for bits 0-10, ``CellCapacity``'s and
+the FD frame's for all); NaN is sent as the signal's not-available value. Per pack, on both
+buses: ``PackSummary`` (R0 spread, weakest cell, health) and ``PackState`` (the current-sensor
+offset). Ids are 29-bit by default, keeping bmsid out of the 11-bit space most BMSs use;
+``extended_id=False`` selects the ``*_11bit`` twins.
 """
 
 from __future__ import annotations
@@ -37,13 +40,19 @@ DECODED_NAMES: dict[str, str] = {
     "R0Max": "R0_max_ohm",
     "WeakestCell": "weakest_cell",
     "Health": "health",
+    "CurrentOffset": "current_offset_A",
 }
 
-CLASSIC_PAGES = ("CellR", "CellTau", "CellState")
+CLASSIC_PAGES = ("CellR", "CellTau", "CellState", "CellCapacity")
 FD_PAGE = "CellParamsFD"
 PACK = "PackSummary"
+#: The pack frames of one output round, in order (:meth:`ParameterEncoder.pack_frames`).
+PACK_PAGES = (PACK, "PackState")
 MAX_QUALITY_CLASSIC = 7
-MAX_HEALTH = 15
+#: ``PackSummary`` carries health bits 1..8 in ``Health`` (4 bits) and bit 16 in ``Diverged``.
+MAX_HEALTH = 31
+_HEALTH_LOW_BITS = 15
+_HEALTH_DIVERGED_SHIFT = 4
 
 
 class ParameterEncoder:
@@ -61,6 +70,7 @@ class ParameterEncoder:
                 for p in ((FD_PAGE,) if fd else CLASSIC_PAGES)
             ]
             self._pack = db.get_message_by_name(f"BMSID_{PACK}{suffix}")
+            self._pack_state = db.get_message_by_name(f"BMSID_{PACK_PAGES[1]}{suffix}")
         except KeyError as exc:
             raise UserError(f"output DBC {path} lacks message {exc}") from None
         self.extended_id = extended_id
@@ -117,19 +127,38 @@ class ParameterEncoder:
                 encoded.append((page, page_values))
             quality = float(min(max(int(est.quality[i]), 0), MAX_QUALITY_CLASSIC))
             for page, page_values in encoded:
-                if "Saturated" in {s.name for s in page.signals}:
-                    page_values["Saturated"] = float(mask)
-                    page_values["Quality"] = quality
+                for sig in page.signals:
+                    if sig.name == "Saturated":  # the bits this page's mask has room for
+                        page_values["Saturated"] = float(mask & ((1 << sig.length) - 1))
+                    elif sig.name == "Quality":
+                        page_values["Quality"] = quality
                 data, _ = encode_saturating(page, page_values)
                 frames.append(self._frame(page, data, est.t_s))
         return frames
 
+    def pack_frames(self, est: Estimates, health: int = 0) -> list[can.Message]:
+        """The pack frames of an output round (:data:`PACK_PAGES`): :meth:`pack_frame`, then
+        ``PackState``: the current-sensor offset (A; the mean of the cells' finite
+        ``current_offset_A``, one value per pack, else not available)."""
+        off = np.asarray(est.cells["current_offset_A"], dtype=np.float64)
+        off = off[np.isfinite(off)]
+        values = {"CurrentOffset": float(off.mean()) if off.size else math.nan}
+        _, saturated = encode_saturating(self._pack_state, values)
+        values["Saturated"] = 1.0 if saturated else 0.0
+        data, _ = encode_saturating(self._pack_state, values)
+        return [self.pack_frame(est, health), self._frame(self._pack_state, data, est.t_s)]
+
     def pack_frame(self, est: Estimates, health: int = 0) -> can.Message:
         """Pack summary: min/mean/max R0 (ohm) over cells with a finite R0, weakest cell = the
-        largest R0, ``health`` code (0..15, clamped)."""
+        largest R0, ``health`` bits (``publish.payloads.HEALTH_*``, 0..31: bits 1..8 in
+        ``Health``, bit 16 in ``Diverged``)."""
         r0 = np.asarray(est.R0_ohm, dtype=np.float64)
         finite = np.isfinite(r0)
-        values: dict[str, float] = {"Health": float(min(max(health, 0), MAX_HEALTH))}
+        h = min(max(int(health), 0), MAX_HEALTH)
+        values: dict[str, float] = {
+            "Health": float(h & _HEALTH_LOW_BITS),
+            "Diverged": float(h >> _HEALTH_DIVERGED_SHIFT),
+        }
         if finite.any():
             rf = r0[finite]
             values |= {
@@ -147,7 +176,8 @@ class ParameterEncoder:
 
     def decode(self, msg: can.Message) -> dict[str, float] | None:
         """Decode one of bmsid's output frames (keys in :data:`DECODED_NAMES`, NaN = not
-        available); None for any other or malformed frame."""
+        available; ``health`` with ``Diverged`` folded in as bit 16); None for any other or
+        malformed frame."""
         if msg.is_error_frame or msg.is_remote_frame:
             return None
         m = self._by_key.get((msg.arbitration_id, bool(msg.is_extended_id)))
@@ -157,4 +187,7 @@ class ParameterEncoder:
             phys = decode_raw(m, bytes(msg.data))
         except Exception:  # malformed frame (unknown mux value): not ours to decode
             return None
+        if "Diverged" in phys:
+            diverged = phys.pop("Diverged")
+            phys["Health"] += diverged * (1 << _HEALTH_DIVERGED_SHIFT)
         return {DECODED_NAMES.get(k, k): v for k, v in phys.items()}

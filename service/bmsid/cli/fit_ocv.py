@@ -6,7 +6,10 @@ Two inputs:
   in time order, e.g. the discharge and the charge files, or all four parts of Plett's test);
 - ``--points``: rest-point tables (SOC, OCV) with one or both branches (``read_ocv_points``).
 
-The method and its conventions are documented in ``bmsid.offline.ocv_fit``; the command is
+The report gives M(z) per knot with its 95 % CI, the polarisation taken out of the branch gap
+(R0 + R1 + R2 from the test's rests and current steps) and the pooled mid-SOC evidence for
+hysteresis; a knot is never written as 0 silently (a note says why). The method and its
+conventions are documented in ``bmsid.offline.ocv_fit``; the command is
 :func:`bmsid.offline.ocv_config.fit_ocv_files` with its options as an ``OcvFitSpec``.
 """
 
@@ -60,7 +63,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=0.02,
         help="SOC trimmed at each end of the fit (default 0.02)",
     )
-    p.add_argument("--gamma", type=float, default=30.0, help="hysteresis rate gamma (not fitted)")
+    p.add_argument(
+        "--gamma",
+        type=float,
+        default=30.0,
+        help="hysteresis rate gamma (not fitted; each M knot's CI carries its change over "
+        "gamma/3..3*gamma)",
+    )
     p.add_argument(
         "--m-knots",
         default=",".join(str(k) for k in EQ32_KNOTS),

@@ -65,7 +65,11 @@ class HysteresisTable(_Strict):
     paper's decay factor kappa = eta * gamma / Q with Q in ampere-seconds (Eq. 6).
     ``M_ci95_V`` (optional, written by ``fit-ocv``): half-width (V) of the 95 % confidence
     interval of each ``M_V`` value, the prior's uncertainty for online learning of M; knots that
-    were not measured (the ends that an OCV test pins to 0) carry 0.
+    were not measured (the ends that an OCV test pins to 0) carry 0. It belongs to the stored
+    value: where ``fit-ocv`` stored a knot other than its fit (raised to the test's pooled lower
+    bound because hysteresis is present, or 0 because none is resolved; its report says which),
+    ``M_V +- M_ci95_V`` covers the fitted knot's own interval clipped at 0. It includes the
+    polarisation's uncertainty and the knot's sensitivity to ``gamma`` (not fitted).
     """
 
     soc: list[float] = Field(default_factory=lambda: [0.0, 1.0], min_length=1)

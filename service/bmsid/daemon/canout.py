@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+from bmsid.canbus.encoder import PACK_PAGES
 from bmsid.errors import UserError
 
 #: Worst-case bit stuffing adds one bit per 4 after the first 5 of the stuffed region (~20 %).
@@ -52,11 +53,12 @@ def plan_output(
 ) -> CellCycler:
     """The cell cycler for the configured cap; UserError when not even one cell fits."""
     budget = frames_budget(bitrate_bps, share, period_s, bits_per_frame)
-    per_round = (budget - 1) // frames_per_cell  # one frame is the pack summary
+    per_round = (budget - len(PACK_PAGES)) // frames_per_cell  # the pack frames come first
     if per_round < 1:
         raise UserError(
             f"can.max_bus_share={share} of {bitrate_bps} bit/s allows {budget} frames per "
-            f"{period_s} s; the pack summary and one cell need {1 + frames_per_cell}: raise "
+            f"{period_s} s; the pack frames and one cell need "
+            f"{len(PACK_PAGES) + frames_per_cell}: raise "
             "can.output_period_s or can.max_bus_share"
         )
     return CellCycler(n_cells, per_round)

@@ -434,7 +434,7 @@ class Daemon:
             est, src = self.latest, self._source
             if est is None or src is None:
                 continue
-            frames = [self.encoder.pack_frame(est, self._health(est))]
+            frames = self.encoder.pack_frames(est, self._health(est))
             frames += self.encoder.cell_frames(est, self.cycler.next_round())
             try:
                 self.counters["can_frames_sent"] += await send_frames(src.bus, frames)

@@ -33,6 +33,7 @@ from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.fusion import FusionStage
+from bmsid.estimate.guard import PublishGuard
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, per_cell_limit
 from bmsid.estimate.state import CoulombState
@@ -105,12 +106,16 @@ class EstimatorBank:
         )
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
         self._excitation_limit_A = per_cell_limit(self.tuning.excitation_C, model)
+        self.guard = PublishGuard.for_model(model, self.tuning)
 
     # ------------------------------------------------------------------ public API
     @property
     def counters(self) -> dict[str, int]:
         """Event counts of every stage (samples, ticks, gaps, swarms, clamps, ...)."""
-        return {**self.ticks.counters, **self.state.counters, **self.params.counters}
+        return {
+            **self.ticks.counters, **self.state.counters, **self.params.counters,
+            **self.guard.counters,
+        }  # fmt: skip
 
     @property
     def soc_init_method(self) -> str:
@@ -137,9 +142,9 @@ class EstimatorBank:
             tick = self.ticks.push(t, i, v[k])
             if tick is None:
                 continue
+            currents.append(tick.current_A)  # as measured: the observer corrects a copy
             cells, q = self._run_tick(tick)
             times.append(tick.t_s)
-            currents.append(tick.current_A)
             for name, col in cols.items():
                 col.append(cells[name])
             quality.append(q)
@@ -160,8 +165,9 @@ class EstimatorBank:
         tick = self.ticks.push(t_s, current_A, v)
         if tick is None:
             return None
+        i_meas = tick.current_A  # as measured: the observer removes its offset in the tick
         cells, q = self._run_tick(tick)
-        return Estimates(t_s=tick.t_s, current_A=tick.current_A, cells=cells, quality=q)
+        return Estimates(t_s=tick.t_s, current_A=i_meas, cells=cells, quality=q)
 
     def reset(self, mask: npt.ArrayLike) -> None:
         """Re-initialise the masked cells (SOC by the start policy at the next tick, parameters
@@ -169,12 +175,22 @@ class EstimatorBank:
         m = np.broadcast_to(np.asarray(mask, dtype=bool), (self.n,))
         self.state.reset(m)
         self.params.reset(m)
+        self.guard.reset(m)
 
     # ------------------------------------------------------------------ one tick
     def _run_tick(self, tick: Tick) -> tuple[dict[str, FloatArray], npt.NDArray[np.int64]]:
         """The stages over one tick: every output field (n_cells,) and the quality codes."""
         ctx = TickContext(tick)
         self.state.step(ctx)
+        # Converged cells learn only while excited (a constant-current charge or a rest holds
+        # nothing to learn R0 from, and a slow OCV error would drift into it) and while the
+        # observer is sure enough of SOC (a SOC error would be learnt as R2).
+        excited = is_excited(tick, self._excitation_limit_A)
+        may_learn = excited
+        if isinstance(self.state, ObserverState):
+            may_learn = self.state.learn_gate & excited
+        if may_learn is not True:
+            ctx.learn = ctx.learn & (may_learn | ~self.params.converged)
         self.params.step(ctx)
         p_out = self.params.outputs()
         if isinstance(self.state, ObserverState):
@@ -183,13 +199,15 @@ class EstimatorBank:
         cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
         cells["v_error_V"] = cells["v_meas_V"] - cells["v_model_V"]
         q = np.full(self.n, int(Quality.CONVERGED), dtype=np.int64)
-        excited = is_excited(tick, self._excitation_limit_A)
         if isinstance(excited, np.ndarray):
             q[~excited] = Quality.POORLY_EXCITED
         elif not excited:  # one capacity for the pack: one comparison, no mask
             q[:] = Quality.POORLY_EXCITED
         q[self.params.clamped] = Quality.OUT_OF_BOUNDS
         q[~self.params.converged] = Quality.CONVERGING
+        cells, q, reinit = self.guard.apply(tick.t_s, cells, q, self.params.clamped, ctx.learn)
+        if reinit.any():
+            self.reset(reinit)
         return cells, q
 
     # ------------------------------------------------------------------ checkpoints
@@ -204,6 +222,7 @@ class EstimatorBank:
             "ticks": self.ticks.state_dict(),
             "state": self.state.state_dict(),
             "params": self.params.state_dict(),
+            "guard": self.guard.state_dict(),
             "counters": self.counters,
         }
 
@@ -222,8 +241,10 @@ class EstimatorBank:
         self.ticks.load_state_dict(st["ticks"])
         self.state.load_state_dict(st["state"])
         self.params.load_state_dict(st["params"])
+        if "guard" in st:  # checkpoints from before the guard start it fresh
+            self.guard.load_state_dict(st["guard"])
         counters = st.get("counters", {})
-        for stage in (self.ticks, self.state, self.params):
+        for stage in (self.ticks, self.state, self.params, self.guard):
             for k in stage.counters:
                 if k in counters:
                     stage.counters[k] = int(counters[k])

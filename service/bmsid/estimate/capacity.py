@@ -38,7 +38,11 @@ class CapacityTracker:
     name = "capacity"
 
     def __init__(
-        self, capacity_Ah: FloatArray, prior_rel: float, min_dsoc: float, fade_rel_per_sqrt_day: float
+        self,
+        capacity_Ah: FloatArray,
+        prior_rel: float,
+        min_dsoc: float,
+        fade_rel_per_sqrt_day: float,
     ) -> None:
         self.n = capacity_Ah.shape[0]
         self.min_dsoc = min_dsoc
@@ -77,7 +81,9 @@ class CapacityTracker:
                 days = max(t_s - self.t_s, 0.0) / 86400.0
                 prior = self.var_Ah2 + (self.fade * self.q_Ah) ** 2 * days
                 gain = np.where(ok, prior / (prior + np.where(ok, var, 1.0)), 0.0)
-                self.q_Ah = np.where(ok, self.q_Ah + gain * (np.nan_to_num(meas) - self.q_Ah), self.q_Ah)
+                self.q_Ah = np.where(
+                    ok, self.q_Ah + gain * (np.nan_to_num(meas) - self.q_Ah), self.q_Ah
+                )
                 self.var_Ah2 = np.where(ok, (1.0 - gain) * prior, self.var_Ah2)
                 self.t_s = t_s
                 self.counters["capacity_updates"] += int(ok.sum())

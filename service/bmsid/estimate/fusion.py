@@ -101,6 +101,7 @@ class FusionStage:
         self._period_s = tuning.id_period_s
         self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
         self._excitation_limit_A = per_cell_limit(tuning.excitation_C, model)
+        self._step_A = float(np.min(tuning.excitation_C * model.capacity_Ah))
         self._start_values()
 
     def _start_values(self) -> None:
@@ -203,13 +204,18 @@ class FusionStage:
     # ------------------------------------------------------------------ swarms
     def _run_swarms(self, t: float) -> None:
         tun, sched = self.tuning, self.schedule
-        for c in sched.due(t):
-            # Learnable data in the window, s: ticks in the OCV knees or without a voltage
-            # carry no weight in the fits, so they do not count towards min_window_s.
-            span = self.buffer.n_valid(c) * self._period_s
-            excited = self._excited if isinstance(self._excited, bool) else self._excited[c]
-            if span >= tun.min_window_s and excited:
-                self._start_swarm(c)
+        due = sched.due(t)
+        if due:
+            # One step (a charge starting) holds the time constants only together with the
+            # hysteresis swing and the OCV slope that follow it: a swarm needs many steps.
+            steps = self.buffer.n_steps(tun.window_s, self._period_s, self._step_A)
+            for c in due if steps >= tun.swarm_min_steps else ():
+                # Learnable data in the window, s: ticks in the OCV knees or without a voltage
+                # carry no weight in the fits, so they do not count towards min_window_s.
+                span = self.buffer.n_valid(c) * self._period_s
+                excited = self._excited if isinstance(self._excited, bool) else self._excited[c]
+                if span >= tun.min_window_s and excited:
+                    self._start_swarm(c)
         if sched.n_running() == 0:
             return
         for c, cs in enumerate(sched.running):

@@ -99,8 +99,6 @@ class ObserverState(CoulombState):
         self._remove_offset(tick)
         self._accumulate(tick)
         super().step(ctx)
-        if not self._learn_gate.all():
-            ctx.learn = ctx.learn & self._learn_gate
         # |I| the branches still carry: a running mean over each cell's slow time constant.
         i_abs = abs(tick.current_A)
         a = np.exp(-tick.dt_s / self._tau_load_s)
@@ -138,6 +136,12 @@ class ObserverState(CoulombState):
         q_mean_Ah = float(np.mean(self.capacity.q_Ah))
         self._qb += (tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2 * dt_s / 86400.0
         self._since_s += dt_s
+
+    @property
+    def learn_gate(self) -> BoolArray:
+        """Cells whose SOC is certain enough for their parameters to learn (the bank applies
+        it to converged cells: start values learn from any SOC, they are worse)."""
+        return self._learn_gate
 
     # ------------------------------------------------------------------ correction
     def correct(

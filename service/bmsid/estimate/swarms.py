@@ -74,6 +74,11 @@ class WindowBuffer:
         """Buffered ticks with a valid (learnable) voltage of cell ``c``."""
         return int(self.valid[c, self.order()].sum())
 
+    def n_steps(self, window_s: float, dt_s: float, min_step_A: float) -> int:
+        """Current changes of at least ``min_step_A`` within the last ``window_s``."""
+        idx = self.order()[-(int(window_s / dt_s) + 1) :]
+        return int((np.abs(np.diff(self.current_A[idx])) >= min_step_A).sum())
+
     def window(
         self, c: int, dt_s: float, window_s: float, use_hysteresis: bool, use_offset: bool
     ) -> tuple[Window, FloatArray]:

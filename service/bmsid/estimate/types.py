@@ -26,7 +26,10 @@ class Quality(IntEnum):
     CONVERGING = 0  #: not enough excitation seen yet; parameters are still the start values
     CONVERGED = 1  #: estimates settled and the model tracks the cell
     POORLY_EXCITED = 2  #: current carries too little information (rest, constant current)
-    OUT_OF_BOUNDS = 3  #: the unconstrained estimate left the configured bounds and was clamped
+    OUT_OF_BOUNDS = 3  #: a parameter hit its configured bound; the last good values are published
+    #: the model error stayed far beyond its running scale, or SOC left [0, 1] (or a value was not
+    #: finite): the last good values are published, the cell re-initialised (``estimate/guard.py``)
+    DIVERGED = 4
 
 
 @dataclass(frozen=True, slots=True)

@@ -6,7 +6,9 @@ held over [t_k, t_k+1). The output at k is Eq. 9 with Plett's sign:
 ``U_L,k = OCV(z_k) + M(z_k) h_k - U1_k - U2_k - R0 i_k``.
 
 Vectorised over P parameter sets (the swarm and the tests use this); every parameter may be a
-scalar, shape (P,) or shape (P, n) for time-varying truth.
+scalar, shape (P,) or shape (P, n) for time-varying truth. The capacity may vary in time too
+(shape (n,), one for all sets: the SOC depends on the current and the capacity only), for a
+fading cell's known truth.
 """
 
 from __future__ import annotations
@@ -36,9 +38,10 @@ class SimResult:
 
 
 def coulomb_count(
-    current_A: FloatArray, dt_s: FloatArray, soc0: float, capacity_Ah: float, eta: float
+    current_A: FloatArray, dt_s: FloatArray, soc0: float, capacity_Ah: ArrayLike, eta: float
 ) -> FloatArray:
-    """SOC after each sample (Eq. 2): z_k+1 = z_k - eta_k i_k dt / Q, eta applied on charge only."""
+    """SOC after each sample (Eq. 2): z_k+1 = z_k - eta_k i_k dt / Q_k, eta applied on charge
+    only; ``capacity_Ah`` a constant or one value per sample (Q_k, a fading cell)."""
     dz = soc_delta(current_A, dt_s, capacity_Ah * 3600.0, eta)
     return np.asarray(soc0 + np.concatenate(([0.0], np.cumsum(dz[:-1]))), dtype=np.float64)
 
@@ -57,7 +60,7 @@ def simulate(
     current_A: FloatArray,
     ocv: OcvModel,
     *,
-    capacity_Ah: float,
+    capacity_Ah: ArrayLike,
     R0_ohm: ArrayLike,
     R1_ohm: ArrayLike,
     tau1_s: ArrayLike,
@@ -73,18 +76,22 @@ def simulate(
     """Simulate ``n_sets`` parameter sets over the current profile (exact ZOH, any time steps).
 
     ``gamma`` is the dimensionless hysteresis rate (kappa = eta gamma / Q); ``M_scale`` multiplies
-    the cell's M(z) table. ``t_s`` need not be uniform.
+    the cell's M(z) table. ``t_s`` need not be uniform. ``capacity_Ah`` (Ah) is a constant or
+    shape (n,): the capacity Q_k over step k, for SOC (Eq. 2) and kappa alike.
     """
     t = np.asarray(t_s, dtype=np.float64)
     i = np.asarray(current_A, dtype=np.float64)
     n, p = t.shape[0], n_sets
     dt = np.diff(t, append=t[-1] + (t[-1] - t[-2] if n > 1 else 1.0))
-    soc = coulomb_count(i, dt, soc0, capacity_Ah, eta)
+    q = np.asarray(capacity_Ah, dtype=np.float64)
+    if q.ndim not in (0, 1) or (q.ndim == 1 and q.shape[0] != n):
+        raise ValueError(f"capacity_Ah: a scalar or one value per sample ({n}), got {q.shape}")
+    soc = coulomb_count(i, dt, soc0, q, eta)
     z, clamped = ocv.clamp(soc)
     r0, r1, r2 = _col(R0_ohm, p, n), _col(R1_ohm, p, n), _col(R2_ohm, p, n)
     a1 = rc_decay(dt[None, :], _col(tau1_s, p, n))
     a2 = rc_decay(dt[None, :], _col(tau2_s, p, n))
-    kappa = hysteresis_kappa(_col(gamma, p, n), capacity_Ah * 3600.0, eta, i[None, :])
+    kappa = hysteresis_kappa(_col(gamma, p, n), q * 3600.0, eta, i[None, :])
     u1 = np.zeros((p, n))
     u2 = np.zeros((p, n))
     h = np.zeros((p, n))

@@ -145,7 +145,7 @@ def fit_test_files(
         br = replace(br, v_empty_V=None, v_full_V=None)
     result = fit_ocv_test(br, trim_soc=spec.trim_soc, knots=spec.knots)
     tp, pol = br.throughput, br.polarisation
-    steps = ", ".join(f"{1e3 * r:.1f}" for r in pol.step_resistances_ohm)
+    steps = ", ".join(f"{1e3 * st.r_ohm:.1f} +- {1e3 * st.se_ohm:.1f}" for st in pol.steps)
     info = [
         *input_notes,
         f"capacity measured from the test: {br.measured_capacity_Ah:.4f} Ah "
@@ -160,14 +160,16 @@ def fit_test_files(
         f"mOhm (tau1 {pol.tau1_s:.0f} s), R2 {1e3 * pol.R2_ohm:.1f} mOhm (tau2 {pol.tau2_s:.0f} "
         f"s), total {1e3 * pol.r_total_ohm:.1f}"
         + (f" +- {1e3 * pol.r_total_se_ohm:.1f} (1 se)" if pol.r_total_se_ohm is not None else "")
-        + " mOhm",
+        + " mOhm; at the branch currents (steady state) "
+        f"{1e3 * br.discharge.current_A * pol.r_total_ohm:.2f} mV (discharge) + "
+        f"{1e3 * br.charge.current_A * pol.r_total_ohm:.2f} mV (charge) of the gap",
         *[
             f"  rest after the {r.after} at SOC {100 * r.soc:.1f} % ({r.duration_s:.0f} s): "
             f"{1e3 * r.r_total_ohm:.1f} +- {1e3 * r.r_total_se_ohm:.1f} mOhm, tau "
             f"{r.tau1_s:.0f} / {r.tau2_s:.0f} s, fit RMSE {1e3 * r.rmse_V:.2f} mV"
             for r in pol.relaxations
         ],
-        f"  one-sample steps |dV/dI| [mOhm]: {steps or 'none'}",
+        f"  one-sample current steps |dV/dI| [mOhm, +- noise 1 se]: {steps or 'none'}",
         f"hysteresis state h run along the test with gamma = {br.gamma:g}",
     ]
     return result, br.capacity_Ah, br.coulombic_efficiency, info
@@ -262,6 +264,45 @@ def _fit_lines(name: str, f: Eq4Fit) -> list[str]:
     return out
 
 
+def _hysteresis_lines(r: OcvFitResult) -> list[str]:
+    """M(z) as stored (with each knot's status), as fitted, and the pooled evidence."""
+    ci, ev = r.m_ci95_V, r.hysteresis
+    status = ev.status if ev is not None else ("fit",) * r.m_soc.shape[0]
+    out = [
+        "hysteresis M(z) stored (SOC %: mV"
+        + (" +- 95 % CI" if ci is not None else "")
+        + "): "
+        + ", ".join(
+            f"{100 * z:.0f}: {1e3 * m:.1f}"
+            + (f" +- {1e3 * ci[k]:.1f}" if ci is not None and ci[k] > 0 else "")
+            + (f" ({status[k]})" if status[k] != "fit" else "")
+            for k, (z, m) in enumerate(zip(r.m_soc, r.m_V, strict=True))
+        )
+    ]
+    if r.m_fit_V is not None and r.m_fit_ci95_V is not None:
+        out.append(
+            "hysteresis M(z) fitted (SOC %: mV +- 95 % CI, before the decision): "
+            + ", ".join(
+                f"{100 * z:.0f}: {1e3 * m:+.1f} +- {1e3 * c:.1f}"
+                for z, m, c, st in zip(r.m_soc, r.m_fit_V, r.m_fit_ci95_V, status, strict=True)
+                if st != "pinned"
+            )
+        )
+    if ev is not None:
+        verdict = (
+            "hysteresis present"
+            if ev.present
+            else "negative: the polarisation over-corrects"
+            if ev.pooled_V + ev.pooled_ci95_V < 0
+            else "no hysteresis resolved"
+        )
+        out.append(
+            f"hysteresis evidence: pooled M {1e3 * ev.pooled_V:.1f} +- {1e3 * ev.pooled_ci95_V:.1f}"
+            f" mV (95 % CI) at SOC {100 * ev.soc_lo:.0f}-{100 * ev.soc_hi:.0f} %: {verdict}"
+        )
+    return out
+
+
 def format_report(result: OcvFitResult, info: Sequence[str]) -> str:
     """The Table-1-like report: per-branch coefficients with bounds and fit statistics, the
     ends, M(z) with its 95 % CI, and the residuals per branch and SOC band."""
@@ -278,17 +319,7 @@ def format_report(result: OcvFitResult, info: Sequence[str]) -> str:
         f"Eq. 4 range: SOC {result.soc_min:.4f} .. {result.soc_max:.4f}; "
         f"rested end voltages: {ends}"
     )
-    ci = result.m_ci95_V
-    lines.append(
-        "hysteresis M(z) (SOC %: mV"
-        + (", 95 % CI" if ci is not None else "")
-        + "): "
-        + ", ".join(
-            f"{100 * z:.0f}: {1e3 * m:.1f}"
-            + (f" +- {1e3 * ci[k]:.1f}" if ci is not None and ci[k] > 0 else "")
-            for k, (z, m) in enumerate(zip(result.m_soc, result.m_V, strict=True))
-        )
-    )
+    lines += _hysteresis_lines(result)
     if result.half_gap_raw_V is not None and result.half_gap_V is not None:
         lines.append(
             f"half-gap median over SOC: measured {1e3 * np.median(result.half_gap_raw_V):.1f} mV, "
@@ -326,7 +357,13 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
         "v_empty_V": r.v_empty_V,
         "v_full_V": r.v_full_V,
         "hysteresis": {"soc": arr(r.m_soc), "M_V": arr(r.m_V), "M_fit_V": arr(r.m_fit_V),
-                       "M_ci95_V": arr(r.m_ci95_V)},
+                       "M_ci95_V": arr(r.m_ci95_V), "M_fit_ci95_V": arr(r.m_fit_ci95_V),
+                       "status": list(r.hysteresis.status) if r.hysteresis else None,
+                       "pooled_V": r.hysteresis.pooled_V if r.hysteresis else None,
+                       "pooled_ci95_V": r.hysteresis.pooled_ci95_V if r.hysteresis else None,
+                       "pooled_soc": [r.hysteresis.soc_lo, r.hysteresis.soc_hi]
+                       if r.hysteresis else None,
+                       "present": r.hysteresis.present if r.hysteresis else None},
         "fits": {
             name: {"coeffs": arr(f.coeffs), "ci_low": arr(f.ci_low), "ci_high": arr(f.ci_high),
                    "sse_V2": f.sse_V2, "r2": f.r2, "r2_adj": f.r2_adj, "rmse_V": f.rmse_V,
@@ -346,6 +383,7 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
             "r_total_se_ohm": pol.r_total_se_ohm, "source": pol.source,
             "relaxations": [asdict(x) for x in pol.relaxations],
             "step_resistances_ohm": list(pol.step_resistances_ohm),
+            "step_se_ohm": [st.se_ohm for st in pol.steps],
         }  # fmt: skip
         doc["gamma"] = r.test.gamma
     return doc
@@ -398,10 +436,11 @@ def _plot(r: OcvFitResult, path: Path) -> None:
             lw=0.8,
             label="half-gap corrected",
         )
-    a1.plot(100 * r.m_soc, 1e3 * r.m_V, "ko-", ms=3, label="M(z) table")
-    if r.m_ci95_V is not None and r.m_fit_V is not None:
-        a1.errorbar(100 * r.m_soc, 1e3 * r.m_fit_V, yerr=1e3 * r.m_ci95_V, fmt="none",
-                    ecolor="k", capsize=3, label="95 % CI")  # fmt: skip
+    a1.plot(100 * r.m_soc, 1e3 * r.m_V, "ko-", ms=3, label="M(z) table (stored)")
+    if r.m_fit_ci95_V is not None and r.m_fit_V is not None:
+        a1.errorbar(100 * r.m_soc, 1e3 * r.m_fit_V, yerr=1e3 * r.m_fit_ci95_V, fmt="s",
+                    ms=3, color="tab:orange", capsize=3, label="knots fitted, 95 % CI")  # fmt: skip
+    a1.axhline(0.0, color="0.6", lw=0.6)
     a1.set_ylabel("M / mV")
     a1.legend(fontsize=8)
     a1.grid(alpha=0.3)

@@ -12,9 +12,10 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   the charge branch the negative one; of each run only samples within 10 % of its median current
   count (drops CV tails). Rest means |I| <= 1 % of the test's largest current. Several files are
   one test in time order; nothing is counted across a file boundary (unknown pause).
-- SOC: z = 1 at the start of the low-rate discharge (the test rests the cell full before it),
-  z = 0 at the deepest point before the charge (CV/dither parts that finish the discharge count),
-  Q = the charge between them (or the reverse for a charge-first test).
+- SOC: z = 1 at the fullest point before the low-rate discharge (the test rests the cell full
+  before it; a pulse or top-up between that rest and the branch counts), z = 0 at the deepest
+  point before the charge (CV/dither parts that finish the discharge count), Q = the charge
+  between them (or the reverse for a charge-first test). The throughput counts from there too.
 - Throughput (``Throughput``): the Ah out of the first branch's side and back in on the second's
   are compared. More back in than out: their ratio is the measured coulombic efficiency and each
   branch spans its own throughput (normalised: Plett's method). Less back in than out (the
@@ -24,14 +25,21 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   normalised, eta = out/in > 1 stored as the charge-counting factor. Otherwise the second
   branch really ended short: counted with eta = 1 and it ends where it ends. Forcing eta = 1 on
   a closed test would shift the charge branch by the whole mismatch and fake a hysteresis.
-- Polarisation (``Polarisation``): a 2RC model (Eq. 7-8) fitted to the relaxation of each rest
-  that follows a branch (the hysteresis state is frozen at rest, so the relaxation is the RC
-  branches only; R0 is the jump, R1/R2 the amplitudes over the run's current). The relaxation
-  at a knee or with solid diffusion at an end of the SOC range is larger than mid-SOC, and only
-  ever larger, so the smallest fit is used; a fit larger than the raw mid-SOC half-gap allows
-  (M >= 0) is refused. Without a rest long enough (>= 300 s) the smallest one-sample step
-  |dV/dI| stands in (R0 plus what relaxes within one sample: a lower bound, no error estimate).
-  The model runs over the whole test with its own current and corrects every sample:
+- Polarisation (``Polarisation``): at C/20 the RC branches run in steady state, so each branch
+  sits I (R0 + R1 + R2) off its OCV and the gap is ``2 M + (I_dis + I_chg)(R0 + R1 + R2)``: one
+  IR drop (R0) for the polarisation overstates M, the whole DC resistance must come out. It is
+  measured on the test's own rests, never taken from the gap: a 2RC model (Eq. 7-8) fitted to
+  the relaxation of each rest that follows a branch (the hysteresis state is frozen at rest, so
+  the relaxation is the RC branches only; R0 is the jump, R1/R2 the amplitudes over the run's
+  current). The relaxation at a knee or with solid diffusion at an end of the SOC range is
+  larger than mid-SOC, and only ever larger, so the smallest fit is used, and the M knot at the
+  end where a larger one was measured carries the difference in its CI. A polarisation larger
+  than the mid-SOC raw half-gap allows with M >= 0 is reported, not scaled to fit the gap (the
+  corrected gap then comes out negative, and M is decided from its CI below). Without a rest
+  long enough (>= 300 s) R0 is the smallest one-sample step |dV/dI| (R0 plus what relaxes within
+  one sample) and the RC part, which the test does not measure, is taken as
+  ``UNMEASURED_RC_SHARE`` times it with a standard error as large (the CI says so). The model
+  runs over the whole test with its own current and corrects every sample:
   ``v + R0 i + R1 x1 + R2 x2`` (x the unit-gain branch states), the polarisation as it builds
   up after each step, instead of one IR drop.
 - Hysteresis: h is run along the test with the one-state model (Eq. 5-6, rate ``gamma``,
@@ -39,8 +47,16 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   ``OCV(z) + M(z) h``, so the gap v_chg - v_dis = M(z) (h_chg - h_dis) is fitted for the
   Eq. 32 knots (clipped to the fit range) by least squares (``fit_hysteresis``): the branch
   starts, where h is still turning, count with their smaller weight instead of biasing M. The
-  95 % CI combines the residual scatter (inflated for its autocorrelation along SOC) with the
-  polarisation's standard error. A negative knot is stored as 0 with a note, never silently.
+  95 % CI of each knot combines the residual scatter (inflated for its autocorrelation along
+  SOC) with the polarisation's standard error, and in quadrature the knot's sensitivity to
+  gamma (not fitted: the largest change of the knot over gamma / ``GAMMA_SPAN`` .. gamma *
+  ``GAMMA_SPAN``; it matters at the branch starts) and to a larger polarisation measured at
+  that end. The evidence for hysteresis is a constant M fitted to mid-SOC, where h is
+  saturated even at the slow gamma (``pooled``): present when its 95 % CI excludes 0.
+  ``decide_hysteresis`` turns the knots into the stored table: a knot whose CI excludes 0 is
+  kept; one whose CI includes 0 or whose estimate is negative keeps max(estimate, the pooled
+  lower bound) when hysteresis is present (never 0), and 0 when it is not; every such knot is
+  named in a note, and its stored CI covers the knot's own interval.
 - Mean and fit range: the mean is Eq. 4 fitted to both branches' corrected data less M(z) h,
   on both branches' overlap trimmed by ``trim_soc`` at each end; that range becomes the
   config's [soc_min, soc_max]. Eq. 4 per branch is fitted for reporting.
@@ -247,6 +263,32 @@ MIN_END_REST_S = 600.0
 END_SOC_TOL = 0.005
 #: SOC bands (fractions) of the residual report: the ends, then 10 % bands.
 SOC_BANDS = (0.0, 0.02, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.98, 1.0)
+#: The loaded voltage at the switch into a rest: a quadratic through the run's last this many
+#: samples, extrapolated. A line is biased where the branch ends in a knee (the voltage bends
+#: there: on the synthetic LFP test it put R 25 % low); one sample carries its full noise.
+LOAD_FIT_SAMPLES = 20
+LOAD_FIT_DEGREE = 2
+#: Shortest constant-current run (s) whose ends count as current steps for R0.
+MIN_STEP_RUN_S = 30.0
+#: Floor of the voltage noise estimate (V): a quantised logger's rests can show no spread.
+MIN_VOLTAGE_NOISE_V = 1e-4
+#: A current step resolves R0 when its noise error is at most this fraction of it.
+STEP_RESOLVED = 0.25
+#: Without a relaxation fit, the RC part R1 + R2 (not measured by the test) is taken as this
+#: times the smallest one-sample step, with a standard error as large (an assumption the CI
+#: carries): a Li-ion cell's DC resistance at low rate is typically one to three times R0 (the
+#: DFN cell's relaxation at 99 % SOC: 3.6 times its jump), and the step already holds one
+#: sample's worth of relaxation.
+UNMEASURED_RC_SHARE = 1.0
+#: Time constant (s) given to that unmeasured RC part: where it matters (the first minutes of a
+#: branch) the M fit weighs little.
+UNMEASURED_RC_TAU_S = 300.0
+#: gamma is not fitted: each M knot's CI carries its change over gamma / GAMMA_SPAN .. gamma *
+#: GAMMA_SPAN (an order of magnitude; published one-state fits range over more).
+GAMMA_SPAN = 3.0
+#: Mid-SOC for the pooled (constant-M) evidence: where the branches' weight h_chg - h_dis is at
+#: least this even at the slow gamma (h saturated on both branches).
+POOLED_MIN_WEIGHT = 1.8
 
 
 @dataclass(frozen=True)
@@ -289,7 +331,8 @@ class RelaxationFit:
 @dataclass(frozen=True)
 class Polarisation:
     """The test's polarisation model (2RC, Eq. 7-9 without OCV and hysteresis) and where it
-    comes from. ``r_total_se_ohm`` None: no error estimate (one-sample steps)."""
+    comes from. ``r_total_se_ohm`` None: not corrected, no error estimate. ``steps``: the
+    test's one-sample current steps (``current_steps``)."""
 
     R0_ohm: float
     R1_ohm: float
@@ -299,7 +342,12 @@ class Polarisation:
     r_total_se_ohm: float | None
     source: str
     relaxations: tuple[RelaxationFit, ...] = ()
-    step_resistances_ohm: tuple[float, ...] = ()
+    steps: tuple[CurrentStep, ...] = ()
+
+    @property
+    def step_resistances_ohm(self) -> tuple[float, ...]:
+        """|dV/dI| of each current step (ohm)."""
+        return tuple(st.r_ohm for st in self.steps)
 
     @property
     def r_total_ohm(self) -> float:
@@ -336,13 +384,16 @@ class Throughput:
 @dataclass(frozen=True)
 class Branch:
     """One OCV branch: SOC (fraction), polarisation-corrected and measured terminal voltage (V),
-    the one-state hysteresis state h along the test (Eq. 5-6) and the branch current (A)."""
+    the one-state hysteresis state h along the test (Eq. 5-6) and the branch current (A).
+    ``h_span``: h run with gamma / ``GAMMA_SPAN`` and gamma * ``GAMMA_SPAN`` (the knots' gamma
+    sensitivity; None: not computed)."""
 
     z: FloatArray
     v_V: FloatArray
     v_raw_V: FloatArray
     h: FloatArray
     current_A: float
+    h_span: tuple[FloatArray, FloatArray] | None = None
 
 
 @dataclass(frozen=True)
@@ -497,6 +548,68 @@ def branch_states(
     return x1, x2, h
 
 
+@dataclass(frozen=True)
+class CurrentStep:
+    """A one-sample step between rest and a constant current: |dV/dI| (ohm) with its standard
+    error from the voltage noise (``sqrt(2) sigma_v / |dI|``), at sample ``index``. ``onset``:
+    from rest into the current (the rested voltage before it is not yet moved by the run; at
+    a run's end the last loaded interval's OCV drift is in the step too)."""
+
+    r_ohm: float
+    se_ohm: float
+    index: int
+    onset: bool
+
+
+def voltage_noise_V(v_V: FloatArray, rests: Sequence[tuple[int, int]]) -> float:
+    """Sample-to-sample voltage noise (V, one sample's sigma): the median over rests of >= 10
+    samples of the robust spread (MAD) of their first differences over sqrt(2); at least
+    0.1 mV (a quantised logger's MAD can be 0)."""
+    sig = [
+        1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0)
+        for a, b in rests
+        if b - a >= 10
+        for d in (np.diff(v_V[a:b]),)
+    ]
+    return max(float(np.median(sig)) if sig else 0.0, MIN_VOLTAGE_NOISE_V)
+
+
+def current_steps(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    v_V: FloatArray,
+    file_start: npt.NDArray[np.bool_],
+    *,
+    i_rest: float,
+    rests: Sequence[tuple[int, int]],
+) -> list[CurrentStep]:
+    """The steps at the ends of every constant-current run (>= ``MIN_STEP_RUN_S``, its first or
+    last 3 samples within 10 % of each other) that meet a rest sample (|I| <= ``i_rest``) in
+    the same file: R0 plus what relaxes within one sample, each with its noise error."""
+    sigma = voltage_noise_V(v_V, rests)
+    sign = np.where(current_A > i_rest, 1, np.where(current_A < -i_rest, -1, 0))
+    n = current_A.shape[0]
+    out: list[CurrentStep] = []
+    for s in (1, -1):
+        for a, b in _runs(sign == s):
+            if b - a < 4 or t_s[b - 1] - t_s[a] < MIN_STEP_RUN_S or file_start[a + 1 : b].any():
+                continue
+            for k0, k1, edge, onset in (
+                (a - 1, a, current_A[a : a + 3], True),
+                (b - 1, b, current_A[b - 3 : b], False),
+            ):
+                if k0 < 0 or k1 >= n or file_start[k1]:
+                    continue
+                if np.ptp(edge) > 0.1 * float(np.min(np.abs(edge))):
+                    continue
+                if min(abs(current_A[k0]), abs(current_A[k1])) > i_rest:
+                    continue
+                di = abs(float(current_A[k1] - current_A[k0]))
+                dv = abs(float(v_V[k1] - v_V[k0]))
+                out.append(CurrentStep(dv / di, math.sqrt(2.0) * sigma / di, k1, onset))
+    return sorted(out, key=lambda st: st.index)
+
+
 def _end_voltage(v: FloatArray, a: int, b: int) -> float:
     """Rested voltage of the rest [a, b): the mean of its last 5 % (at least one sample)."""
     k = max(1, (b - a) // 20)
@@ -556,6 +669,14 @@ def extract_branches(
     _, ca, cb = best[-1]
     s1 = 1.0 if da < ca else -1.0  # +1: discharge first (the test starts full)
     f0, s0 = (da, ca) if s1 > 0 else (ca, da)
+    # SOC anchor: the fullest (emptiest for a charge-first test) point up to the first branch's
+    # start, so a pulse or top-up between the rest and the branch counts. Within half a branch
+    # sample's charge of the extreme, the last such point (a tester's current noise at rest
+    # moves the count by less).
+    fa, fb = (da, db) if s1 > 0 else (ca, cb)
+    tol = 0.5 * float(np.median(np.abs(i_all[fa:fb]))) * float(np.median(dt[fa:fb])) / 3600.0
+    before_first = -s1 * q1[: f0 + 1]
+    f0 = int(np.flatnonzero(before_first >= np.max(before_first) - tol)[-1])
     # Extreme points: the far end of the first branch (before the second starts), then the
     # end of the second branch's side (to the end of the test).
     deep = f0 + int(np.argmax(s1 * (q1[f0 : s0 + 1] - q1[f0])))
@@ -613,13 +734,8 @@ def extract_branches(
     k_dis, i_dis = keep(da, db, "discharge")
     k_chg, i_chg = keep(ca, cb, "charge")
 
-    # One-sample steps at the rest <-> branch transitions (for the report, and the fallback).
-    steps: list[float] = []
-    for a, b in ((da, db), (ca, cb)):
-        for k0, k1 in ((a - 1, a), (b - 1, b)):
-            same_file = k0 >= 0 and k1 < n_all and not file_start[k1]
-            if same_file and min(abs(i_all[k0]), abs(i_all[k1])) <= i_rest:
-                steps.append(abs(float(v_all[k1] - v_all[k0]) / float(i_all[k1] - i_all[k0])))
+    # One-sample steps between rest and constant current (for the report, and the fallback).
+    steps = current_steps(t_all, i_all, v_all, file_start, i_rest=i_rest, rests=rests)
     relax: list[RelaxationFit] = []
     for a, b in ((da, db), (ca, cb)):
         # The rest that starts at the run's end (noise at rest may blur the end by a sample).
@@ -627,13 +743,13 @@ def extract_branches(
         if rest is None:
             continue
         ra, rb = rest
-        # The loaded voltage at the switch: a line through the run's last samples, extrapolated
-        # (one sample would carry its full noise into R0).
-        k0 = max(a, ra - 20)
+        # The loaded voltage at the switch, extrapolated from the run's last samples.
+        k0 = max(a, ra - LOAD_FIT_SAMPLES)
         tt, vv = t_all[k0:ra] - t_all[ra], v_all[k0:ra]
-        if tt.shape[0] >= 4:
-            (_, v_sw), cov_l = np.polyfit(tt, vv, 1, cov=True)
-            v_sw_se = float(np.sqrt(max(float(cov_l[1, 1]), 0.0)))
+        if tt.shape[0] >= 4 + LOAD_FIT_DEGREE:
+            coef, cov_l = np.polyfit(tt, vv, LOAD_FIT_DEGREE, cov=True)
+            v_sw = float(coef[-1])
+            v_sw_se = float(np.sqrt(max(float(cov_l[-1, -1]), 0.0)))
         else:
             v_sw, v_sw_se = float(v_all[ra - 1]), 0.0
         fit = fit_relaxation(
@@ -642,24 +758,36 @@ def extract_branches(
         )  # fmt: skip
         if fit is not None:
             relax.append(replace(fit, soc=float(z_all[ra])))
-    # Upper bound: M >= 0, so the polarisation cannot exceed the raw half-gap at mid SOC.
+    # What M >= 0 allows: the polarisation cannot exceed the raw half-gap at mid SOC (a check
+    # that is reported, never used to set the polarisation).
     mid = np.linspace(0.2, 0.8, 61)
     raw_half = 0.5 * (
         _interp_sorted(mid, z_all[k_chg], v_all[k_chg])
         - _interp_sorted(mid, z_all[k_dis], v_all[k_dis])
     )
-    r_max = float(np.percentile(raw_half, 5)) / (0.5 * (i_dis + i_chg))
+    r_max = float(np.median(raw_half)) / (0.5 * (i_dis + i_chg))
     pol = _choose_polarisation(relax, steps, r_max, notes)
 
     kap = gamma / (cap * 3600.0)
+    h0 = 1.0 if s1 > 0 else -1.0
     x1, x2, h = branch_states(
         t_all, i_all, file_start, tau1_s=pol.tau1_s, tau2_s=pol.tau2_s,
-        kappa_dis=kap, kappa_chg=kap * eta, h0=1.0 if s1 > 0 else -1.0,
+        kappa_dis=kap, kappa_chg=kap * eta, h0=h0,
+    )  # fmt: skip
+    h_span = tuple(
+        branch_states(
+            t_all, i_all, file_start, tau1_s=1.0, tau2_s=1.0, kappa_dis=kap * f,
+            kappa_chg=kap * f * eta, h0=h0,
+        )[2]
+        for f in (1.0 / GAMMA_SPAN, GAMMA_SPAN)
     )  # fmt: skip
     v_corr = v_all + pol.R0_ohm * i_all + pol.R1_ohm * x1 + pol.R2_ohm * x2
 
     def branch(idx: npt.NDArray[np.intp], i_med: float) -> Branch:
-        return Branch(z=z_all[idx], v_V=v_corr[idx], v_raw_V=v_all[idx], h=h[idx], current_A=i_med)
+        return Branch(
+            z=z_all[idx], v_V=v_corr[idx], v_raw_V=v_all[idx], h=h[idx], current_A=i_med,
+            h_span=(h_span[0][idx], h_span[1][idx]),
+        )  # fmt: skip
 
     ends: dict[float, float] = {}
     for anchor in (0.0, 1.0):
@@ -749,41 +877,70 @@ def _scale_charge(
 
 
 def _choose_polarisation(
-    relax: Sequence[RelaxationFit], steps: Sequence[float], r_max: float, notes: list[str]
+    relax: Sequence[RelaxationFit], steps: Sequence[CurrentStep], r_max: float, notes: list[str]
 ) -> Polarisation:
-    """The smallest relaxation fit (knees and diffusion at the test's ends only inflate it),
-    else the smallest one-sample step, scaled down to ``r_max`` (ohm: the most the mid-SOC
-    half-gap allows with M >= 0) when even that exceeds it (module doc)."""
+    """The relaxation fits (knees and diffusion at the test's ends only inflate them): the
+    smallest, combined (inverse-variance) with those that agree with it within two standard
+    errors. Else the smallest current step that resolves R0 (noise error <= ``STEP_RESOLVED``
+    of it; onsets first; none: the one with the smallest error) with the unmeasured RC part
+    assumed (``UNMEASURED_RC_SHARE``, in the standard error). ``r_max`` (ohm: the most the
+    median mid-SOC half-gap allows with M >= 0) is only compared with, beyond two standard
+    errors, never imposed (module doc)."""
     if relax:
         r = min(relax, key=lambda f: f.r_total_ohm)
-        pol = Polarisation(
-            r.R0_ohm, r.R1_ohm, r.tau1_s, r.R2_ohm, r.tau2_s, r.r_total_se_ohm,
-            f"2RC relaxation fit of the {r.duration_s:.0f} s rest after the {r.after} "
-            f"(SOC {100 * r.soc:.1f} %)", tuple(relax), tuple(steps),
-        )  # fmt: skip
-    elif steps:
-        notes.append(
-            "no rest after a branch long enough to fit its relaxation: polarisation = the "
-            "smallest one-sample step |dV/dI| (misses the slow relaxation; not in the CI)"
+        agree = [
+            f
+            for f in relax
+            if f.r_total_ohm - r.r_total_ohm <= 2.0 * math.hypot(f.r_total_se_ohm, r.r_total_se_ohm)
+        ]
+        w = np.array([1.0 / max(f.r_total_se_ohm, 1e-9) ** 2 for f in agree])
+        total = float(np.sum(w * np.array([f.r_total_ohm for f in agree])) / np.sum(w))
+        shape = min(agree, key=lambda f: f.r_total_se_ohm)  # R0/R1/R2 split and taus
+        k = total / shape.r_total_ohm if shape.r_total_ohm > 0 else 1.0
+        where = " and ".join(
+            f"the {f.duration_s:.0f} s rest after the {f.after} (SOC {100 * f.soc:.1f} %)"
+            for f in agree
         )
         pol = Polarisation(
-            min(steps), 0.0, 1.0, 0.0, 1.0, None, "smallest one-sample step |dV/dI|",
-            (), tuple(steps),
+            k * shape.R0_ohm, k * shape.R1_ohm, shape.tau1_s, k * shape.R2_ohm, shape.tau2_s,
+            float(1.0 / np.sqrt(np.sum(w))),
+            f"2RC relaxation fit{'s' if len(agree) > 1 else ''} of {where}"
+            + (" (inverse-variance mean)" if len(agree) > 1 else ""),
+            tuple(relax), tuple(steps),
+        )  # fmt: skip
+    elif steps:
+        onsets = [st for st in steps if st.onset]
+        resolved = [st for st in onsets if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
+        resolved = resolved or [st for st in steps if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
+        if resolved:
+            st = min(resolved, key=lambda x: x.r_ohm)
+            which = "the smallest one-sample step |dV/dI| that resolves it"
+        else:
+            st = min(steps, key=lambda x: x.se_ohm)
+            which = "the one-sample step |dV/dI| with the smallest noise error (none resolves it)"
+        r0 = st.r_ohm
+        rc = UNMEASURED_RC_SHARE * r0
+        se = math.hypot(st.se_ohm, rc)
+        notes.append(
+            f"no rest after a branch long enough (>= {MIN_RELAX_S:.0f} s) to fit its relaxation: "
+            f"R0 = {which} ({1e3 * r0:.1f} +- {1e3 * st.se_ohm:.1f} mOhm); the test does not "
+            f"measure the RC part, taken as {1e3 * rc:.1f} +- {1e3 * rc:.1f} mOhm (1 se); both "
+            "errors are in the CI of M"
+        )
+        pol = Polarisation(
+            r0, 0.0, 1.0, rc, UNMEASURED_RC_TAU_S, se,
+            "one-sample current step for R0, RC part assumed", (), tuple(steps),
         )  # fmt: skip
     else:
         notes.append("no rest or step in the test: the branches are not corrected")
         return Polarisation(0.0, 0.0, 1.0, 0.0, 1.0, None, "none")
-    if pol.r_total_ohm > r_max > 0:
-        k = r_max / pol.r_total_ohm
+    if pol.r_total_ohm - 2.0 * (pol.r_total_se_ohm or 0.0) > r_max > 0:
         notes.append(
             f"the {pol.source} gives {1e3 * pol.r_total_ohm:.1f} mOhm, more than the mid-SOC "
-            f"half-gap allows ({1e3 * r_max:.1f} mOhm with M >= 0): the polarisation varies "
-            "along SOC (larger at the test's ends); scaled down to that bound"
+            f"median half-gap allows with M >= 0 ({1e3 * r_max:.1f} mOhm): the polarisation is "
+            "smaller mid-SOC than where it was measured; the corrected half-gap comes out "
+            "negative (the polarisation is not scaled to fit the gap)"
         )
-        pol = replace(
-            pol, R0_ohm=k * pol.R0_ohm, R1_ohm=k * pol.R1_ohm, R2_ohm=k * pol.R2_ohm,
-            source=pol.source + f", scaled to the mid-SOC bound {1e3 * r_max:.1f} mOhm",
-        )  # fmt: skip
     return pol
 
 
@@ -799,16 +956,143 @@ class BandResidual:
     bias_V: float
 
 
+#: How a stored M knot came about: ``fit`` (its CI excludes 0); with its CI including 0 and
+#: hysteresis present: ``wide`` (the fit kept, above the pooled lower bound) or ``conservative``
+#: (raised to the pooled lower bound); ``zero`` (CI includes 0, no hysteresis resolved);
+#: ``pinned`` (0 at an end with one rested voltage: not a measurement).
+KnotStatus = Literal["fit", "wide", "conservative", "zero", "pinned"]
+
+
+@dataclass(frozen=True)
+class HysteresisEvidence:
+    """The pooled (constant) M fitted to mid-SOC SOC ``soc_lo``..``soc_hi`` (V) with its 95 % CI
+    half-width, whether that says hysteresis is present (CI excludes 0), and each stored knot's
+    ``KnotStatus``."""
+
+    pooled_V: float
+    pooled_ci95_V: float
+    soc_lo: float
+    soc_hi: float
+    status: tuple[KnotStatus, ...]
+
+    @property
+    def present(self) -> bool:
+        """True when the pooled M's 95 % CI lies above 0."""
+        return self.pooled_V - self.pooled_ci95_V > 0
+
+
+def decide_hysteresis(
+    m_soc: FloatArray,
+    m_fit: FloatArray,
+    m_ci: FloatArray,
+    pooled: tuple[float, float, float, float],
+    notes: list[str],
+    *,
+    m_raw: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, HysteresisEvidence]:
+    """The stored M table (V, in [0, 0.5]) and its CI half-widths from the fitted knots ``m_fit``
+    (V) with CI half-widths ``m_ci`` and the ``pooled`` (M, CI, SOC lo, SOC hi) evidence.
+
+    A knot whose CI excludes 0 is kept. Otherwise, with hysteresis present (the pooled CI
+    excludes 0), the knot keeps max(fit, pooled lower bound): the test says there is
+    hysteresis, so a wide or negative knot is not written as 0; without it the knot is 0. Each
+    such knot is named in ``notes``; its stored CI covers the knot's own interval (clipped at 0)
+    and, when raised to the pooled bound, the pooled CI. A pooled M below 0 beyond its CI means
+    the polarisation over-corrects (M < 0 is not physical): the test cannot tell whether there
+    is hysteresis, so a zeroed knot's CI reaches up to ``m_raw`` (the knots fitted to the raw,
+    uncorrected gap: the most M can be, with no polarisation at all) and the note says so.
+    """
+    m_pool, ci_pool, lo, hi = pooled
+    m = np.array(m_fit, dtype=np.float64)
+    ci = np.array(m_ci, dtype=np.float64)
+    status: list[KnotStatus] = []
+    ev = HysteresisEvidence(m_pool, ci_pool, lo, hi, ())
+    floor = m_pool - ci_pool
+    over = m_pool + ci_pool < 0
+    wide, raised, zeroed = [], [], []
+    for k in range(m.shape[0]):
+        f, c = float(m_fit[k]), float(m_ci[k])
+        if f - c > 0:
+            status.append("fit")
+            continue
+        k_lo, k_hi = max(f - c, 0.0), max(f + c, 0.0)
+        if ev.present and f >= floor:
+            status.append("wide")
+            wide.append(k)
+        elif ev.present:
+            m[k] = floor
+            ci[k] = max(k_hi - floor, floor - k_lo, ci_pool)
+            status.append("conservative")
+            raised.append(k)
+        else:
+            m[k] = 0.0
+            ci[k] = max(k_hi, c, float(m_raw[k]) if over and m_raw is not None else 0.0)
+            status.append("zero")
+            zeroed.append(k)
+    pooled_txt = (
+        f"{1e3 * m_pool:.1f} +- {1e3 * ci_pool:.1f} mV at SOC {100 * lo:.0f}-{100 * hi:.0f} %"
+    )
+
+    def knots(ks: list[int]) -> str:
+        return ", ".join(
+            f"{100 * m_soc[k]:.0f} % ({1e3 * m_fit[k]:+.1f} +- {1e3 * m_ci[k]:.1f})" for k in ks
+        )
+
+    if wide:
+        notes.append(
+            f"the CI of the knot(s) at {knots(wide)} mV includes 0; kept, as hysteresis is "
+            f"present (pooled M {pooled_txt}) and they lie above its lower bound"
+        )
+    if raised:
+        notes.append(
+            f"hysteresis present (pooled M {pooled_txt}), but the knot(s) at {knots(raised)} mV "
+            f"are negative or below the pooled lower bound with a CI that includes 0: stored at "
+            f"that bound, {1e3 * floor:.1f} mV (conservative), not 0"
+        )
+    if zeroed and over:
+        notes.append(
+            f"the corrected half-gap is negative (pooled M {pooled_txt}): the polarisation "
+            "over-corrects mid-SOC (it varies along SOC), so the test cannot tell a hysteresis "
+            "of that size from it; "
+            f"M = 0 at {knots(zeroed)} mV, with the raw (uncorrected) half-gap as the upper end "
+            "of its CI"
+        )
+    elif zeroed:
+        notes.append(
+            f"no hysteresis resolved (pooled M {pooled_txt}, CI includes 0): M = 0 at "
+            f"{knots(zeroed)} mV, with the knot's upper bound as its CI"
+        )
+    return np.clip(m, 0.0, 0.5), ci, replace(ev, status=tuple(status))
+
+
+def pooled_hysteresis(
+    z: FloatArray,
+    gap_V: FloatArray,
+    weight: FloatArray,
+    *,
+    gap_per_ohm: FloatArray | None = None,
+    r_se_ohm: float | None = None,
+) -> tuple[float, float, float, float]:
+    """A constant M fitted to ``gap = M weight`` on the SOC points ``z`` (the mid-SOC the caller
+    chose): (M, 95 % CI half-width, SOC lo, SOC hi), V and fractions."""
+    _, m, ci = fit_hysteresis(
+        z, gap_V, weight, [float(np.median(z))], gap_per_ohm=gap_per_ohm, r_se_ohm=r_se_ohm
+    )
+    return float(m[0]), float(ci[0]), float(np.min(z)), float(np.max(z))
+
+
 @dataclass(frozen=True)
 class OcvFitResult:
     """Everything ``fit-ocv`` reports and stores.
 
     ``m_soc``/``m_V``: the M(z) table (fraction, V; >= 0) and ``m_ci95_V`` the half-widths of its
-    95 % confidence intervals (None for rest-point tables with one branch). ``m_fit_V``: the
-    fitted knot values before clipping at 0. ``half_gap_raw_V`` / ``half_gap_V``: the measured
-    and polarisation-corrected half-gaps on ``gap_soc``. ``v_empty_V``/``v_full_V``: the rested
-    end voltages the mean curve reaches (None: not measured). ``residuals``: per branch and SOC
-    band, against the whole model (extended mean + M h). ``test``: the branches (OCV tests).
+    95 % confidence intervals (None for rest-point tables with one branch), as stored in the
+    config (``decide_hysteresis``). ``m_fit_V`` / ``m_fit_ci95_V``: the fitted knot values (may
+    be negative) and their CIs; ``hysteresis``: the pooled evidence and each knot's status.
+    ``half_gap_raw_V`` / ``half_gap_V``: the measured and polarisation-corrected half-gaps on
+    ``gap_soc``. ``v_empty_V``/``v_full_V``: the rested end voltages the mean curve reaches
+    (None: not measured). ``residuals``: per branch and SOC band, against the whole model
+    (extended mean + M h). ``test``: the branches (OCV tests).
     """
 
     mean: Eq4Fit
@@ -828,6 +1112,8 @@ class OcvFitResult:
     v_full_V: float | None = None
     residuals: tuple[BandResidual, ...] = ()
     test: OcvTestBranches | None = None
+    m_fit_ci95_V: FloatArray | None = None
+    hysteresis: HysteresisEvidence | None = None
 
     def ocv_model(self) -> OcvModel:
         """The fitted mean curve with its end segments and the M table, as the engine uses it."""
@@ -963,16 +1249,35 @@ def fit_ocv_test(
     pol = branches.polarisation
     # d gap / d R_total at steady state: the charge branch falls, the discharge branch rises.
     per_ohm = np.full_like(grid, -(chg.current_A + dis.current_A))
-    m_soc, m_fit, m_ci = fit_hysteresis(
+    m_soc, m_fit, ci_stat = fit_hysteresis(
         grid, gap, weight, knots, gap_per_ohm=per_ohm, r_se_ohm=pol.r_total_se_ohm
     )
-    m_vals = np.clip(m_fit, 0.0, 0.5)
-    if np.any(m_fit < 0):
-        notes.append(
-            "the corrected half-gap is negative at SOC "
-            + ", ".join(f"{100 * z:.0f} %" for z in m_soc[m_fit < 0])
-            + ": M stored as 0 there (over-corrected polarisation or misaligned branches?)"
-        )
+    # gamma is not fitted: each knot's change over gamma / GAMMA_SPAN .. gamma * GAMMA_SPAN.
+    ci_gamma = np.zeros_like(m_fit)
+    w_slow = weight
+    if chg.h_span is not None and dis.h_span is not None:
+        for j in (0, 1):
+            w_alt = on_grid(chg, chg.h_span[j]) - on_grid(dis, dis.h_span[j])
+            _, m_alt, _ = fit_hysteresis(grid, gap, w_alt, knots)
+            ci_gamma = np.maximum(ci_gamma, np.abs(m_alt - m_fit))
+            w_slow = np.minimum(w_slow, w_alt)
+    # A larger polarisation measured at one end of the test may hold at the knot there.
+    ci_end = np.zeros_like(m_fit)
+    for r in pol.relaxations:
+        if r.r_total_ohm > pol.r_total_ohm and np.isfinite(r.soc):
+            at = _hats(np.array([np.clip(r.soc, m_soc[0], m_soc[-1])]), m_soc)[0]
+            extra = 0.5 * (chg.current_A + dis.current_A) * (r.r_total_ohm - pol.r_total_ohm)
+            ci_end = np.maximum(ci_end, at * extra)
+    m_ci = np.sqrt(ci_stat**2 + ci_gamma**2 + ci_end**2)
+    mid = w_slow >= POOLED_MIN_WEIGHT
+    if np.count_nonzero(mid) < 20:
+        mid = np.ones_like(grid, dtype=bool)
+    pooled = pooled_hysteresis(
+        grid[mid], gap[mid], weight[mid], gap_per_ohm=per_ohm[mid], r_se_ohm=pol.r_total_se_ohm
+    )
+    raw_gap = on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V)
+    _, m_raw, _ = fit_hysteresis(grid, raw_gap, weight, knots)
+    m_vals, m_ci_store, evidence = decide_hysteresis(m_soc, m_fit, m_ci, pooled, notes, m_raw=m_raw)
     half_raw = 0.5 * (on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V))
 
     def mean_data(b: Branch) -> tuple[FloatArray, FloatArray]:
@@ -988,21 +1293,33 @@ def fit_ocv_test(
     lo_j, hi_j, v_empty, v_full = _join_ends(
         mean.coeffs, lo, hi, branches.v_empty_V, branches.v_full_V, notes
     )
-    m_ci_tab = m_ci
+    status = list(evidence.status)
+    pinned = []
     if v_empty is not None:  # one rested voltage at the end: the branches meet there
-        m_soc, m_vals, m_fit, m_ci_tab = (
-            np.concatenate([[0.0], x]) for x in (m_soc, m_vals, m_fit, m_ci_tab)
+        m_soc, m_vals, m_fit, m_ci_store, m_ci = (
+            np.concatenate([[0.0], x]) for x in (m_soc, m_vals, m_fit, m_ci_store, m_ci)
         )
+        status.insert(0, "pinned")
+        pinned.append("0 %")
     if v_full is not None:
-        m_soc, m_vals, m_fit, m_ci_tab = (
+        m_soc, m_vals, m_fit, m_ci_store, m_ci = (
             np.concatenate([x, [v]])
-            for x, v in ((m_soc, 1.0), (m_vals, 0.0), (m_fit, 0.0), (m_ci_tab, 0.0))
+            for x, v in ((m_soc, 1.0), (m_vals, 0.0), (m_fit, 0.0), (m_ci_store, 0.0),
+                         (m_ci, 0.0))
+        )  # fmt: skip
+        status.append("pinned")
+        pinned.append("100 %")
+    if pinned:
+        notes.append(
+            f"M = 0 at SOC {' and '.join(pinned)}: the test has one rested voltage there, which "
+            "the mean curve reaches (pinned, not a measured M)"
         )
     result = OcvFitResult(
         mean=mean, discharge=fit_d, charge=fit_c, soc_min=lo_j, soc_max=hi_j,
         m_soc=m_soc, m_V=m_vals, gap_soc=grid, half_gap_raw_V=half_raw,
-        half_gap_V=0.5 * gap, notes=tuple(notes), m_ci95_V=m_ci_tab, m_fit_V=m_fit,
-        v_empty_V=v_empty, v_full_V=v_full, test=branches,
+        half_gap_V=0.5 * gap, notes=tuple(notes), m_ci95_V=m_ci_store, m_fit_V=m_fit,
+        v_empty_V=v_empty, v_full_V=v_full, test=branches, m_fit_ci95_V=m_ci,
+        hysteresis=replace(evidence, status=tuple(status)),
     )  # fmt: skip
     model = result.ocv_model()
     bands: list[BandResidual] = []
@@ -1029,7 +1346,8 @@ def fit_rest_points(
     (Eq. 4 is singular at 0 and 1; with ~10 points a narrower trim lets the 1/z term bend the
     curve upwards below the lowest interior point). With both branches M(z) is the
     piecewise-linear fit of the half-gap on their overlap (ends held beyond it) with its 95 %
-    CI; with one, ``m_table`` (soc, M_V) is used, or M = 0 with a note. The mean is Eq. 4
+    CI, stored by ``decide_hysteresis`` (the pooled evidence over the whole overlap); with one,
+    ``m_table`` (soc, M_V) is used, or M = 0 with a note. The mean is Eq. 4
     fitted to all points shifted onto the mean: discharge points + M(z), charge points - M(z)
     (Plett's convention: discharge lies M below the mean), over the union of the branches' SOC
     ranges, which becomes the config's [soc_min, soc_max].
@@ -1055,7 +1373,7 @@ def fit_rest_points(
     if not branches:
         raise UserError("no rest points given")
     fits = {name: fit_eq4(z, v) for name, (z, v) in branches.items()}
-    gap_soc = half = m_ci = m_fit = None
+    gap_soc = half = m_ci = m_fit = m_fit_ci = evidence = None
     if len(branches) == 2:
         (zd, vd), (zc, vc) = branches["discharge"], branches["charge"]
         lo, hi = max(zd.min(), zc.min()), min(zd.max(), zc.max())
@@ -1063,8 +1381,10 @@ def fit_rest_points(
             raise UserError(f"the branches overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %")
         gap_soc = np.linspace(lo, hi, 201)
         half = 0.5 * (_interp_sorted(gap_soc, zc, vc) - _interp_sorted(gap_soc, zd, vd))
-        m_soc, m_fit, m_ci = fit_hysteresis(gap_soc, 2.0 * half, np.full_like(gap_soc, 2.0), knots)
-        m_vals = np.clip(m_fit, 0.0, 0.5)
+        two = np.full_like(gap_soc, 2.0)
+        m_soc, m_fit, m_fit_ci = fit_hysteresis(gap_soc, 2.0 * half, two, knots)
+        pooled = pooled_hysteresis(gap_soc, 2.0 * half, two)
+        m_vals, m_ci, evidence = decide_hysteresis(m_soc, m_fit, m_fit_ci, pooled, notes)
     elif m_table is not None:
         m_soc, m_vals = (np.asarray(a, dtype=np.float64) for a in m_table)
         notes.append("M(z) taken from the given hysteresis table")
@@ -1091,7 +1411,7 @@ def fit_rest_points(
         mean=mean, discharge=fits.get("discharge"), charge=fits.get("charge"),
         soc_min=lo_j, soc_max=hi_j, m_soc=m_soc, m_V=m_vals, gap_soc=gap_soc,
         half_gap_raw_V=half, half_gap_V=half, notes=tuple(notes), m_ci95_V=m_ci, m_fit_V=m_fit,
-        v_empty_V=v_empty, v_full_V=v_full,
+        v_empty_V=v_empty, v_full_V=v_full, m_fit_ci95_V=m_fit_ci, hysteresis=evidence,
     )  # fmt: skip
     model = result.ocv_model()
     bands: list[BandResidual] = []

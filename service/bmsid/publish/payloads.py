@@ -20,11 +20,13 @@ from bmsid.estimate.types import Estimates, Quality
 
 SCHEMA_VERSION = 1
 
-#: Health bits of the pack summary (CAN ``Health`` 0..15 and MQTT ``health``).
+#: Health bits of the pack summary (MQTT ``health``; on CAN, ``PackSummary``'s ``Health`` holds
+#: bits 1..8 and its ``Diverged`` bit 16).
 HEALTH_CONVERGING = 1  #: at least one cell still converging
 HEALTH_POORLY_EXCITED = 2  #: the current carries too little information
-HEALTH_OUT_OF_BOUNDS = 4  #: at least one cell was clamped to its bounds
+HEALTH_OUT_OF_BOUNDS = 4  #: at least one cell hit its bounds (its last good values are published)
 HEALTH_INPUT_STALE = 8  #: no sample within the staleness window (set by the daemon)
+HEALTH_DIVERGED = 16  #: at least one cell diverged (held, being re-initialised)
 
 
 def topic(prefix: str, pack_id: str, *levels: str | int) -> str:
@@ -134,13 +136,17 @@ def health_bits(est: Estimates) -> int:
         bits |= HEALTH_POORLY_EXCITED
     if np.any(q == Quality.OUT_OF_BOUNDS):
         bits |= HEALTH_OUT_OF_BOUNDS
+    if np.any(q == Quality.DIVERGED):
+        bits |= HEALTH_DIVERGED
     return bits
 
 
 def pack_payload(est: Estimates, pack_id: str, seq: int, health: int) -> dict[str, Any]:
-    """Pack summary: R0 and SOC spread, the weakest cell (largest R0), quality counts."""
+    """Pack summary: R0 and SOC spread, the weakest cell (largest R0), the current-sensor
+    offset (one per pack: the mean of the cells' finite values), quality counts."""
     r0 = np.asarray(est.R0_ohm, dtype=np.float64)
     soc = np.asarray(est.soc, dtype=np.float64)
+    offset = np.asarray(est.cells["current_offset_A"], dtype=np.float64)
     fin = np.isfinite(r0)
     weakest = int(np.flatnonzero(fin)[int(np.argmax(r0[fin]))]) if fin.any() else None
     counts = {q.name.lower(): int(np.sum(est.quality == q)) for q in Quality}
@@ -155,6 +161,7 @@ def pack_payload(est: Estimates, pack_id: str, seq: int, health: int) -> dict[st
         "seq": seq,
         "t_s": float(est.t_s),
         "current_A": _num(float(est.current_A)),
+        "current_offset_A": stat(offset, "mean"),
         "n_cells": est.n_cells,
         "R0_min_ohm": stat(r0, "min"),
         "R0_mean_ohm": stat(r0, "mean"),
