@@ -50,6 +50,7 @@ from bmsid.offline.inputs import (
 from bmsid.offline.outputs import (
     SCORE_SOC0_HELP,
     OutputSpec,
+    observer_text,
     ocv_range_warning,
     soc_init_text,
     summary_line,
@@ -269,5 +270,7 @@ def run(args: argparse.Namespace) -> int:
         for f in soc_findings:
             print(f.line())
     print(summary_line({**metrics_document(result, window), **meta}))
+    if (obs := observer_text(result)) is not None:
+        print(obs)
     print(f"wrote {out}/params.csv, metrics.json and plots")
     return 0

@@ -33,6 +33,7 @@ from bmsid.canbus.logs import LogSummary, samples_from_log, summarize_log
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.config.cell import CellConfig, OcvCurve, load_cell_config, paper_cell
 from bmsid.errors import UserError
+from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.offline.csvio import (
     CANONICAL_COLUMNS,
@@ -410,15 +411,23 @@ def cell_config(
 
 # ----------------------------------------------------------------------------- option text
 def parse_tuning(items: Sequence[str]) -> EstimatorTuning:
-    """``KEY=VALUE`` overrides of :class:`~bmsid.estimate.tuning.EstimatorTuning` fields."""
-    values: dict[str, str] = {}
+    """``KEY=VALUE`` overrides of :class:`~bmsid.estimate.tuning.EstimatorTuning` fields; a
+    nested field by its dotted path (``observer.enabled=false``)."""
+    values: dict[str, Any] = {}
     for item in items:
         key, sep, val = item.partition("=")
-        if not sep or not key.strip():
+        key = key.strip()
+        if not sep or not key:
             raise UserError(f"--tuning: {item!r} is not KEY=VALUE")
-        if key.strip() not in EstimatorTuning.model_fields:
-            raise UserError(f"--tuning: unknown field {key.strip()!r} of EstimatorTuning")
-        values[key.strip()] = val.strip()
+        head, _, sub = key.partition(".")
+        if head not in EstimatorTuning.model_fields:
+            raise UserError(f"--tuning: unknown field {key!r} of EstimatorTuning")
+        if sub:
+            if sub not in ObserverTuning.model_fields or head != "observer":
+                raise UserError(f"--tuning: unknown field {key!r} of EstimatorTuning")
+            values.setdefault(head, {})[sub] = val.strip()
+        else:
+            values[key] = val.strip()
     try:
         return EstimatorTuning.model_validate(values)
     except ValidationError as exc:

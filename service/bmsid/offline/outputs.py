@@ -107,11 +107,27 @@ def soc_init_text(result: IdentifyResult) -> str:
     how = {
         "given": "given by --soc0",
         "ocv_at_rest": "from the first voltage through the OCV curve (the cell was at rest)",
+        "ocv_ir_corrected": "from the first voltage plus R0 x current through the OCV curve "
+        "(a current flowed; the SOC observer refines it)",
         "config": "the config's soc0 (the first current was not a rest current)",
-        "default_0.5": "a default of 50 %: the first current was not a rest current and the "
-        "config gives no soc0; pass --soc0",
+        "default_0.5": "a default of 50 %: the first sample has no valid voltage and the "
+        "config gives no soc0 (the SOC observer corrects it from the voltages that follow)",
     }.get(result.soc_init_method, result.soc_init_method)
     return f"initial SOC {socs}: {how}"
+
+
+def observer_text(result: IdentifyResult) -> str | None:
+    """One line: what the SOC observer found at the end of the record (None when off)."""
+    tr = result.trace
+    if tr.n_ticks == 0 or not np.isfinite(tr["soc_std"][-1]).any():
+        return None
+    q, q_sd = tr["capacity_Ah"][-1], tr["capacity_std_Ah"][-1]
+    caps = ", ".join(f"{a:.3g} +- {b:.2g} Ah" for a, b in zip(q[:4], q_sd[:4], strict=True))
+    return (
+        f"SOC observer: current-sensor offset {tr['current_offset_A'][-1][0]:+.3g} A, "
+        f"SOC std {100 * float(np.max(tr['soc_std'][-1])):.2f} points, capacity {caps}"
+        + (" ..." if q.size > 4 else "")
+    )
 
 
 def ocv_range_warning(result: IdentifyResult, cell: CellConfig) -> str | None:
