@@ -209,8 +209,8 @@ class ObserverState(CoulombState):
         self, idx: np.ndarray[Any, np.dtype[np.intp]], hz: FloatArray, hb: FloatArray,
         e: FloatArray, r: FloatArray, forced: BoolArray | bool,
     ) -> None:  # fmt: skip
-        """Joint EKF update of the cells ``idx`` (Joseph form: P stays symmetric PSD); cells
-        not ``forced`` (anchor, restart) are gated on their innovation."""
+        """Joint EKF update of the cells ``idx``; cells not ``forced`` (anchor, restart) are
+        gated on their innovation."""
         n, P = self.n, self.P
         if idx.size:
             s_diag = hz[idx] ** 2 * P[idx, idx] + 2 * hz[idx] * hb[idx] * P[idx, n]
@@ -222,22 +222,23 @@ class ObserverState(CoulombState):
             idx = idx[inside]
         if idx.size == 0:
             return
-        m = idx.size
-        H = np.zeros((m, n + 1))
-        H[np.arange(m), idx] = hz[idx]
-        H[:, n] = hb[idx]
-        PHt = P @ H.T
-        S = H @ PHt + np.diag(r[idx])
+        # H = [diag(hz) | hb] is sparse: P H' and H P H' in O(n m), not dense products.
+        PHt = P[:, idx] * hz[idx] + np.outer(P[:, n], hb[idx])  # (n + 1, m)
+        S = hz[idx, None] * PHt[idx, :] + hb[idx, None] * PHt[n, :]  # (m, m)
+        S[np.diag_indices_from(S)] += r[idx]
         try:
-            K = np.linalg.solve(S, PHt.T).T
+            K = np.linalg.solve(S, PHt.T).T  # (n + 1, m)
         except np.linalg.LinAlgError:
             return
         dx = K @ e[idx]
         if not np.all(np.isfinite(dx)):
             return
-        A = np.eye(n + 1) - K @ H
-        P = A @ P @ A.T + (K * r[idx]) @ K.T
-        self.P = 0.5 * (P + P.T)
+        # P - K S K' = P - K (P H')': symmetric by construction up to rounding, kept so.
+        P = P - K @ PHt.T
+        P = 0.5 * (P + P.T)
+        d = np.diag_indices_from(P)
+        P[d] = np.maximum(P[d], 0.0)
+        self.P = P
         self.z = np.clip(self.z + dx[:n], 0.0, 1.0)
         self.b = float(np.clip(self.b + dx[n], -self._b_max, self._b_max))
         self.counters["observer_updates"] += 1
