@@ -92,6 +92,10 @@ class CapacityTracker:
         self.anchor_q_Ah = np.where(cells, self.throughput_Ah, self.anchor_q_Ah)
         self.anchor_t_s = np.where(cells, t_s, self.anchor_t_s)
 
+    def forget_anchors(self) -> None:
+        """Drop the last anchors: the charge moved over a gap in the data is unknown."""
+        self.anchor_z = np.full(self.n, np.nan)
+
     _ARRAYS = ("q_Ah", "var_Ah2", "throughput_Ah", "anchor_z", "anchor_var", "anchor_q_Ah",
                "anchor_t_s")  # fmt: skip
 

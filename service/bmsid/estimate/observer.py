@@ -87,6 +87,7 @@ class ObserverState(CoulombState):
         self._tau_load_s = np.asarray(model.start("tau2_s"), dtype=np.float64).copy()
         self._anchored = np.zeros(n, dtype=bool)
         self._reanchor = False
+        self._widen = False
         self._learn_gate = np.ones(n, dtype=bool)
         self._start_var = np.zeros(n)
         self.counters.update(
@@ -108,8 +109,21 @@ class ObserverState(CoulombState):
         elif self._rest_s:
             self._rest_s = 0.0
             self._anchored = np.zeros(self.n, dtype=bool)
-        if tick.new_segment and not tick.first and tick.dt_s >= self.tun.restart_gap_s:
-            self._reanchor = True
+        gap = tick.new_segment and not tick.first and tick.dt_s >= self.tun.restart_gap_s
+        if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
+            self._restart(tick)
+
+    def _restart(self, tick: Tick) -> None:
+        """After downtime the count missed what the pack did: SOC is as uncertain as the first
+        voltage makes it (its correlation with the offset gone, which did not cause it), the
+        next update re-anchors, and no capacity is measured across the gap."""
+        n = self.n
+        self.start_variance(tick, "restart", self.z)
+        self.P[:n, :n] = np.diag(np.diag(self.P)[:n] + self._start_var)
+        self.P[:n, n] = self.P[n, :n] = 0.0
+        self.capacity.forget_anchors()
+        self._reanchor = True
+        self._widen = False
 
     def _remove_offset(self, tick: Tick) -> None:
         """Measured current -> true current (the tick is rebuilt every tick: edited in place)."""
@@ -274,8 +288,11 @@ class ObserverState(CoulombState):
         """Variance of the start SOC (fraction^2): from the voltage's uncertainty (hysteresis,
         unknown relaxation, IR drop) through the OCV slope, or that of a given value."""
         tun = self.tun
-        if method in ("given", "config"):
+        if method == "given":
             self._start_var = np.full(self.n, tun.given_soc_sigma**2)
+            return
+        if method in ("config", "default_0.5"):  # a guess, not a measurement
+            self._start_var = np.full(self.n, tun.start_soc_sigma_max**2)
             return
         m = self.model
         slope = np.abs(m.ocv.docv_dz(np.clip(z, m.ocv.soc_min, m.ocv.soc_max)))
@@ -312,8 +329,8 @@ class ObserverState(CoulombState):
     def load_state_dict(self, st: dict[str, Any]) -> None:
         super().load_state_dict(st)
         obs = st.get("observer")
-        if obs is None:  # a checkpoint from before the observer: its SOC, a fresh covariance
-            self._reanchor = True
+        if obs is None:  # a checkpoint from before the observer: its SOC, widened at the next tick
+            self._widen = True
             return
         renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
         load_arrays(self, renamed, self._ARRAYS, "state/observer")

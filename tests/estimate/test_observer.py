@@ -1,0 +1,485 @@
+"""The SOC observer (estimate/observer.py, capacity.py): offset, start, anchors, checkpoints.
+
+Records are the first hours of the multi-day known-truth generator (``synthetic/multiday.py``:
+07:00 rest or auxiliary load, 07:30-09:00 drive, rest, 17:00 drive, 20:00 charge). The bank
+ticks every 10 s (the tuning's upper bound) so a 14 h record costs ~5000 ticks; SOC is still
+coulomb-counted at the raw 1 s rate.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bmsid.config.cell import CellConfig, SocInit
+from bmsid.config.engine import build_bank, ocv_model
+from bmsid.estimate.bank import EstimatorBank
+from bmsid.estimate.capacity import REJECT_REL, CapacityTracker
+from bmsid.estimate.fields import FIELD_NAMES
+from bmsid.estimate.observer import ObserverState
+from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.tuning import EstimatorTuning, Variant
+from bmsid.estimate.types import EstimateBlock
+from bmsid.model.simulator import simulate
+from bmsid.samples import SampleBlock
+from bmsid.synthetic.multiday import (
+    DayPlan,
+    MultidayOptions,
+    MultidayRecord,
+    generate,
+    reference_cell,
+)
+
+TUN = EstimatorTuning(id_period_s=10.0)
+TUN_COULOMB = TUN.model_copy(update={"observer": ObserverTuning(enabled=False)})
+PLAN = DayPlan()
+H = 3600
+DRIVE_END_S = PLAN.first_drive_s + PLAN.drive_s  # 09:00, the first drive's end
+
+
+@functools.cache
+def _record(hours: float, offset_A: float = 0.0, start_load_A: float = 0.0) -> MultidayRecord:
+    opt = MultidayOptions(n_days=1, duration_s=int(hours * H), current_offset_A=offset_A,
+                          start_load_A=start_load_A)  # fmt: skip
+    return generate(opt)
+
+
+def _block(rec: MultidayRecord, a: int = 0, b: int | None = None) -> SampleBlock:
+    return SampleBlock.from_arrays(rec.t_s, rec.current_A, rec.voltage_V[:, None]).slice(
+        a, rec.n_samples if b is None else b
+    )
+
+
+def _soc_error(rec: MultidayRecord, out: EstimateBlock) -> np.ndarray[Any, np.dtype[np.float64]]:
+    """Estimated minus true SOC at each tick (fraction)."""
+    k = np.searchsorted(rec.t_s, out.t_s)
+    return np.asarray(out["soc"][:, 0] - rec.truth.soc[k], dtype=np.float64)
+
+
+def _at(out: EstimateBlock, t_s: float) -> int:
+    """Index of the first tick at or after ``t_s``."""
+    return int(np.searchsorted(out.t_s, t_s))
+
+
+# ----------------------------------------------------------------------------- current offset
+@functools.cache
+def _offset_runs() -> tuple[MultidayRecord, EstimateBlock, EstimateBlock]:
+    """14 h with a +0.5 A sensor offset: a drive, the day's rest, the second drive and the
+    first hour of the charge; with the observer and as a plain coulomb count."""
+    rec = _record(14.0, offset_A=0.5)
+    assert rec.truth.phase[-1] == 2  # ends in the charge
+    obs = build_bank(rec.cell, 1, tuning=TUN, soc0=0.93).update_block(_block(rec))
+    plain = build_bank(rec.cell, 1, tuning=TUN_COULOMB, soc0=0.93).update_block(_block(rec))
+    return rec, obs, plain
+
+
+def test_current_offset_is_learnt_and_soc_stays_on_the_truth() -> None:
+    rec, obs, _ = _offset_runs()
+    b_end = float(obs["current_offset_A"][-1, 0])
+    assert b_end == pytest.approx(0.5, abs=0.1), f"published offset {b_end:.3f} A, truth 0.5 A"
+    err = _soc_error(rec, obs)
+    assert abs(err[-1]) < 0.02, f"SOC error at the end {err[-1]:+.4f}"
+
+
+def test_without_the_observer_the_offset_drifts_soc_much_further() -> None:
+    rec, obs, plain = _offset_runs()
+    e_obs, e_plain = abs(_soc_error(rec, obs)[-1]), abs(_soc_error(rec, plain)[-1])
+    # 0.5 A over 14 h is 7 Ah = 10 points of a 70 Ah cell
+    assert e_plain > 0.08, f"the plain count drifted only {e_plain:.4f}"
+    assert e_obs < 0.25 * e_plain, f"observer {e_obs:.4f} vs plain count {e_plain:.4f}"
+    np.testing.assert_array_equal(plain["current_offset_A"], 0.0)
+
+
+# ----------------------------------------------------------------------------- start anywhere
+def test_start_under_load_without_soc0_is_ocv_ir_corrected_and_tracks() -> None:
+    """07:00-07:30 under a 1.5 A auxiliary load (above the 0.01 C = 0.7 A rest limit), then
+    the drive: SOC from the first voltage, IR-corrected, as good as the true start."""
+    load_A = 1.5
+    rec = _record(3.0, start_load_A=load_A)
+    assert load_A > rec.cell.soc_init.rest_current_C * rec.cell.capacity_Ah
+    free = build_bank(rec.cell, 1, tuning=TUN)
+    out = free.update_block(_block(rec))
+    assert free.soc_init_method == "ocv_ir_corrected"
+    err = _soc_error(rec, out)
+    after_1h = err[_at(out, H) :]
+    assert np.abs(after_1h).max() < 0.02, f"SOC error after the first hour up to {after_1h}"
+    known = build_bank(rec.cell, 1, tuning=TUN, soc0=float(rec.truth.soc[0]))
+    ref = known.update_block(_block(rec))
+
+    def rmse(o: EstimateBlock) -> float:
+        return float(np.sqrt(np.nanmean(o["v_error_V"] ** 2)))
+
+    assert rmse(out) == pytest.approx(rmse(ref), abs=1e-3), (rmse(out), rmse(ref))
+
+
+# ----------------------------------------------------------------------------- wrong start
+@functools.cache
+def _wrong_start_run() -> tuple[MultidayRecord, EstimatorBank, EstimateBlock]:
+    """A cell config whose fixed start SOC is 0.2 below the truth (0.73 vs 0.93); 07:00-10:00:
+    rest, the first drive, an hour of rest."""
+    rec = _record(3.0)
+    cell: CellConfig = rec.cell.model_copy(
+        update={"soc_init": SocInit(policy="fixed", soc0=rec.options.soc0 - 0.2)}
+    )
+    bank = build_bank(cell, 1, tuning=TUN)
+    return rec, bank, bank.update_block(_block(rec))
+
+
+def test_a_wrong_fixed_start_converges_by_the_end_of_the_first_drive_and_rest() -> None:
+    rec, bank, out = _wrong_start_run()
+    assert bank.soc_init_method == "config"
+    err = _soc_error(rec, out)
+    assert err[0] == pytest.approx(-0.2, abs=1e-3)
+    assert out.t_s[-1] >= DRIVE_END_S + H - 10
+    assert abs(err[-1]) < 0.03, (
+        f"BUG observer: SOC error {err[-1]:+.4f} after the first drive and 1 h rest; current "
+        f"offset {out['current_offset_A'][-1, 0]:+.2f} A (truth 0), tau2 "
+        f"{out['tau2_s'][-1, 0]:.0f} s (truth 600), anchors {bank.counters['anchors']}: see "
+        f"test_a_wrong_start_is_not_learnt_as_a_current_offset"
+    )
+
+
+def test_a_wrong_start_is_not_learnt_as_a_current_offset() -> None:
+    """The true offset is 0. The first anchor (07:15, rest) must correct SOC, not move the
+    pack's current offset, which then miscounts every cell for the whole drive."""
+    rec, _, out = _wrong_start_run()
+    err = _soc_error(rec, out)
+    drive = (out.t_s >= PLAN.first_drive_s) & (out.t_s <= DRIVE_END_S)
+    b_max = float(np.abs(out["current_offset_A"][drive, 0]).max())
+    e_max = float(np.abs(err[drive]).max())
+    std = float(out["soc_std"][drive, 0][np.argmax(np.abs(err[drive]))])
+    assert b_max < 1.0, (
+        f"BUG observer: a 0.2 start SOC error was pushed into the current offset: "
+        f"|offset| reached {b_max:.2f} A in the drive (truth 0; prior std 0.7 A, bound 3.5 A)"
+    )
+    # 3.25 points measured at 60 s updates: the issue's 2 points from the first hour are not
+    # met after a 20-point wrong start (README, "State over days"); this guards the 4.
+    assert e_max < 0.04, (
+        f"BUG observer: SOC error up to {e_max:+.4f} in the first drive after the start anchor "
+        f"(soc_std published there {std:.4f})"
+    )
+
+
+# ----------------------------------------------------------------------------- restart
+#: Downtime 08:30-09:30 (a 1 h gap over the last half hour of the drive and the first half
+#: hour of the rest): the count misses the drive's end, the first voltage after it is rested.
+GAP = (DRIVE_END_S - H // 2, DRIVE_END_S + H // 2)
+
+
+@functools.cache
+def _restart_run() -> tuple[MultidayRecord, float, EstimatorBank, EstimateBlock]:
+    rec = _record(3.5)
+    before = build_bank(rec.cell, 1, tuning=TUN, soc0=0.93)
+    z_before = float(before.update_block(_block(rec, 0, GAP[0]))["soc"][-1, 0])
+    after = build_bank(rec.cell, 1, tuning=TUN, soc0=0.93)
+    after.load_state_dict(before.state_dict())
+    assert after.counters["reanchors"] == 0
+    return rec, z_before, after, after.update_block(_block(rec, GAP[1]))
+
+
+def test_a_restart_after_downtime_reanchors_soc_toward_the_truth() -> None:
+    rec, z_before, bank, out = _restart_run()
+    missed = z_before - float(rec.truth.soc[GAP[1]])  # the plain count's error after the gap
+    assert missed > 0.1, f"the gap hid only {missed:.3f} of SOC"
+    assert bank.counters["gaps"] == 1
+    assert bank.counters["reanchors"] == 1
+    err = _soc_error(rec, out)
+    assert abs(err[0]) < abs(missed), f"after the re-anchor {err[0]:+.4f}, count {missed:+.4f}"
+
+
+def test_a_reanchor_corrects_soc_not_the_current_offset() -> None:
+    """After the gap the pack has rested 30 min: its raw voltage alone gives SOC to ~2 points.
+    The re-anchor should land near that, leave the offset (truth 0) alone, and the SOC must
+    stay there for the hour of rest that follows."""
+    rec, z_before, bank, out = _restart_run()
+    missed = z_before - float(rec.truth.soc[GAP[1]])
+    z_v = float(ocv_model(rec.cell).soc_from_ocv(rec.voltage_V[GAP[1]]))
+    err = _soc_error(rec, out)
+    hour = out.t_s < GAP[1] + H
+    worst = float(np.abs(err[hour]).max())
+    assert worst < 0.04, (
+        f"BUG observer: SOC error {err[0]:+.4f} right after the re-anchor and up to "
+        f"{worst:+.4f} in the hour of rest after it (the count alone {missed:+.4f}, the raw "
+        f"voltage alone {z_v - rec.truth.soc[GAP[1]]:+.4f}); published soc_std "
+        f"{out['soc_std'][0, 0]:.4f}, current offset {out['current_offset_A'][0, 0]:+.2f} A "
+        f"(truth 0), observer_gated {bank.counters['observer_gated']}"
+    )
+
+
+def test_capacity_is_not_measured_across_a_restart_gap() -> None:
+    """The charge moved during downtime is unknown: the anchor before the gap and the one after
+    it must not make a capacity measurement (the truth stays 70 Ah: no fade)."""
+    rec = _record(3.5)
+    gap = (DRIVE_END_S - 20 * 60, DRIVE_END_S + 40 * 60)  # misses 20 min of the drive
+    before = build_bank(rec.cell, 1, tuning=TUN, soc0=0.93)
+    before.update_block(_block(rec, 0, gap[0]))
+    after = build_bank(rec.cell, 1, tuning=TUN, soc0=0.93)
+    after.load_state_dict(before.state_dict())
+    out = after.update_block(_block(rec, gap[1]))
+    assert after.counters["reanchors"] == 1
+    q = out["capacity_Ah"][:, 0]
+    assert np.all(np.abs(q / 70.0 - 1.0) < 0.03), (
+        f"BUG observer/capacity: an anchor pair across the restart gap measured the capacity: "
+        f"{q.min():.2f} Ah after the restart (truth 70 Ah); the count missed "
+        f"{float(before.state.z[0] - rec.truth.soc[gap[1]]):+.3f} of SOC in the gap"
+    )
+
+
+# ----------------------------------------------------------------------------- capacity
+def _tracker(n: int = 2, q_Ah: float = 70.0) -> CapacityTracker:
+    return CapacityTracker(np.full(n, q_Ah), 0.05, 0.2, 0.005)
+
+
+def test_two_anchors_half_apart_measure_the_capacity() -> None:
+    """Cell 0 moves 30 Ah between SOC 0.9 and 0.4 (a 60 Ah cell), cell 1 35 Ah (70 Ah); the
+    fusion is the scalar Kalman update of the docstring, computed here by hand."""
+    cap = _tracker()
+    all_cells = np.ones(2, dtype=bool)
+    z_var = np.full(2, 1e-6)
+    cap.anchor(0.0, np.full(2, 0.9), z_var, 0.0, all_cells)
+    cap.count(np.array([30.0, 35.0]))
+    cap.anchor(7200.0, np.full(2, 0.4), z_var, 0.01, all_cells)
+    meas = np.array([60.0, 70.0])
+    var = meas**2 * 2e-6 / 0.25 + 0.01 * (2.0 / 0.5) ** 2
+    prior = (0.05 * 70.0) ** 2 + (0.005 * 70.0) ** 2 * (7200.0 / 86400.0)
+    gain = prior / (prior + var)
+    np.testing.assert_allclose(cap.q_Ah, 70.0 + gain * (meas - 70.0), rtol=1e-12)
+    np.testing.assert_allclose(cap.var_Ah2, (1.0 - gain) * prior, rtol=1e-12)
+    assert cap.q_Ah[0] == pytest.approx(60.0, abs=0.2)  # the prior keeps 1 % of its weight
+    assert cap.counters == {"capacity_updates": 2, "capacity_rejected": 0}
+
+
+def test_a_charge_between_anchors_measures_the_same_capacity() -> None:
+    cap = _tracker(1)
+    one = np.ones(1, dtype=bool)
+    cap.anchor(0.0, np.array([0.3]), np.array([1e-6]), 0.0, one)
+    cap.count(-0.5 * 66.0)  # charge: negative throughput, SOC up by 0.5
+    cap.anchor(3600.0, np.array([0.8]), np.array([1e-6]), 0.0, one)
+    assert cap.q_Ah[0] == pytest.approx(66.0, abs=0.05)
+
+
+def test_anchors_closer_than_min_dsoc_change_nothing() -> None:
+    cap = _tracker()
+    all_cells = np.ones(2, dtype=bool)
+    cap.anchor(0.0, np.array([0.5, 0.5]), np.full(2, 1e-6), 0.0, all_cells)
+    cap.count(10.0)
+    q, var = cap.q_Ah.copy(), cap.var_Ah2.copy()
+    cap.anchor(3600.0, np.array([0.5 - 0.19, 0.5 + 0.199]), np.full(2, 1e-6), 0.0, all_cells)
+    np.testing.assert_array_equal(cap.q_Ah, q)
+    np.testing.assert_array_equal(cap.var_Ah2, var)
+    assert cap.counters == {"capacity_updates": 0, "capacity_rejected": 0}
+
+
+def test_a_measurement_beyond_reject_rel_is_rejected() -> None:
+    cap = _tracker(1)
+    one = np.ones(1, dtype=bool)
+    cap.anchor(0.0, np.array([0.9]), np.array([1e-6]), 0.0, one)
+    cap.count(0.5 * 70.0 * (1.0 + REJECT_REL + 0.05))
+    cap.anchor(3600.0, np.array([0.4]), np.array([1e-6]), 0.0, one)
+    assert cap.q_Ah[0] == 70.0
+    assert cap.counters == {"capacity_updates": 0, "capacity_rejected": 1}
+
+
+def test_capacity_state_dict_round_trips_exactly() -> None:
+    cap = _tracker(3)
+    cap.anchor(10.0, np.array([0.9, 0.8, 0.7]), np.full(3, 1e-5), 0.0, np.array([1, 1, 0], bool))
+    cap.count(np.array([30.0, 20.0, 5.0]))
+    cap.anchor(5000.0, np.array([0.45, 0.5, 0.6]), np.full(3, 2e-5), 0.04, np.ones(3, bool))
+    cap.count(np.array([1.0, 2.0, 3.0]))
+    st_a = cap.state_dict()
+    other = _tracker(3)
+    other.load_state_dict(st_a)
+    st_b = other.state_dict()
+    assert st_a.keys() == st_b.keys()
+    for k in st_a:
+        np.testing.assert_array_equal(st_b[k], st_a[k], err_msg=k)
+    for c in (cap, other):  # and both continue identically
+        c.count(np.array([20.0, 20.0, 20.0]))
+        c.anchor(9000.0, np.array([0.15, 0.2, 0.3]), np.full(3, 1e-5), 0.04, np.ones(3, bool))
+    np.testing.assert_array_equal(other.q_Ah, cap.q_Ah)
+    np.testing.assert_array_equal(other.var_Ah2, cap.var_Ah2)
+
+
+anchor_step = st.tuples(
+    st.floats(-80.0, 80.0),  # throughput since the previous anchor, Ah
+    st.floats(0.0, 1.0),  # OCV SOC at the anchor
+    st.floats(1e-8, 0.1),  # its variance
+    st.floats(0.0, 25.0),  # offset variance, A^2
+    st.floats(0.0, 5 * 86400.0),  # time since the previous anchor, s
+    st.lists(st.booleans(), min_size=2, max_size=2),  # which cells anchor
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(anchor_step, min_size=1, max_size=12))
+def test_capacity_stays_finite_positive_and_moves_within_reject_rel(
+    steps: list[tuple[float, float, float, float, float, list[bool]]],
+) -> None:
+    """Whatever the anchors, each fusion moves the estimate by at most REJECT_REL of the
+    estimate before it (its prior), and the first one stays within REJECT_REL of the config."""
+    cap = _tracker()
+    t = 0.0
+    for dq, z, z_var, b_var, dt, cells in steps:
+        cap.count(dq)
+        t += dt
+        q_before = cap.q_Ah.copy()
+        cap.anchor(t, np.full(2, z), np.full(2, z_var), b_var, np.array(cells))
+        assert np.all(np.isfinite(cap.q_Ah)) and np.all(cap.q_Ah > 0)
+        assert np.all(np.isfinite(cap.var_Ah2)) and np.all(cap.var_Ah2 >= 0)
+        assert np.all(np.abs(cap.q_Ah / q_before - 1.0) <= REJECT_REL + 1e-12)
+        if cap.counters["capacity_updates"] <= 1:
+            assert np.all(np.abs(cap.q_Ah / 70.0 - 1.0) <= REJECT_REL + 1e-12)
+
+
+# ----------------------------------------------------------------------------- invariants
+#: Short everything, so that updates, anchors, re-anchors and capacity measurements all happen
+#: within the few hundred samples hypothesis can afford.
+QUICK = EstimatorTuning(
+    window_s=240.0, min_window_s=60.0, swarm_period_s=90.0, n_iter=4, n_iter_first=5,
+    n_particles=6, excitation_C=0.0,
+    observer=ObserverTuning(update_period_s=2.0, anchor_min_rest_s=5.0, anchor_rest_taus=0.02,
+                            restart_gap_s=60.0, capacity_min_dsoc=0.02),
+)  # fmt: skip
+OCV_CELL = reference_cell()
+OCV = ocv_model(OCV_CELL)
+
+segment = st.tuples(
+    st.sampled_from(["rest", "constant", "random", "nan", "garbage", "gap"]),
+    st.integers(5, 60),
+    st.floats(-200.0, 200.0),
+)
+
+
+def _hostile(
+    segments: list[tuple[str, int, float]], n_cells: int, seed: int
+) -> tuple[SampleBlock, int]:
+    """1 s samples of random current segments; per-cell voltages from the simulator (each cell
+    from its own SOC) with NaN and out-of-model voltages mixed in. Returns the block and a
+    sample index to checkpoint at."""
+    rng = np.random.default_rng(seed)
+    t_parts, i_parts, kinds = [], [], []
+    t0 = 0.0
+    for kind, n, level in segments:
+        step = np.ones(n)
+        if kind == "gap":
+            step[0] = 120.0
+        t_parts.append(t0 + np.cumsum(step))
+        t0 = float(t_parts[-1][-1])
+        levels = {"rest": np.zeros(n), "constant": np.full(n, level),
+                  "random": rng.normal(0.0, 60.0, n)}  # fmt: skip
+        i_parts.append(levels.get(kind, rng.normal(level, 20.0, n)))
+        kinds += [kind] * n
+    t = np.concatenate(t_parts)
+    i = np.concatenate(i_parts)
+    kind_arr = np.array(kinds)
+    v = np.empty((t.shape[0], n_cells))
+    for c in range(n_cells):
+        z0 = float(rng.uniform(0.1, 0.9))
+        sim = simulate(t, i, OCV, capacity_Ah=70.0, R0_ohm=1.2e-3, R1_ohm=0.8e-3, tau1_s=32.0,
+                       R2_ohm=1e-3, tau2_s=600.0, gamma=30.0, soc0=z0)  # fmt: skip
+        v[:, c] = sim.v_V[0] + rng.normal(0.0, 1e-3, t.shape[0])
+    bad = (kind_arr == "nan")[:, None] & (rng.random(v.shape) < 0.5)
+    v[bad] = np.nan
+    junk = (kind_arr == "garbage")[:, None] & (rng.random(v.shape) < 0.3)
+    v[junk] = rng.uniform(2.0, 5.0, int(junk.sum()))
+    i_meas = i + rng.normal(0.0, 0.05, i.shape[0])
+    cut = int(rng.integers(1, t.shape[0]))
+    return SampleBlock.from_arrays(t, i_meas, v), cut
+
+
+def _check_observer(bank: EstimatorBank, out: EstimateBlock) -> None:
+    obs = bank.state
+    assert isinstance(obs, ObserverState)
+    # An update clips SOC to [0, 1]; the count between updates may pass an end by the guard's
+    # margin (a charge's last seconds past full), never more.
+    m = bank.tuning.divergence_soc_margin
+    soc, std = out["soc"], out["soc_std"]
+    assert np.all((soc >= -m) & (soc <= 1.0 + m)), (soc.min(), soc.max())
+    assert np.all(np.isfinite(std) & (std >= 0.0))
+    b_max = bank.tuning.observer.offset_max_C * float(np.mean(bank.model.capacity_Ah))
+    assert np.all(np.abs(out["current_offset_A"]) <= b_max * (1 + 1e-12))
+    assert np.all(np.isfinite(obs.P))
+    np.testing.assert_array_equal(obs.P, obs.P.T)
+    assert np.all(np.diag(obs.P) >= 0.0)
+    assert np.all(np.isfinite(obs.capacity.q_Ah) & (obs.capacity.q_Ah > 0.0))
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    st.lists(segment, min_size=1, max_size=6),
+    st.integers(1, 4),
+    st.sampled_from(["hy-affrls", "non-hy-affrls"]),
+    st.integers(0, 2**31 - 1),
+)
+def test_observer_invariants_and_checkpoint_continuation(
+    segments: list[tuple[str, int, float]], n_cells: int, variant: Variant, seed: int
+) -> None:
+    """SOC, its std, the offset and P stay sane on hostile input; a bank restored from a
+    checkpoint continues exactly as the one it was taken from. (The swarm variant is left
+    out of the exact continuation: its running swarms are not checkpointed by design.)"""
+    block, cut = _hostile(segments, n_cells, seed)
+    bank = build_bank(OCV_CELL, n_cells, variant, QUICK)
+    _check_observer(bank, bank.update_block(block.slice(0, cut)))
+    # Built as the original (soc0 is configuration, not state: a cell the guard resets after
+    # the restore starts again by it).
+    restored = build_bank(OCV_CELL, n_cells, variant, QUICK)
+    restored.load_state_dict(bank.state_dict())
+    rest = block.slice(cut, len(block))
+    a, b = bank.update_block(rest), restored.update_block(rest)
+    _check_observer(bank, a)
+    np.testing.assert_array_equal(a.t_s, b.t_s)
+    np.testing.assert_array_equal(a.quality, b.quality)
+    for name in FIELD_NAMES:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert bank.counters == restored.counters
+
+
+# ----------------------------------------------------------------------------- old checkpoints
+def _pre_observer_checkpoint(soc_error: float) -> tuple[MultidayRecord, dict[str, Any]]:
+    """A format-2 state at 07:25 (25 min of rest), as an engine without the observer wrote it:
+    no ``state/observer``; its coulomb-counted SOC off by ``soc_error``."""
+    rec = _record(1.0)
+    bank = build_bank(rec.cell, 1, tuning=TUN, soc0=float(rec.truth.soc[0]))
+    bank.update_block(_block(rec, 0, 1500))
+    state = bank.state_dict()
+    assert state["format"] == 2
+    del state["state"]["observer"]
+    state["state"]["z"] = state["state"]["z"] + soc_error
+    return rec, state
+
+
+def test_a_checkpoint_from_before_the_observer_loads_and_reanchors_at_the_next_update() -> None:
+    rec, state = _pre_observer_checkpoint(0.0)
+    bank = build_bank(rec.cell, 1, tuning=TUN)
+    bank.load_state_dict(state)
+    assert bank.counters["reanchors"] == 0
+    out = bank.update_block(_block(rec, 1500, 1510))  # one tick
+    assert len(out) == 1
+    assert bank.counters["reanchors"] == 1
+    bank.update_block(_block(rec, 1510, 1800))
+    assert bank.counters["reanchors"] == 1  # once
+
+
+def test_the_reanchor_of_an_old_checkpoint_corrects_its_soc() -> None:
+    """The old engine's SOC (a plain count) 5 points off; the pack has rested 25 min. The
+    re-anchor is the observer's one chance to take SOC from the voltage: it must move SOC, not
+    the current offset."""
+    rec, state = _pre_observer_checkpoint(-0.05)
+    bank = build_bank(rec.cell, 1, tuning=TUN)
+    bank.load_state_dict(state)
+    assert isinstance(bank.state, ObserverState)
+    p_zz = float(bank.state.P[0, 0])
+    out = bank.update_block(_block(rec, 1500, 1510))
+    err = float(_soc_error(rec, out)[0])
+    b = float(out["current_offset_A"][0, 0])
+    assert abs(err) < 0.025 and abs(b) < 1.0, (
+        f"BUG observer: after loading a checkpoint without state/observer, P[soc, soc] = "
+        f"{p_zz:g} (the fresh bank's, never set by a start), so the re-anchor moved SOC from "
+        f"-0.05 to {err:+.4f} and the offset to {b:+.2f} A (truth 0); published soc_std "
+        f"{out['soc_std'][0, 0]:.5f}"
+    )
