@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.config.cell import paper_cell
-from bmsid.config.engine import build_bank
-from bmsid.estimate.observer_tuning import ObserverTuning, ocv_model
+from bmsid.config.engine import build_bank, ocv_model
+from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import VARIANTS_T, EstimatorTuning
 from bmsid.estimate.types import Estimates
 from bmsid.model.simulator import simulate
