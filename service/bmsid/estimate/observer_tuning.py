@@ -17,12 +17,13 @@ class ObserverTuning(BaseModel):
     enabled: bool = True
     """Correct SOC, the current offset and capacity from the voltage. Off: SOC is a plain
     coulomb count from its start (the paper's Eq. 2), as before the observer existed."""
-    update_period_s: float = Field(60.0, gt=0.0)
+    update_period_s: float = Field(20.0, gt=0.0)
     """A measurement update every this many seconds of data. SOC moves by parts per thousand
-    per minute; the model error of a real cell is correlated over a minute or more (its
-    branches' time constants), so faster updates count the same error many times: at 10 s the
-    observer chased the rest-point OCV table's wiggles on CALCE DST 45 C (10.2 mV vs 2.4 mV
-    without the observer; 2.35 mV at 60 s)."""
+    per minute; the model error of a real cell is correlated over tens of seconds (its fast
+    branch), so faster updates count the same error many times. Measured on CALCE 45 C
+    (``bench/accuracy_real.py``): at 10 s the observer chased the rest-point OCV table on DST
+    (10.2 mV vs 2.4 without it); 20 s gives 2.1 (DST) and 2.7 mV (US06); at 60 s one US06
+    swarm landed on a bad optimum (59.7 mV): the fusion is sensitive to it, see issue notes."""
     v_sigma_V: float = Field(5e-3, gt=0.0)
     """Std of the model error the observer assumes, V: an equivalent circuit on a real cell
     tracks within 2-10 mV; this keeps SOC from chasing the dynamics' residual."""
