@@ -186,15 +186,12 @@ class EstimatorBank:
         # nothing to learn R0 from, and a slow OCV error would drift into it) and while the
         # observer is sure enough of SOC (a SOC error would be learnt as R2).
         excited = is_excited(tick, self._excitation_limit_A)
-        may_learn = excited
-        if isinstance(self.state, ObserverState):
-            may_learn = self.state.learn_gate & excited
+        may_learn = self.state.learn_gate & excited
         if may_learn is not True:
             ctx.learn = ctx.learn & (may_learn | ~self.params.converged)
         self.params.step(ctx)
         p_out = self.params.outputs()
-        if isinstance(self.state, ObserverState):
-            self.state.correct(ctx, p_out, self.params.converged)
+        self.state.correct(ctx, p_out, self.params.converged)
         cells = {**self.state.outputs(), **p_out}
         cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
         cells["v_error_V"] = cells["v_meas_V"] - cells["v_model_V"]

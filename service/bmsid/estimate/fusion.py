@@ -101,7 +101,7 @@ class FusionStage:
         self._period_s = tuning.id_period_s
         self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
         self._excitation_limit_A = per_cell_limit(tuning.excitation_C, model)
-        self._step_A = float(np.min(tuning.excitation_C * model.capacity_Ah))
+        self._step_A = float(np.min(self._excitation_limit_A))  # a current step, A
         self._start_values()
 
     def _start_values(self) -> None:

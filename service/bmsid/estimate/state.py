@@ -136,6 +136,17 @@ class CoulombState:
     def start_variance(self, tick: Tick, method: str, z: FloatArray) -> None:
         """Hook for a stage that keeps SOC uncertainty (the observer); none here."""
 
+    @property
+    def learn_gate(self) -> bool | BoolArray:
+        """Cells whose SOC is certain enough for their parameters to learn: a plain count
+        does not know its uncertainty, so every cell."""
+        return True
+
+    def correct(
+        self, ctx: TickContext, params: dict[str, FloatArray], converged: BoolArray
+    ) -> None:
+        """The voltage correction of the state after the parameter stage: none in a count."""
+
     def outputs(self) -> dict[str, FloatArray]:
         # Rebound every step, never written in place. A plain count knows no uncertainty,
         # capacity beyond the config, nor offset: NaN (null) and the configured values.
