@@ -292,7 +292,7 @@ class BankHost:
         path = self.spec.seq_path
         try:
             text = path.read_text(encoding="ascii", errors="replace").strip()
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             return 0
         except OSError as exc:
             text, why = "", exc.strerror or type(exc).__name__
