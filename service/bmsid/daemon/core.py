@@ -321,24 +321,24 @@ class Daemon:
             with contextlib.suppress(OSError):
                 self.spool_path.unlink(missing_ok=True)
             return
-        state = self.mqtt.state if self.mqtt is not None else "not started"
+        why = (self.mqtt.last_error if self.mqtt is not None else None) or "no connection"
         try:
             save_spool(self.spool_path, self.settings.pack_id, self.outbox.peek(left))
         except OSError as exc:
             self.outbox.dropped += left
             log.error(
-                "MQTT: %d messages not delivered at shutdown (broker %s) and not spooled (%s): "
-                "lost, a seq gap counted in mqtt_drops",
+                "MQTT: %d messages not delivered at shutdown (%s) and not spooled (%s): lost, a "
+                "seq gap counted in mqtt_drops",
                 left,
-                state,
+                why,
                 exc.strerror or exc,
             )
             return
         log.warning(
-            "MQTT: %d messages not delivered at shutdown (broker %s): spooled to %s, sent first "
-            "after the restart",
+            "MQTT: %d messages not delivered at shutdown (%s): spooled to %s, sent first after "
+            "the restart",
             left,
-            state,
+            why,
             self.spool_path,
         )
 
