@@ -24,8 +24,7 @@ from typing import Any
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
-from conftest import free_loopback_port  # noqa: E402
-from daemon_helpers import (  # noqa: E402
+from daemon_helpers import (
     MqttCapture,
     demo_frames,
     make_settings,
@@ -34,9 +33,10 @@ from daemon_helpers import (  # noqa: E402
     wait_for,
 )
 
-from bmsid.config.settings import Settings  # noqa: E402
-from bmsid.daemon.core import Daemon  # noqa: E402
-from bmsid.daemon.demo_data import DEMO_LOG, T0_S  # noqa: E402
+from bmsid.config.settings import Settings
+from bmsid.daemon.core import Daemon
+from bmsid.daemon.demo_data import DEMO_LOG, T0_S
+from conftest import free_loopback_port
 
 REPO = Path(__file__).resolve().parents[2]
 #: The shutdown's time limit for the MQTT flush in these tests, s (the daemon's default is 10).
