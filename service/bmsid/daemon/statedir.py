@@ -44,10 +44,10 @@ def _reason(exc: OSError) -> str:
 def writable_problem(directory: Path) -> str | None:
     """Why the daemon could not write ``directory``, or None; creates nothing.
 
-    A directory that does not exist yet is fine when its nearest existing parent is writable
-    (the daemon creates it; under systemd, ``StateDirectory=`` does). For ``check-config``,
-    which may run as another user than the daemon: ``access(2)`` answers for the caller, but a
-    read-only file system refuses everyone (EROFS).
+    For ``check-config``, which may run as another user than the daemon: an existing
+    directory must be writable for the caller (``access(2)``); one that does not exist yet
+    is left to whoever creates it (the daemon, or systemd's ``StateDirectory=``), unless the
+    file system it would be on is read-only, which refuses everyone.
     """
     path = directory
     while not path.exists():
@@ -56,19 +56,15 @@ def writable_problem(directory: Path) -> str | None:
         path = path.parent
     if not path.is_dir():
         return f"{path} is not a directory"
-    if not os.access(path, os.W_OK | os.X_OK):
-        try:
-            ro = bool(os.statvfs(path).f_flag & os.ST_RDONLY)
-        except OSError:
-            ro = False
-        return f"{path} is on a read-only file system" if ro else f"{path} is not writable"
-    if path != directory:
-        return None
     try:
-        ro = bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+        read_only = bool(os.statvfs(path).f_flag & os.ST_RDONLY)
     except OSError as exc:
         return f"{path}: {_reason(exc)}"
-    return f"{path} is on a read-only file system" if ro else None
+    if read_only:
+        return f"{path} is on a read-only file system"
+    if path == directory and not os.access(path, os.W_OK | os.X_OK):
+        return f"{path} is not writable"
+    return None
 
 
 def check_writable(directory: Path) -> None:
