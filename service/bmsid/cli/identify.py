@@ -31,6 +31,7 @@ from typing import Literal
 
 from tqdm import tqdm
 
+from bmsid.cli.outputs import output_dir
 from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
@@ -213,9 +214,7 @@ def run(args: argparse.Namespace) -> int:
         args.input, charge_positive=args.charge_positive, mapping=args.mapping,
         n_cells=args.n_cells, channel=args.channel, columns=columns,
     )  # fmt: skip
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory")
+    out = output_dir(Path(args.out))  # before minutes of identification, not after
     cell, derived_note, checks = _check_input(args, source, cell, tuning)
     note = derived_note or note
     if args.score_soc0 is not None:

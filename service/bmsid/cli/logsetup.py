@@ -28,6 +28,7 @@ _SYSLOG_PRIORITY = {
 }
 TERMINAL_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 JOURNAL_FORMAT = "%(levelname)s %(name)s: %(message)s"
+_HANDLER_NAME = "bmsid-cli"
 #: libraries whose INFO lines say nothing a bmsid user acts on (python-can's bus set-up)
 QUIET_LIBRARIES = ("can",)
 
@@ -66,8 +67,10 @@ def configure(level: int, *, journal: bool | None = None) -> None:
         handler.setFormatter(JournalFormatter(JOURNAL_FORMAT))
     else:
         handler.setFormatter(logging.Formatter(TERMINAL_FORMAT))
+    handler.set_name(_HANDLER_NAME)
     root = logging.getLogger()
-    root.handlers[:] = [handler]
+    # replace only our own handler: a host's (pytest's capture, an embedding program's) stays
+    root.handlers[:] = [h for h in root.handlers if h.get_name() != _HANDLER_NAME] + [handler]
     root.setLevel(level)
     for name in QUIET_LIBRARIES:
         logging.getLogger(name).setLevel(max(level, logging.WARNING))

@@ -13,6 +13,7 @@ from typing import Any
 
 from bmsid.canbus.logs import csv_to_messages, write_log
 from bmsid.canbus.mapping import default_mapping, load_mapping
+from bmsid.cli.outputs import output_file, positive
 from bmsid.errors import UserError
 
 
@@ -45,6 +46,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run(args: argparse.Namespace) -> int:
+    output_file(args.out)
+    positive(args.rate_hz, "--rate-hz")
     mapping = load_mapping(args.mapping) if args.mapping else default_mapping()
     data = load_csv(args.input)
     messages = csv_to_messages(
