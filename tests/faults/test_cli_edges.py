@@ -329,3 +329,25 @@ def test_an_internal_error_is_one_line_with_its_place(
     assert "test_cli_edges.py:" in line and "-vv logs the traceback" in line
     assert main(["check-config", str(config), "-vv"]) == 1
     assert "Traceback" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "says"),
+    [
+        ("--t0", "nan", "--t0 must be a Unix time"),
+        ("--t0", "1e30", "--t0 must be a Unix time"),
+        ("--t0", "-5", "--t0 must be a Unix time"),
+        ("--channel", "", "--channel must be an interface name"),
+        ("--channel", "can 0", "--channel must be an interface name"),
+    ],
+)
+def test_make_log_refuses_values_that_would_write_an_unreadable_log(
+    option: str, value: str, says: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Found by fuzzing: `make-log --t0 nan` wrote "(nan) can0 ..." lines and said "wrote"."""
+    csv = tmp_path / "in.csv"
+    csv.write_text("t_s,current_A,voltage_V\n0,1,3.7\n1,1,3.69\n")
+    out = tmp_path / "x.log"
+    assert main(["make-log", str(csv), "--out", str(out), option, value]) == 2
+    assert says in _one_line(capsys.readouterr().err)
+    assert not out.exists()
