@@ -286,6 +286,45 @@ def test_counters_line_follows_log_period_not_status_period(
     assert "no checkpoint" in caplog.text and "stopped after" in caplog.text
 
 
+def test_a_missing_can_interface_is_one_state_change_and_thinned_retries(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """can0 missing: one "down" line, then the reopen failures of that outage at the 1st and
+    10th attempt only (it retried every 30 s for ever, one WARNING each)."""
+    import asyncio
+
+    from bmsid.config.settings import Settings
+    from bmsid.daemon.core import Daemon
+
+    settings = Settings(
+        pack_id="p",
+        systemd_notify=False,
+        can={"channel": "bmsidnone0", "n_cells": 2, "reopen_min_s": 0.02, "reopen_max_s": 0.02},
+        estimator={"isolation": "thread"},
+        mqtt={"enabled": False},
+        state={"directory": tmp_path / "state"},
+    )
+
+    async def run_until_attempts(n: int) -> Daemon:
+        daemon = Daemon(settings)
+        task = asyncio.create_task(daemon.run())
+        deadline = time.monotonic() + 20
+        while daemon.counters["can_open_failures"] < n and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+        daemon.request_stop()
+        assert await task == 0
+        return daemon
+
+    with caplog.at_level(logging.INFO, logger="bmsid"):
+        daemon = asyncio.run(run_until_attempts(15))
+    assert daemon.counters["can_open_failures"] >= 15
+    lines = [r.getMessage() for r in caplog.records if "bmsidnone0" in r.getMessage()]
+    assert lines.count("CAN socketcan/bmsidnone0 down") == 1
+    opens = [line for line in lines if "cannot be opened" in line]
+    assert [re.search(r"\((\d+) attempt", line).group(1) for line in opens] == ["1", "10"]  # type: ignore[union-attr]
+    assert "no network interface 'bmsidnone0'" in opens[0]
+
+
 def test_argparse_namespace_of_run_has_its_default_level() -> None:
     args = build_parser("run").parse_args(["run", "--config", "x"])
     assert isinstance(args, argparse.Namespace) and args.log_level == logging.INFO

@@ -302,22 +302,28 @@ class Daemon:
         cs = self.settings.can
         backoff = cs.reopen_min_s
         assert self._samples is not None
+        failed_opens = 0  # in a row: the journal gets the 1st, 10th, 100th, ... of an outage
         while True:
             try:
                 src = open_source(cs.interface, cs.channel, cs.output_fd, cs.reader_queue_frames)
             except (can.CanError, OSError, ValueError) as exc:
                 self.counters["can_open_failures"] += 1
                 self._set_can_state("down")
-                log.warning(
-                    "CAN %s/%s cannot be opened: %s (retry in %.1f s)",
-                    cs.interface,
-                    cs.channel,
-                    exc,
-                    backoff,
-                )
+                failed_opens += 1
+                if failed_opens == 10 ** (len(str(failed_opens)) - 1):
+                    log.warning(
+                        "CAN %s/%s cannot be opened (%d attempt(s) so far): %s (retrying up "
+                        "to every %.0f s)",
+                        cs.interface,
+                        cs.channel,
+                        failed_opens,
+                        exc,
+                        cs.reopen_max_s,
+                    )
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2.0, cs.reopen_max_s)
                 continue
+            failed_opens = 0
             self._source = src
             backoff = cs.reopen_min_s
             self._set_can_state("up")
