@@ -224,7 +224,7 @@ def test_replay_config_runs_logs_its_lifecycle_publishes_and_stops_cleanly(
         r"WARNING bmsid\.publish\.mqtt: MQTT connect to \S+ failed \[unreachable\]",
         r"INFO bmsid\.publish\.mqtt: MQTT connected to \S+ after",
         r"INFO bmsid\.daemon\.core: stopping",
-        r"INFO bmsid\.daemon\.core: stopped after \d+ s: frames=\d+",
+        r"INFO bmsid\.daemon\.core: stopped: after \d+ s, frames=\d+",
     ]
     pos = 0
     for pattern in expected_in_order:
@@ -283,7 +283,7 @@ def test_counters_line_follows_log_period_not_status_period(
     counters = [r for r in caplog.records if r.getMessage().startswith("counters:")]
     assert all(r.levelno == logging.INFO for r in counters)
     assert 2 <= len(counters) <= 4, [r.getMessage() for r in counters]
-    assert "no checkpoint" in caplog.text and "stopped after" in caplog.text
+    assert "no checkpoint" in caplog.text and "stopped: after" in caplog.text
 
 
 def test_a_missing_can_interface_is_one_state_change_and_thinned_retries(

@@ -270,7 +270,9 @@ class Daemon:
                 )
                 mqtt_task.cancel()
                 await asyncio.gather(mqtt_task, return_exceptions=True)
-        log.info("stopped after %.0f s: %s", time.monotonic() - self._t_start, self._counter_line())
+        log.info(
+            "stopped: after %.0f s, %s", time.monotonic() - self._t_start, self._counter_line()
+        )
 
     # ------------------------------------------------------------------ state
     async def _checkpoint(self, clean: bool = False) -> None:
