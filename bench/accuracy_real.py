@@ -13,8 +13,10 @@ measured on each record. Scored on SOC 95..15 % by a coulomb count from the know
   ``hy-affrls-lpso`` <= 10 mV after the first 10 % of the ticks and below both other variants;
   the whole record and the first 10 % are printed too.
 
-Each line also says which parameters end the record on a bound (``metrics.json``'s
-``bounds.ends_on_a_bound``). The real data are read from ``../shared/data/real`` (or
+Each line also says which parameters the estimator holds on a bound at the end of the record
+(``metrics.json``'s ``bounds.ends_on_a_bound``: a finding, their last good values are
+published) and which published parameter ever sat on a bound (``bounds.published_on_a_bound``:
+must be none, a failing check). The real data are read from ``../shared/data/real`` (or
 ``$BMSID_REAL_DATA``); never copied. Equivalent CLI, e.g.::
 
     bmsid identify $DATA/calce_inr18650-20r/calce_inr18650-20r_25C_DST_80soc.csv.gz \\
@@ -71,6 +73,7 @@ class Row:
     startup_V: float
     after_startup_V: float
     on_bound: tuple[str, ...]
+    published_on_bound: tuple[str, ...]
 
 
 def run(case: Case, tuning: EstimatorTuning) -> Row:
@@ -86,10 +89,10 @@ def run(case: Case, tuning: EstimatorTuning) -> Row:
     res = identify_file(case.path, spec)
     s = score(res.trace, window).pooled
     found = bound_findings(res.trace, cell, res.start_values, tuning, res.cell_names)
-    ends = found["ends_on_a_bound"]
-    assert isinstance(ends, dict)
+    ends, published = found["ends_on_a_bound"], found["published_on_a_bound"]
+    assert isinstance(ends, dict) and isinstance(published, dict)
     return Row(case, s.window.rmse_V, s.overall.rmse_V, s.startup.rmse_V,
-               s.after_startup.rmse_V, tuple(sorted(ends)))  # fmt: skip
+               s.after_startup.rmse_V, tuple(sorted(ends)), tuple(sorted(published)))  # fmt: skip
 
 
 def cases(args: argparse.Namespace) -> list[Case]:
@@ -132,12 +135,16 @@ def main() -> int:
     by = {(r.case.label, r.case.variant): r for r in rows}
     failures = 0
     print("| record | variant | RMSE SOC 95-15 % (mV) | whole (mV) | first 10 % | after 10 % "
-          "| ends on a bound |\n|---|---|---|---|---|---|---|")  # fmt: skip
+          "| held on a bound at the end | published on a bound |\n"
+          "|---|---|---|---|---|---|---|---|")  # fmt: skip
     for r in rows:
         w = "" if r.case.score_soc0 is None else f"{1e3 * r.window_V:.2f}"
         print(f"| {r.case.label} | `{r.case.variant}` | {w} | {1e3 * r.whole_V:.2f} | "
               f"{1e3 * r.startup_V:.2f} | {1e3 * r.after_startup_V:.2f} | "
-              f"{', '.join(r.on_bound) or '-'} |")  # fmt: skip
+              f"{', '.join(r.on_bound) or '-'} | {', '.join(r.published_on_bound) or '-'} |")  # fmt: skip
+        if r.published_on_bound:
+            failures += 1
+            print(f"FAIL {r.case.label} {r.case.variant}: published on a bound")
     for label in dict.fromkeys(c.label for c in todo):
         lp, base = by[(label, "hy-affrls-lpso")], by[(label, "non-hy-affrls")]
         if label.startswith("physics"):

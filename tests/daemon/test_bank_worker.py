@@ -190,16 +190,19 @@ def test_sequence_survives_a_fresh_estimator_state(tmp_path: Path) -> None:
     assert other.start().seq == host.seq
 
 
-def test_unwritable_state_directory_is_counted_not_fatal(tmp_path: Path) -> None:
+def test_unwritable_state_directory_withholds_unreserved_messages(tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("x")
     host = BankHost(_spec(tmp_path, ckpt_path=blocker / "sub" / "p.ckpt.npz"))
     host.start()
     result = host.update(_samples(0.0, 5))
-    assert result.messages  # publishing goes on
+    # no seq can be reserved: nothing is published (a restart could not know the numbers)
+    assert result.messages == []
     counters = host.checkpoint(clean=True)
+    assert counters["mqtt_withheld"] == 5 * (N_CELLS + 1)
     assert counters["checkpoint_errors"] == 1
     assert counters["seq_file_errors"] >= 1
+    assert host.seq == 0
 
 
 @pytest.mark.parametrize("isolation", ["process", "thread"])

@@ -59,7 +59,8 @@ TODAYS_OBJECT_IDS = {
 #: params.csv's columns (the first 12 fields were its columns before the table).
 TODAYS_HEADER = (
     "t_s,cell,R0_ohm,R1_ohm,C1_F,R2_ohm,C2_F,tau1_s,tau2_s,lambda,h,soc,soc_std,capacity_Ah,"
-    "capacity_std_Ah,current_offset_A,v_model_V,v_meas_V,v_error_V,M_V,ocv_offset_V,arx_error_V,"
+    "capacity_std_Ah,current_offset_A,v_model_V,v_meas_V,v_error_V,M_V,ocv_offset_V,on_bound,"
+    "arx_error_V,"
     "quality"
 )
 

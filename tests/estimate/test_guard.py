@@ -484,3 +484,59 @@ def test_reset_forgets_statistics_but_keeps_episodes_and_last_good_values() -> N
 def test_tuning_checks_the_time_constants() -> None:
     with pytest.raises(ValueError, match="divergence_fast_s"):
         EstimatorTuning(divergence_fast_s=600.0, divergence_scale_s=600.0)
+
+
+# ------------------------------------------------------------ a parameter that sits on a bound
+WATCH_BOUNDS = {k: BOUNDS[k] for k in ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s")}
+
+
+def bounded_guard(n: int) -> PublishGuard:
+    return PublishGuard(n, FAST, {**START, **START_C}, WATCH_BOUNDS)
+
+
+def test_a_parameter_sitting_on_a_bound_holds_its_branch_only() -> None:
+    """tau2 stays on its upper bound for many ticks with no clamp flagged: R2, C2, tau2 publish
+    their last good values, R0 and the fast branch keep following the estimator, the quality
+    is OUT_OF_BOUNDS, and ``on_bound`` names tau2 (bit 16)."""
+    g = bounded_guard(1)
+    g.apply(0.0, cells_of(1, tau2_s=800.0, R2_ohm=6e-4), q_of(1), NO)
+    hi = BOUNDS["tau2_s"][1]
+    for k in range(1, 50):
+        r0 = 1e-3 * (1 + 0.01 * k)  # R0 follows temperature meanwhile
+        out, q, reinit = g.apply(
+            float(k), cells_of(1, tau2_s=hi, R2_ohm=9e-4, R0_ohm=r0, R1_ohm=4e-4), q_of(1), NO
+        )
+        assert out["tau2_s"][0] == 800.0 and out["R2_ohm"][0] == 6e-4
+        assert out["C2_F"][0] == pytest.approx(800.0 / 6e-4, rel=1e-12)
+        assert out["R0_ohm"][0] == r0 and out["R1_ohm"][0] == 4e-4
+        assert q[0] == Quality.OUT_OF_BOUNDS and out["on_bound"][0] == 16 and not reinit[0]
+    # back inside (by more than ON_BOUND_REL): published again, quality back
+    out, q, _ = g.apply(60.0, cells_of(1, tau2_s=0.9 * hi), q_of(1), NO)
+    assert out["tau2_s"][0] == 0.9 * hi and q[0] == Quality.CONVERGED and out["on_bound"][0] == 0
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "bit"),
+    [("R0_ohm", 1e-4, 1), ("R1_ohm", 0.1, 2), ("R2_ohm", 1e-4, 4), ("tau1_s", 1.0, 8),
+     ("tau2_s", 100.0, 16)],
+)  # fmt: skip
+def test_each_watched_parameter_on_either_bound_is_flagged_and_never_published(
+    name: str, value: float, bit: int
+) -> None:
+    g = bounded_guard(2)
+    over = {name: np.array([value, START[name]])}
+    out, q, _ = g.apply(0.0, cells_of(2, **over), q_of(2), np.zeros(2, dtype=bool))
+    assert out["on_bound"].tolist() == [bit, 0]
+    assert out[name].tolist() == [START[name], START[name]]
+    assert q.tolist() == [Quality.OUT_OF_BOUNDS, Quality.CONVERGED]
+
+
+def test_a_converging_cell_on_a_bound_keeps_its_quality_but_not_the_bound() -> None:
+    """A converging cell on a bound publishes its start values (what it held last), quality
+    CONVERGING: the bound value never becomes a "last good" one."""
+    g = bounded_guard(1)
+    out, q, _ = g.apply(0.0, cells_of(1, tau2_s=100.0), q_of(1, Quality.CONVERGING), NO)
+    assert q[0] == Quality.CONVERGING and out["on_bound"][0] == 16
+    assert out["tau2_s"][0] == START["tau2_s"]
+    out, q, _ = g.apply(1.0, cells_of(1, tau2_s=100.0), q_of(1), NO)
+    assert q[0] == Quality.OUT_OF_BOUNDS and out["tau2_s"][0] == START["tau2_s"]

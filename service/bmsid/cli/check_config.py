@@ -4,7 +4,8 @@ The output is TOML (environment overrides applied, relative paths resolved, defa
 with secrets redacted (``password`` as ``**********``; ``password_file`` by its path, never its
 content); a bad file or override gets one line naming the field and exit code 2. The files the
 daemon will read are checked too: cell config, bus mapping, a replay log, and with MQTT enabled
-the password file (readable, not empty) and the TLS files (CA, client certificate and its key).
+the password file (readable, not empty) and the TLS files (CA, client certificate and its key);
+and the state directory must be writable (the daemon refuses to start otherwise), or creatable.
 A secret every local user can read (a config holding ``mqtt.password``, the password file, the
 client key) gets a ``# WARNING:`` line: the config is still valid.
 """
@@ -19,6 +20,7 @@ import tomli_w
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.cli.preflight import check_replay_log, secret_file_warnings
 from bmsid.config.settings import load_settings
+from bmsid.daemon.statedir import writable_problem
 from bmsid.errors import UserError
 from bmsid.publish.mqtt import tls_context
 
@@ -47,6 +49,12 @@ def run(args: argparse.Namespace) -> int:
             f"{mapping.max_cells()} cells the mapping {mapping.name!r} carries"
         )
     check_replay_log(settings)
+    problem = writable_problem(settings.state.directory)
+    if problem is not None:
+        raise UserError(
+            f"{args.config}: field state.directory: {problem} (the daemon keeps its checkpoint "
+            "and MQTT sequence numbers there and refuses to start without it)"
+        )
     if settings.mqtt.enabled:
         settings.mqtt.password_value()  # the value is not kept, let alone printed
         tls_context(settings.mqtt)

@@ -14,7 +14,17 @@ instead (platforms without process spawning; tests compare the two).
 Sequence numbers never repeat across restarts: the host reserves them in blocks in
 ``<pack_id>.seq`` (written before a block is used) and writes the exact value at a clean
 stop, so a graceful restart continues contiguously and a crash (``kill -9``) leaves a gap
-instead of reusing numbers that consumers may already have seen.
+instead of reusing numbers that consumers may already have seen. A block that cannot be
+reserved (a disk error, a file system gone read-only) is not used: the tick's messages are
+withheld and counted (``mqtt_withheld``) until a reservation succeeds again, so a number is
+never published unreserved. A sequence file that exists but cannot be read refuses the start:
+the numbers already published are unknown. Only one daemon per pack uses these files (the
+lock of :mod:`bmsid.daemon.statedir`, taken by the daemon before the worker starts).
+
+The worker process talks to the daemon over two pipes (calls, log records), not through
+``ProcessPoolExecutor`` and ``multiprocessing.Queue``: those create 8 named POSIX semaphores
+that only multiprocessing's resource tracker removes, and a SIGKILL of the whole service
+(systemd's cgroup kill) took the tracker too and left them in ``/dev/shm`` at every crash.
 """
 
 from __future__ import annotations
@@ -26,12 +36,15 @@ import dataclasses
 import gc
 import logging
 import logging.handlers
+import math
 import multiprocessing
 import os
 import signal
 import threading
 import time
+import traceback
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -39,7 +52,14 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
-from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.daemon.checkpoint import (
+    CheckpointKey,
+    load_checkpoint,
+    save_checkpoint,
+    state_problem,
+)
+from bmsid.daemon.statedir import atomic_write, quarantine
+from bmsid.errors import UserError
 from bmsid.estimate.startvalues import StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
@@ -64,6 +84,13 @@ PROBE_LIMIT_S = 1800.0
 PROBE_LIMIT_SAMPLES = 200_000
 #: How often the worker checks that the daemon still lives, s.
 PARENT_POLL_S = 0.5
+#: Longest wait for the worker process to end after ``close()`` asked it to, s.
+CLOSE_TIMEOUT_S = 10.0
+
+
+def _log_now(n: int) -> bool:
+    """Log the 1st, 10th, 100th, ... occurrence of a repeating failure only."""
+    return bool(n == 10 ** (len(str(n)) - 1))
 
 
 def samples_per_tick(t_s: FloatArray, id_period_s: float) -> int:
@@ -173,7 +200,15 @@ class BankHost:
 
     def __post_init__(self) -> None:
         self.bank = self._fresh_bank()
-        self.counters = {"checkpoints": 0, "checkpoint_errors": 0, "seq_file_errors": 0}
+        #: a fresh state: what a restored or saved one must look like (state_problem)
+        self._reference = self.bank.state_dict()
+        self.counters = {
+            "checkpoints": 0,
+            "checkpoint_errors": 0,
+            "checkpoints_refused": 0,
+            "seq_file_errors": 0,
+            "mqtt_withheld": 0,
+        }
         # A config without start values or bounds: measure them on the first samples, as
         # offline identification does on a record, before the estimators start.
         self._probing = self.spec.cell.initial is None or self.spec.cell.bounds is None
@@ -216,65 +251,99 @@ class BankHost:
         ck_seq = 0
         ck = load_checkpoint(self.spec.ckpt_path, self.spec.ckpt_key) if self.spec.restore else None
         if ck is not None:
+            seq_raw, t_raw = ck.extra.get("seq", 0), ck.extra.get("t_s")
+            # Its seq bounds the numbers published even when its state is unusable.
+            if isinstance(seq_raw, int) and seq_raw >= 0:
+                ck_seq = seq_raw
             try:
                 sv = ck.extra.get("start_values")
                 if sv is not None:  # the bank's normalisation depends on them: rebuild first
                     self.start_values = StartValues(**sv)
                     self.bank = self._fresh_bank()
                 self.bank.load_state_dict(ck.state)
+                problem = state_problem(self.bank.state_dict(), self._reference)
             except (ValueError, KeyError, TypeError) as exc:
-                log.warning(
-                    "checkpoint %s does not fit this bank (%s): starting fresh",
-                    self.spec.ckpt_path,
-                    exc,
-                )
+                problem = f"inconsistent: {exc}"
+            if problem is None and not (isinstance(seq_raw, int) and seq_raw >= 0):
+                problem = f"inconsistent: seq {seq_raw!r}"
+            if problem is None and not (
+                t_raw is None or (isinstance(t_raw, float | int) and math.isfinite(t_raw))
+            ):
+                problem = f"non-finite sample time {t_raw!r}"
+            if problem is not None:
+                quarantine(self.spec.ckpt_path, "checkpoint", problem)
                 self.start_values = None
                 self.bank = self._fresh_bank()
             else:
                 restored = True
                 self._probing = False
-                ck_seq = int(ck.extra.get("seq", 0))
-                t_raw = ck.extra.get("t_s")
                 t_s = float(t_raw) if t_raw is not None else None
         self.seq = max(ck_seq, self._read_seq_file())
         self._seq_reserved = self.seq
         return StartInfo(restored=restored, seq=self.seq, t_s=t_s)
 
     def _read_seq_file(self) -> int:
+        """The reserved high-water mark; 0 when there is no file yet.
+
+        Raises:
+            UserError: the file exists but holds no number or cannot be read. Ignoring it
+                (as before) restarted the numbering below what subscribers had seen.
+        """
+        path = self.spec.seq_path
         try:
-            return max(0, int(self.spec.seq_path.read_text(encoding="ascii").strip()))
-        except FileNotFoundError:
+            text = path.read_text(encoding="ascii", errors="replace").strip()
+        except (FileNotFoundError, NotADirectoryError):
             return 0
-        except (OSError, ValueError) as exc:
-            log.warning("sequence file %s unreadable (%s): ignored", self.spec.seq_path, exc)
-            return 0
+        except OSError as exc:
+            text, why = "", exc.strerror or type(exc).__name__
+        else:
+            if text.isdigit():
+                return int(text)
+            why = f"it holds {text[:20]!r}, not a number"
+        raise UserError(
+            f"sequence file {path} is unreadable ({why}): bmsid cannot tell which MQTT seq "
+            "numbers were already published; write a number above every seq your subscribers "
+            "have seen into it (or remove it, which restarts from the checkpoint's seq and may "
+            "reuse numbers)"
+        )
 
     def _write_seq_file(self, value: int) -> bool:
         path = self.spec.seq_path
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with tmp.open("w", encoding="ascii") as fh:
-                fh.write(f"{value}\n")
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
+            atomic_write(path, lambda fh: fh.write(f"{value}\n".encode("ascii")))
         except OSError as exc:
             self.counters["seq_file_errors"] += 1
-            log.error("sequence file %s cannot be written: %s", path, exc)
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
+            n = self.counters["seq_file_errors"]
+            if _log_now(n):
+                log.error(
+                    "sequence file %s cannot be written (%s; %d time(s)): MQTT data messages "
+                    "are withheld until it can (mqtt_withheld counts them)",
+                    path,
+                    exc.strerror or exc,
+                    n,
+                )
             return False
         return True
 
-    def _next_seq(self) -> int:
-        if self.seq >= self._seq_reserved:
-            # Reserve before use; if the disk refuses, go on (numbers may repeat after a crash).
-            self._write_seq_file(self.seq + SEQ_BLOCK)
-            self._seq_reserved = self.seq + SEQ_BLOCK
-        n = self.seq
-        self.seq += 1
-        return n
+    def _take_seqs(self, n: int) -> int | None:
+        """The first of ``n`` consecutive reserved numbers, or None when no reservation
+        could be persisted (then none are used: a crash could not tell they were)."""
+        if self.seq + n > self._seq_reserved:
+            target = self.seq + max(n, SEQ_BLOCK)
+            if not self._write_seq_file(target):
+                return None
+            if self.counters["seq_file_errors"]:
+                log.warning(
+                    "sequence file %s written again: MQTT data messages resume at seq %d "
+                    "(%d withheld so far)",
+                    self.spec.seq_path,
+                    self.seq,
+                    self.counters["mqtt_withheld"],
+                )
+            self._seq_reserved = target
+        first = self.seq
+        self.seq += n
+        return first
 
     # ------------------------------------------------------------------ samples
     def update(self, block: SampleBlock) -> BatchResult:
@@ -314,13 +383,18 @@ class BankHost:
         if s.publish_period_s > 0 and est.t_s - self._last_pub_t < s.publish_period_s - tol:
             return []
         self._last_pub_t = est.t_s
+        first = self._take_seqs(est.n_cells + 1)
+        if first is None:
+            self.counters["mqtt_withheld"] += est.n_cells + 1
+            return []
         out = []
         for i in range(est.n_cells):
-            body = payloads.cell_payload(est, i, s.pack_id, self._next_seq())
+            body = payloads.cell_payload(est, i, s.pack_id, first + i)
             topic = payloads.topic(s.topic_prefix, s.pack_id, "cell", i)
             out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
         # Input staleness cannot be true here: a sample just arrived.
-        body = payloads.pack_payload(est, s.pack_id, self._next_seq(), payloads.health_bits(est))
+        seq = first + est.n_cells
+        body = payloads.pack_payload(est, s.pack_id, seq, payloads.health_bits(est))
         topic = payloads.topic(s.topic_prefix, s.pack_id, "pack")
         out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
         return out
@@ -332,6 +406,25 @@ class BankHost:
         # The newest sample time (s, None before the first): a restarted replay resumes after it.
         t_s = self.bank.last_sample_t_s
         sv = self.start_values
+        problem = state_problem(state, self._reference)
+        if problem is not None:
+            # Keep the last good checkpoint: a restart from it beats a state that is lost.
+            self.counters["checkpoints_refused"] += 1
+            if _log_now(self.counters["checkpoints_refused"]):
+                log.warning(
+                    "checkpoint %s not written (%d time(s)): the estimator state has %s; the "
+                    "previous checkpoint is kept",
+                    self.spec.ckpt_path,
+                    self.counters["checkpoints_refused"],
+                    problem,
+                )
+        else:
+            self._save(state, t_s, sv)
+        if clean and self._write_seq_file(self.seq):
+            self._seq_reserved = self.seq
+        return self._counters()
+
+    def _save(self, state: dict[str, Any], t_s: float | None, sv: StartValues | None) -> None:
         try:
             save_checkpoint(
                 self.spec.ckpt_path,
@@ -345,17 +438,28 @@ class BankHost:
             )
         except OSError as exc:
             self.counters["checkpoint_errors"] += 1
-            log.error("checkpoint %s failed: %s", self.spec.ckpt_path, exc)
+            if _log_now(self.counters["checkpoint_errors"]):
+                log.error(
+                    "checkpoint %s failed (%d time(s)): %s",
+                    self.spec.ckpt_path,
+                    self.counters["checkpoint_errors"],
+                    exc,
+                )
         else:
             self.counters["checkpoints"] += 1
-        if clean and self._write_seq_file(self.seq):
-            self._seq_reserved = self.seq
-        return self._counters()
 
 
 # ---------------------------------------------------------------------- child process side
-#: the child's one host (a dict, not a global statement)
-_CHILD: dict[str, BankHost] = {}
+class BankWorkerError(RuntimeError):
+    """The worker process died (the daemon exits non-zero; its supervisor restarts it from
+    the last checkpoint)."""
+
+
+class _RemoteTracebackError(Exception):
+    """The worker's traceback of an exception re-raised in the daemon (its ``__cause__``)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 def _exit_with_parent(parent_pid: int) -> None:
@@ -366,66 +470,123 @@ def _exit_with_parent(parent_pid: int) -> None:
     os._exit(0)
 
 
-def _child_init(spec: BankSpec, log_queue: Any, level: int, parent_pid: int) -> None:
-    # The parent decides when to stop: a terminal's ^C or systemd's SIGTERM to the whole
-    # cgroup must not kill the bank before the parent's final checkpoint.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+class _PipeQueue:
+    """The ``put_nowait`` a ``QueueHandler`` needs, over a pipe (the handler's lock serialises
+    the sends of several threads)."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+
+    def put_nowait(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(OSError):  # the daemon is gone: nobody to tell
+            self.conn.send(record)
+
+
+def _child_main(
+    conn: Connection, log_conn: Connection, spec: BankSpec, level: int, parent_pid: int
+) -> None:
+    """The worker process: answer ``(method, args)`` calls on ``conn`` until told to close."""
+    # The parent decides when to stop: a terminal's ^C or hang-up, or systemd's SIGTERM to the
+    # whole cgroup, must not kill the bank before the parent's final checkpoint.
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     root = logging.getLogger()
-    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
+    root.handlers[:] = [logging.handlers.QueueHandler(_PipeQueue(log_conn))]  # type: ignore[arg-type]
     root.setLevel(level)
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
-    _CHILD["host"] = BankHost(spec)
+    host: BankHost | None = None
+    init_error: BaseException | None = None
+    try:
+        host = BankHost(spec)
+    except Exception as exc:  # answered to every call: the daemon reports it as its own
+        init_error = exc
     gc.collect()
     gc.freeze()  # the start-up heap, as in the daemon: full collections stay short
+    while True:
+        try:
+            method, args = conn.recv()
+        except EOFError:
+            return
+        if method == "close":
+            return
+        try:
+            if host is None:
+                assert init_error is not None
+                raise init_error
+            reply: tuple[str, Any, str] = ("ok", getattr(host, method)(*args), "")
+        except Exception as exc:
+            reply = ("error", exc, traceback.format_exc())
+        try:
+            conn.send(reply)
+        except Exception as exc:  # an exception that does not pickle: its text does
+            conn.send(("error", RuntimeError(f"{type(reply[1]).__name__}: {reply[1]}"), str(exc)))
 
 
-def _child_call(method: str, *args: Any) -> Any:
-    return getattr(_CHILD["host"], method)(*args)
-
-
-class _ForwardToLogger(logging.Handler):
-    """Parent side of the child's log queue: re-emit under the record's own logger."""
-
-    def emit(self, record: logging.LogRecord) -> None:
+def _forward_logs(conn: Connection) -> None:
+    """Daemon side of the worker's log pipe: re-emit each record under its own logger."""
+    while True:
+        try:
+            record: logging.LogRecord = conn.recv()
+        except (EOFError, OSError):
+            return
         logging.getLogger(record.name).handle(record)
 
 
 class BankWorker:
     """Parent-side handle: ``await start()``, ``await update(block)``, ``await checkpoint()``.
 
-    Calls are serialised by the single worker; a dead child process raises
-    ``concurrent.futures.process.BrokenProcessPool`` from the call (the daemon then exits
-    non-zero and its supervisor restarts it from the last checkpoint).
+    Calls are serialised (one at a time, in order); a dead worker process raises
+    :class:`BankWorkerError` from the call, an exception in the worker is re-raised with
+    the worker's traceback as its cause.
     """
 
     def __init__(self, spec: BankSpec, isolation: Isolation = "process") -> None:
         self.isolation = isolation
-        self._listener: logging.handlers.QueueListener | None = None
         self._host: BankHost | None = None
-        self._executor: concurrent.futures.Executor
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._log_thread: threading.Thread | None = None
+        # One thread makes the calls: over the pipe (process) or on the host itself (thread).
+        self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="bmsid-bank")
         if isolation == "process":
             ctx = multiprocessing.get_context("spawn")  # fork is unsafe with threads running
-            queue = ctx.Queue()
-            self._listener = logging.handlers.QueueListener(queue, _ForwardToLogger())
-            self._listener.start()
-            self._executor = concurrent.futures.ProcessPoolExecutor(
-                1,
-                mp_context=ctx,
-                initializer=_child_init,
-                initargs=(spec, queue, logging.getLogger().getEffectiveLevel(), os.getpid()),
+            self._conn, child_conn = ctx.Pipe()
+            log_recv, log_send = ctx.Pipe(duplex=False)
+            level = logging.getLogger().getEffectiveLevel()
+            self._process = ctx.Process(
+                target=_child_main,
+                args=(child_conn, log_send, spec, level, os.getpid()),
+                name="bmsid-bank",
             )
+            self._process.start()
+            child_conn.close()  # the child's ends: EOF on our side once it exits
+            log_send.close()
+            self._log_thread = threading.Thread(
+                target=_forward_logs, args=(log_recv,), name="bmsid-bank-log", daemon=True
+            )
+            self._log_thread.start()
         else:
             self._host = BankHost(spec)
-            self._executor = concurrent.futures.ThreadPoolExecutor(
-                1, thread_name_prefix="bmsid-bank"
-            )
+
+    def _roundtrip(self, method: str, args: tuple[Any, ...]) -> Any:
+        assert self._process is not None
+        try:
+            self._conn.send((method, args))
+            status, value, remote_tb = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            self._process.join(1.0)
+            raise BankWorkerError(
+                f"the bank worker process exited (exit code {self._process.exitcode}) "
+                f"during {method}()"
+            ) from exc
+        if status == "error":
+            raise value from _RemoteTracebackError(remote_tb)
+        return value
 
     async def _call(self, method: str, *args: Any) -> Any:
         loop = asyncio.get_running_loop()
         if self._host is not None:
             return await loop.run_in_executor(self._executor, getattr(self._host, method), *args)
-        return await loop.run_in_executor(self._executor, _child_call, method, *args)
+        return await loop.run_in_executor(self._executor, self._roundtrip, method, args)
 
     async def start(self) -> StartInfo:
         t0 = time.monotonic()
@@ -442,6 +603,18 @@ class BankWorker:
         return counters
 
     def close(self) -> None:
+        """Wait for the call under way, end the worker process, join its log thread."""
         self._executor.shutdown(wait=True, cancel_futures=True)
-        if self._listener is not None:
-            self._listener.stop()
+        process = self._process
+        if process is None:
+            return
+        with contextlib.suppress(OSError):
+            self._conn.send(("close", ()))
+        self._conn.close()
+        process.join(CLOSE_TIMEOUT_S)
+        if process.is_alive():  # stuck: it ignores SIGTERM (see _child_main), so SIGKILL
+            log.warning("bank worker did not end within %.0f s: killed", CLOSE_TIMEOUT_S)
+            process.kill()
+            process.join()
+        if self._log_thread is not None:
+            self._log_thread.join(CLOSE_TIMEOUT_S)

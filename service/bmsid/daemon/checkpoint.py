@@ -1,22 +1,32 @@
 """Atomic checkpoints of the estimator state: ``.npz`` of arrays plus one JSON header.
 
 Written as: temp file in the same directory -> flush -> fsync -> rename over the old one ->
-fsync the directory, so a crash (kill -9, power loss) leaves either the old or the new
-checkpoint, never a torn one. Restored only when pack id, cell count and config hash match.
+fsync the directory (:func:`~bmsid.daemon.statedir.atomic_write`), so a crash (kill -9, power
+loss) leaves either the old or the new checkpoint, never a torn one. Restored only when pack
+id, cell count and config hash match.
+
+A checkpoint that cannot be read (empty, truncated, not an ``.npz``) is quarantined beside
+itself (:func:`~bmsid.daemon.statedir.quarantine`) and the daemon starts fresh: measured
+before, a zero-byte file crashed every start. What it holds is checked against a fresh
+bank's state by :func:`state_problem` (same keys and shapes; finite wherever a fresh state is
+finite), on load and before every save: a NaN state restored unchecked published ``null`` for
+ever and was checkpointed again.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from bmsid.daemon.statedir import atomic_write, quarantine
 
 log = logging.getLogger(__name__)
 
@@ -78,21 +88,7 @@ def save_checkpoint(
     }
     arrays[_HEADER_KEY] = np.array(json.dumps(header))
     arrays[_SCALARS_KEY] = np.array(json.dumps(scalars, allow_nan=True))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with tmp.open("wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    atomic_write(path, lambda fh: np.savez(fh, **arrays))
 
 
 @dataclass(frozen=True)
@@ -106,9 +102,16 @@ class Checkpoint:
         return extra
 
 
+#: What reading a damaged ``.npz`` raises: empty file (EOFError), truncated or foreign
+#: (BadZipFile, ValueError, zlib.error), a missing member (KeyError), a bad header (JSON).
+_UNREADABLE = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
+
+
 def load_checkpoint(path: Path, key: CheckpointKey) -> Checkpoint | None:
     """The checkpoint at ``path`` if it exists, is readable and matches ``key``; else None
-    (the reason is logged: a fresh start is always possible)."""
+    (the reason is logged: a fresh start is always possible). An unreadable one is
+    quarantined; one of another pack or config is left alone (the next checkpoint replaces
+    it: restoring the old config before then keeps it)."""
     if not path.exists():
         return None
     try:
@@ -119,8 +122,10 @@ def load_checkpoint(path: Path, key: CheckpointKey) -> Checkpoint | None:
             for name in npz.files:
                 if name not in (_HEADER_KEY, _SCALARS_KEY):
                     _insert(state, name, npz[name])
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
-        log.warning("checkpoint %s unreadable (%s): starting fresh", path, exc)
+        if not isinstance(header, dict) or not isinstance(scalars, dict):
+            raise ValueError("header or scalars are not JSON objects")
+    except _UNREADABLE as exc:
+        quarantine(path, "checkpoint", f"unreadable: {type(exc).__name__}: {exc}")
         return None
     for k, v in scalars.items():
         _insert(state, k, v)
@@ -130,3 +135,51 @@ def load_checkpoint(path: Path, key: CheckpointKey) -> Checkpoint | None:
         log.warning("checkpoint %s is for %s, not %s: starting fresh", path, got, want)
         return None
     return Checkpoint(header=header, state=state)
+
+
+def _leaves(state: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in state.items():
+        if isinstance(v, dict):
+            out |= _leaves(v, f"{prefix}{k}/")
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _nonfinite(v: Any) -> bool:
+    if isinstance(v, np.ndarray):
+        return v.dtype.kind in "fc" and not bool(np.all(np.isfinite(v)))
+    return isinstance(v, float) and not np.isfinite(v)
+
+
+def _same_shape(got: tuple[int, ...], ref: tuple[int, ...]) -> bool:
+    # A dimension empty in a fresh state is a buffer that grows (current steps seen so far).
+    return len(got) == len(ref) and all(r in (0, g) for g, r in zip(got, ref, strict=True))
+
+
+def state_problem(state: dict[str, Any], reference: dict[str, Any]) -> str | None:
+    """Why ``state`` is not a usable estimator state, or None.
+
+    ``reference`` is a fresh bank's ``state_dict()`` of the same config: ``state`` must have
+    its keys, array shapes (a dimension empty there may have any length) and kinds, and be
+    finite wherever the fresh state is. A fresh state's NaN marks "not yet" (no anchor, no
+    previous time), so those may stay NaN; a NaN anywhere else (a parameter, a covariance, a
+    SOC) means the state is lost, and restoring or saving it would publish ``null`` for ever.
+    """
+    got, want = _leaves(state), _leaves(reference)
+    if got.keys() != want.keys():
+        diff = sorted(got.keys() ^ want.keys())
+        more = ", ..." if len(diff) > 3 else ""
+        return f"inconsistent: keys differ ({', '.join(diff[:3])}{more})"
+    for k, ref in want.items():
+        v = got[k]
+        if isinstance(ref, np.ndarray):
+            if not isinstance(v, np.ndarray) or not _same_shape(v.shape, ref.shape):
+                shape = getattr(v, "shape", type(v).__name__)
+                return f"inconsistent: {k} is {shape}, not {ref.shape}"
+            if ref.dtype.kind in "fc" and v.dtype.kind not in "fciub":
+                return f"inconsistent: {k} holds {v.dtype}, not numbers"
+        if _nonfinite(v) and not _nonfinite(ref):
+            return f"non-finite values in {k}"
+    return None

@@ -48,12 +48,13 @@ from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
+from bmsid.daemon.statedir import StateLock, check_writable
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
 from bmsid.publish.discovery import discovery_messages
 from bmsid.publish.mqtt import MqttPublisher
-from bmsid.publish.outbox import Outbox, OutMessage
+from bmsid.publish.outbox import Outbox, OutMessage, load_spool, save_spool
 from bmsid.samples import Sample, SampleBlock
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,9 @@ SAMPLE_BATCH = 64
 FRAMES_PER_YIELD = 64
 #: GIL switch interval of the daemon process: the loop gets the GIL back within 1 ms.
 SWITCH_INTERVAL_S = 0.001
+#: Beyond the MQTT flush's own limit, how long the shutdown waits for the publisher to return
+#: (a connect or publish under way ends by ``publish_timeout_s``; this is the backstop), s.
+MQTT_STOP_MARGIN_S = 5.0
 
 
 class Daemon:
@@ -75,7 +79,8 @@ class Daemon:
     Args:
         settings: validated settings.
         on_estimates: called on the loop with every estimator tick (live view, tests).
-        shutdown_timeout_s: how long the shutdown may wait for the MQTT backlog.
+        shutdown_timeout_s: how long the shutdown may wait for the MQTT backlog (what is left
+            then is spooled to the state directory and sent first after the restart).
     """
 
     def __init__(
@@ -109,6 +114,9 @@ class Daemon:
         )
         self.ckpt_key = CheckpointKey(settings.pack_id, cs.n_cells, settings.config_hash(self.cell))
         self.ckpt_path = settings.state.directory / f"{settings.pack_id}.ckpt.npz"
+        self.spool_path = settings.state.directory / f"{settings.pack_id}.spool"
+        #: messages of the spool loaded at start; the file goes once they left the outbox
+        self._spooled = 0
         est, m = settings.estimator, settings.mqtt
         self.bank_spec = BankSpec(
             cell=self.cell,
@@ -174,7 +182,29 @@ class Daemon:
             and self.counters["batches_in_flight"] == 0
         )
 
+    def on_sighup(self) -> None:
+        """SIGHUP: ignored (never a stop without a checkpoint, as its default action was)."""
+        log.warning(
+            "SIGHUP ignored: bmsid reads its config only at start; restart it to apply a "
+            "changed config (systemctl restart bmsid: the state is checkpointed on the way)"
+        )
+
     async def run(self) -> int:
+        """Run until :meth:`request_stop`.
+
+        Raises:
+            UserError: the state directory is not writable, or another daemon holds the
+                pack's lock there (one line each; ``bmsid run`` exits 2).
+        """
+        directory = self.settings.state.directory
+        check_writable(directory)
+        lock = StateLock.acquire(directory, self.settings.pack_id)
+        try:
+            return await self._run_locked()
+        finally:
+            lock.release()
+
+    async def _run_locked(self) -> int:
         self._stop = asyncio.Event()
         self._samples = SampleQueue(SAMPLE_QUEUE)
         self._t_start = time.monotonic()
@@ -216,6 +246,7 @@ class Daemon:
         mqtt_task: asyncio.Task[None] | None = None
         if self.settings.mqtt.enabled:
             self.outbox = Outbox(self.settings.mqtt.outbox_size)
+            self._load_spool(self.outbox)
             mqtt_task = asyncio.create_task(self._start_mqtt(), name="mqtt")
         tasks = [
             asyncio.create_task(self._can_input(), name="can-input"),
@@ -233,8 +264,8 @@ class Daemon:
         watched = {stop_waiter, *tasks, *([mqtt_task] if mqtt_task is not None else [])}
         done, _ = await asyncio.wait(watched, return_when=asyncio.FIRST_COMPLETED)
         failed = [t for t in done if t is not stop_waiter and not t.cancelled() and t.exception()]
-        await self._shutdown(tasks, mqtt_task)
         stop_waiter.cancel()
+        await self._shutdown(tasks, mqtt_task)
         if failed:
             exc = failed[0].exception()
             assert exc is not None
@@ -258,20 +289,72 @@ class Daemon:
             t.cancel()
         await asyncio.gather(*tasks[1:], return_exceptions=True)
         await self._checkpoint(clean=True)
-        if self.mqtt is not None and mqtt_task is not None:
-            self.mqtt.stop()
-            try:
-                await asyncio.wait_for(asyncio.shield(mqtt_task), self.shutdown_timeout_s)
-            except TimeoutError:
-                assert self.outbox is not None
-                log.warning(
-                    "MQTT: %d messages not delivered at shutdown (broker unreachable)",
-                    len(self.outbox),
-                )
+        if mqtt_task is not None:
+            if self.mqtt is not None:
+                self.mqtt.stop(self.shutdown_timeout_s)
+            # asyncio.wait: neither its result nor its exception is lost (the caller raises
+            # the exception of a task that failed; this one is retrieved either way).
+            await asyncio.wait({mqtt_task}, timeout=self.shutdown_timeout_s + MQTT_STOP_MARGIN_S)
+            if not mqtt_task.done():
                 mqtt_task.cancel()
-                await asyncio.gather(mqtt_task, return_exceptions=True)
+            await asyncio.gather(mqtt_task, return_exceptions=True)
+            self._spool_backlog()
         log.info(
             "stopped: after %.0f s, %s", time.monotonic() - self._t_start, self._counter_line()
+        )
+
+    # ------------------------------------------------------------------ MQTT spool
+    def _load_spool(self, outbox: Outbox) -> None:
+        """Put the messages the last stop could not deliver in the outbox, before any new."""
+        messages, lost = load_spool(self.spool_path, self.settings.pack_id)
+        outbox.dropped += lost
+        for msg in messages:
+            outbox.put(msg)
+        self._spooled = len(messages)
+        if messages:
+            log.info(
+                "MQTT: %d messages spooled at the last stop are sent first (%s)",
+                len(messages),
+                self.spool_path,
+            )
+
+    def _spool_done(self) -> None:
+        """Remove the spool once its messages left the outbox (kept until then: a crash
+        before they are delivered sends them after the next start)."""
+        assert self.outbox is not None
+        if self._spooled and self.outbox.taken >= self._spooled:
+            self._spooled = 0
+            with contextlib.suppress(OSError):
+                self.spool_path.unlink(missing_ok=True)
+
+    def _spool_backlog(self) -> None:
+        """Spool what the shutdown flush could not deliver; count it as dropped if it can't."""
+        assert self.outbox is not None
+        left = len(self.outbox)
+        if left == 0:  # a spool loaded at start left the outbox: delivered or counted dropped
+            self._spooled = 0
+            with contextlib.suppress(OSError):
+                self.spool_path.unlink(missing_ok=True)
+            return
+        why = (self.mqtt.last_error if self.mqtt is not None else None) or "no connection"
+        try:
+            save_spool(self.spool_path, self.settings.pack_id, self.outbox.peek(left))
+        except OSError as exc:
+            self.outbox.dropped += left
+            log.error(
+                "MQTT: %d messages not delivered at shutdown (%s) and not spooled (%s): lost, a "
+                "seq gap counted in mqtt_drops",
+                left,
+                why,
+                exc.strerror or exc,
+            )
+            return
+        log.warning(
+            "MQTT: %d messages not delivered at shutdown (%s): spooled to %s, sent first after "
+            "the restart",
+            left,
+            why,
+            self.spool_path,
         )
 
     # ------------------------------------------------------------------ state
@@ -511,6 +594,8 @@ class Daemon:
         await self.mqtt.run()
 
     def _on_published(self, msg: OutMessage) -> None:
+        if self._spooled:
+            self._spool_done()
         if msg.t_sample_mono is not None:
             lat = time.monotonic() - msg.t_sample_mono
             self.latencies_s.append(lat)
@@ -554,6 +639,10 @@ class Daemon:
             "reader_drops": self.counters["reader_dropped"]
             + (self._source.dropped if self._source is not None else 0),
             "checkpoints": self.bank_counters.get("checkpoints", 0),
+            "checkpoint_errors": self.bank_counters.get("checkpoint_errors", 0),
+            "checkpoints_refused": self.bank_counters.get("checkpoints_refused", 0),
+            "seq_file_errors": self.bank_counters.get("seq_file_errors", 0),
+            "mqtt_withheld": self.bank_counters.get("mqtt_withheld", 0),
             "loop_lag_max_ms": round(self.loop_lag_max_s * 1e3, 3),
             "seq": self.seq,
         }
@@ -635,7 +724,8 @@ class Daemon:
 
 
 def run_daemon(settings: Settings) -> int:
-    """``bmsid run``: the daemon with SIGTERM/SIGINT as graceful stop; returns the exit code."""
+    """``bmsid run``: the daemon with SIGTERM/SIGINT as graceful stop, SIGHUP ignored (logged);
+    returns the exit code."""
 
     async def main() -> int:
         daemon = Daemon(settings)
@@ -643,6 +733,7 @@ def run_daemon(settings: Settings) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, daemon.request_stop)
+        loop.add_signal_handler(signal.SIGHUP, daemon.on_sighup)
         return await daemon.run()
 
     return asyncio.run(main())

@@ -111,6 +111,9 @@ CELL_FIELDS: tuple[FieldSpec, ...] = (
               nullable=True),
     FieldSpec("ocv_offset_V", "V", "%.6g", "identified OCV offset (0 where not identified)",
               nullable=True),
+    FieldSpec("on_bound", "", "%d",
+              "parameters the estimator holds on a bound, bits 1 R0, 2 R1, 4 R2, 8 tau1, 16 tau2 "
+              "(their last good values are published; a finding, estimate/guard.py)", mqtt=False),
     FieldSpec("arx_error_V", "V", "%.6g", "one-step regression prediction error", mqtt=False),
 )  # fmt: skip
 

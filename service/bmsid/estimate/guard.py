@@ -2,8 +2,11 @@
 
 The last stage of a tick. It sees what the bank is about to publish and decides, per cell:
 
-* **on a bound** (the parameter stage clamped the cell this tick, ``clamped``): the identified
-  parameters published are the cell's last good ones, the quality stays ``OUT_OF_BOUNDS``; the
+* **on a bound** (the parameter stage clamped the cell this tick, ``clamped``, or one of its
+  R0, R1, R2, tau1, tau2 sits within :data:`ON_BOUND_REL` of a bound: a parameter can stay on
+  its bound for hours after one clamp): the identified parameters published are the cell's
+  last good ones, the quality is ``OUT_OF_BOUNDS``, and :attr:`PublishGuard.bound_bits` says
+  which parameters sit on a bound (the finding ``identify`` reports); the
   estimators keep running (a bound says an estimate is implausible, not that the model fails:
   re-initialising would throw away the RLS memory, and would loop on a cell whose configured
   bounds are too tight). Counted in ``held_on_bound`` (cell-ticks).
@@ -89,6 +92,18 @@ HELD: tuple[str, ...] = (
 #: (finite only).
 _LOWER = np.array([[0.0 if FIELDS_BY_NAME[k].positive else -np.inf] for k in HELD])
 
+#: The bounded parameters the guard watches, in the bit order of :attr:`PublishGuard.bound_bits`
+#: (1 R0, 2 R1, 4 R2, 8 tau1, 16 tau2).
+WATCHED: tuple[str, ...] = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s")
+_WATCHED_ROWS = np.array([HELD.index(k) for k in WATCHED])
+_BIT_VALUES = (1 << np.arange(len(WATCHED), dtype=np.int64))[:, None]
+#: Per :data:`HELD` row, its branch (0 R0, 1 R1 C1 tau1, 2 R2 C2 tau2; 3 none: the OCV offset
+#: is held only with the whole cell).
+_BRANCH_OF_HELD = np.array([0, 1, 1, 2, 2, 1, 2, 3])
+#: A parameter within this share of a bound counts as on it (a clamp leaves it exactly there;
+#: the RLS map and the swarm can settle just inside).
+ON_BOUND_REL = 0.01
+
 #: Bits of :attr:`PublishGuard.cause`: why the cell's present episode started.
 CAUSE_SOC = 1  #: SOC outside [-margin, 1 + margin] or not finite
 CAUSE_ERROR = 2  #: model error in excess for ``divergence_hold_s``
@@ -97,6 +112,7 @@ CAUSE_PARAMS = 4  #: a parameter not finite (or not > 0 where it must be)
 #: Quality codes as plain ints: numpy compares an array with an IntEnum member 5x slower.
 _CONVERGING = int(Quality.CONVERGING)
 _POORLY_EXCITED = int(Quality.POORLY_EXCITED)
+_OUT_OF_BOUNDS = int(Quality.OUT_OF_BOUNDS)
 _DIVERGED = int(Quality.DIVERGED)
 
 _STATS = ("e2_fast", "fast_s", "e2_scale", "scale_s", "excess_s")
@@ -112,9 +128,13 @@ class PublishGuard:
         start: per :data:`HELD` name, the values published when a cell is held before it ever
             had a good tick (shape (n,) or scalar); a name left out holds NaN, which the MQTT
             schema refuses for a parameter: the bank builds its guard with :meth:`for_model`.
+        bounds: per :data:`WATCHED` name, (lo, hi) (each shape (n,) or scalar); a parameter
+            within :data:`ON_BOUND_REL` of one is held like a clamped one. None: only clamps.
 
     Attributes:
         counters: ``diverged`` (episodes started), ``held_on_bound`` (cell-ticks held at a bound).
+        bound_bits: per cell, the :data:`WATCHED` parameters (bit ``1 << j``) the estimator had
+            on a bound at the last tick (their last good values were published), shape (n,).
         episode: cells in a divergence episode (quality ``DIVERGED``), shape (n,).
         cause: ``CAUSE_*`` bits of each cell's present episode (0 outside one), shape (n,).
     """
@@ -126,6 +146,7 @@ class PublishGuard:
         n_cells: int,
         tuning: EstimatorTuning | None = None,
         start: Mapping[str, npt.ArrayLike] | None = None,
+        bounds: Mapping[str, tuple[npt.ArrayLike, npt.ArrayLike]] | None = None,
     ) -> None:
         self.n = n_cells
         self.tuning = tuning or EstimatorTuning()
@@ -144,6 +165,15 @@ class PublishGuard:
         self.scale_s = np.zeros(n_cells)
         self.excess_s = np.zeros(n_cells)
         self.t_prev: float | None = None
+        self.bound_bits = np.zeros(n_cells, dtype=np.int64)
+        self._near: tuple[FloatArray, FloatArray] | None = None
+        if bounds is not None:
+            lo, hi = (
+                np.stack([np.broadcast_to(np.asarray(bounds[k][i], dtype=np.float64), (n_cells,))
+                          for k in WATCHED])
+                for i in (0, 1)
+            )  # fmt: skip
+            self._near = (lo + ON_BOUND_REL * np.abs(lo), hi - ON_BOUND_REL * np.abs(hi))
 
     @classmethod
     def for_model(cls, model: CellModel, tuning: EstimatorTuning | None = None) -> PublishGuard:
@@ -154,7 +184,7 @@ class PublishGuard:
         s["C1_F"] = s["tau1_s"] / s["R1_ohm"]
         s["C2_F"] = s["tau2_s"] / s["R2_ohm"]
         s["ocv_offset_V"] = np.clip(np.zeros(model.n_cells), *model.bound("ocv_offset_V"))
-        return cls(model.n_cells, tuning, s)
+        return cls(model.n_cells, tuning, s, {k: model.bound(k) for k in WATCHED})
 
     # ------------------------------------------------------------------ one tick
     def apply(
@@ -172,7 +202,8 @@ class PublishGuard:
             cells: every output field, shape (n,) each (``soc`` and ``v_error_V`` are read
                 from it, as are the :data:`HELD` parameters); never modified.
             quality: the bank's quality codes, shape (n,); never modified.
-            on_bound: cells the parameter stage clamped to a bound this tick, shape (n,).
+            on_bound: cells the parameter stage clamped to a bound this tick, shape (n,); cells
+                whose parameters sit on a bound are added (``bounds``).
             learn: cells whose parameters may learn from this tick (``TickContext.learn``),
                 shape (n,); None: all. The others' model error is not judged this tick.
 
@@ -211,13 +242,30 @@ class PublishGuard:
                 self.reset(reinit)
             q[self.episode] = _DIVERGED
 
-        # hold the parameters (all of a cell's, or none) and a bad SOC
-        on_bound = np.asarray(on_bound, dtype=bool)
-        held = on_bound | self.episode  # a bad parameter started or continues an episode
+        # hold the parameters (all of a cell's on a clamp or in an episode; on a parameter that
+        # sits on a bound, its branch: R0, or R1 C1 tau1, or R2 C2 tau2, so C = tau / R stays
+        # true and R0 still follows temperature while tau2 waits on its bound) and a bad SOC
+        held = np.asarray(on_bound, dtype=bool) | self.episode
+        clamped = held.any()
+        mask: BoolArray | None = None
+        if self._near is not None:
+            w = params[_WATCHED_ROWS]
+            # converging cells too: a value learnt on a bound before convergence would become
+            # the "last good" one (their quality stays CONVERGING: no finding yet)
+            sits = (w <= self._near[0]) | (w >= self._near[1])
+            self.bound_bits = (sits * _BIT_VALUES).sum(axis=0)
+            if sits.any():
+                none = np.zeros(self.n, dtype=bool)
+                branch = np.stack([sits[0], sits[1] | sits[3], sits[2] | sits[4], none])
+                mask = branch[_BRANCH_OF_HELD] | held
+                q[(self.bound_bits > 0) & ~self.episode & ~converging] = _OUT_OF_BOUNDS
+        if mask is None and clamped:
+            mask = np.broadcast_to(held, params.shape)
         out = dict(cells)
-        if held.any():
-            self.counters["held_on_bound"] += int((on_bound & ~self.episode).sum())
-            published = np.where(held, self.good, params)
+        out["on_bound"] = self.bound_bits.astype(np.float64)
+        if mask is not None:
+            self.counters["held_on_bound"] += int((mask.any(axis=0) & ~self.episode).sum())
+            published = np.where(mask, self.good, params)
             for j, k in enumerate(HELD):
                 out[k] = published[j]
             self.good = published

@@ -27,6 +27,7 @@ import numpy.typing as npt
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank, cell_model
 from bmsid.estimate.cellmodel import BOUNDED, INITIAL
+from bmsid.estimate.guard import ON_BOUND_REL, WATCHED
 from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
@@ -192,10 +193,6 @@ def start_values_document(
     }  # fmt: skip
 
 
-#: A parameter within this share of a bound counts as on it.
-ON_BOUND_REL = 0.01
-
-
 def bound_findings(
     trace: EstimateBlock,
     cell: CellConfig,
@@ -203,22 +200,33 @@ def bound_findings(
     tuning: EstimatorTuning | None,
     cell_names: Sequence[str],
 ) -> dict[str, object]:
-    """Where identified parameters sat on their bounds: per parameter the share of ticks on a
-    bound (pooled over cells) and the cells that end the record on one. A parameter on a bound
-    is a finding (the bound, not the data, decided it), not a value to trust."""
+    """Where the estimator had parameters on their bounds (the guard's ``on_bound`` bits, within
+    ``ON_BOUND_REL`` of a bound): per parameter the share of ticks (pooled over cells) and the
+    cells that end the record on one. A parameter on a bound is a finding (the bound, not the
+    data, decided it), never a published value: the guard published its branch's last good
+    values instead; ``published_on_a_bound`` checks that in the published values themselves."""
     model = cell_model(cell, trace.n_cells, start, tuning)
+    bits = np.asarray(trace["on_bound"], dtype=np.int64)
     share: dict[str, float] = {}
     at_end: dict[str, list[str]] = {}
-    for name in ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s"):
-        lo, hi = model.bound(name)
-        x = trace[name]
-        on = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
+    published: dict[str, float] = {}
+    for j, name in enumerate(WATCHED):
+        on = (bits >> j) & 1 == 1
         share[name] = float(on.mean()) if on.size else 0.0
         if trace.n_ticks:
             ended = [cell_names[int(c)] for c in np.flatnonzero(on[-1])]
             if ended:
                 at_end[name] = ended
-    return {"share_of_ticks_on_a_bound": share, "ends_on_a_bound": at_end}  # fmt: skip
+        lo, hi = model.bound(name)
+        x = trace[name]
+        pub = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
+        if pub.any():
+            published[name] = float(pub.mean())
+    return {
+        "share_of_ticks_on_a_bound": share,
+        "ends_on_a_bound": at_end,
+        "published_on_a_bound": published,
+    }
 
 
 def identify_source(

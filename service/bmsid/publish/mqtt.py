@@ -16,6 +16,12 @@ certificate cannot flood the log; login, TLS and local-file failures back off to
 receive on socket: ...") are folded into these messages instead of being logged per attempt.
 Sessions that keep ending within seconds (typically two daemons with one client id kicking each
 other off) do not reset the backoff and are logged the same bounded way.
+
+``stop(timeout_s)`` flushes within a time limit and keeps the backoff: a stop while the broker
+is unreachable or refuses the login makes only the attempts that the backoff schedule places
+before the limit (measured before: 43,167 connects in 10 s against a closed port, 18,269
+against a wrong password), and what is still in the outbox at the limit stays there for the
+daemon to spool.
 """
 
 from __future__ import annotations
@@ -461,6 +467,8 @@ class MqttPublisher:
             "discovery_sent": 0,
         }
         self._stopping = False
+        #: monotonic time by which a stopping publisher gives up (stop())
+        self._stop_deadline = float("inf")
         self._status_due = False
         self._wake = asyncio.Event()
         self._stop_event = asyncio.Event()
@@ -555,22 +563,40 @@ class MqttPublisher:
                         _retrieve_disconnect_reason(client)
                 if self._stopping and not len(self.outbox):
                     return  # nothing left to deliver; the broker publishes the will
-                self.counters["reconnects"] += 1
                 delay = backoff * random.uniform(0.8, 1.2)
                 if failure is not None and failure.persistent:
                     backoff = s.reconnect_max_s  # it will not fix itself within seconds
                 else:
                     backoff = min(backoff * 2.0, s.reconnect_max_s)
-                # asyncio.wait, not wait_for: 3.11's wait_for can swallow a cancellation that
-                # arrives as its inner wait completes, and the daemon's shutdown would hang.
-                stop_wait = asyncio.ensure_future(self._stop_event.wait())
-                try:
-                    await asyncio.wait({stop_wait}, timeout=delay)
-                finally:
-                    stop_wait.cancel()
+                if not await self._backoff(delay):
+                    return  # stopping, and the next attempt would come after the time limit
+                self.counters["reconnects"] += 1
         finally:
             self.connected = False
             self.state = STOPPED
+
+    async def _backoff(self, delay: float) -> bool:
+        """Wait ``delay`` s before the next attempt; False: do not attempt (stopping).
+
+        A stop does not cut the wait short (a stop while the broker is away would otherwise
+        reconnect in a tight loop); it ends it when nothing is left to deliver, or when the
+        next attempt would come after the stop's time limit.
+        """
+        wake_at = time.monotonic() + delay
+        if not self._stopping:
+            # asyncio.wait, not wait_for: 3.11's wait_for can swallow a cancellation that
+            # arrives as its inner wait completes, and the daemon's shutdown would hang.
+            stop_wait = asyncio.ensure_future(self._stop_event.wait())
+            try:
+                await asyncio.wait({stop_wait}, timeout=delay)
+            finally:
+                stop_wait.cancel()
+        if not self._stopping:
+            return True
+        if not len(self.outbox) or wake_at >= self._stop_deadline:
+            return False
+        await asyncio.sleep(max(0.0, wake_at - time.monotonic()))
+        return True
 
     def _on_failure(self, failure: ConnectFailure) -> None:
         message = self._redact(failure.message)
@@ -687,6 +713,8 @@ class MqttPublisher:
         # One publish at a time: measured faster with aiomqtt 2.5 than gathered batches
         # (~1000-1600 QoS 1 messages/s on loopback), and the order on the wire is the outbox's.
         while True:
+            if self._stopping and time.monotonic() >= self._stop_deadline:
+                return  # out of time: the rest stays in the outbox (the daemon spools it)
             batch = self.outbox.peek(1)
             if not batch:
                 if self._stopping:
@@ -719,8 +747,10 @@ class MqttPublisher:
         self._status_due = True
         self._wake.set()
 
-    def stop(self) -> None:
-        """Ask ``run()`` to deliver the outbox, publish ``offline`` and return."""
+    def stop(self, timeout_s: float = float("inf")) -> None:
+        """Ask ``run()`` to deliver the outbox within ``timeout_s``, publish ``offline`` and
+        return; reconnects keep their backoff meanwhile (see :meth:`_backoff`)."""
+        self._stop_deadline = time.monotonic() + timeout_s
         self._stopping = True
         self._wake.set()
         self._stop_event.set()

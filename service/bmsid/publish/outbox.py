@@ -8,14 +8,29 @@ A broker outage of minutes leaves tens of thousands of messages here. Held as ob
 one more object that every full garbage collection walks on the event loop (~1 ms per 3k);
 held as exact tuples of strings, bytes and numbers, the collector stops tracking them after
 its first pass, so a long backlog costs a full collection nothing.
+
+What a shutdown cannot deliver is spooled (:func:`save_spool`): one file in the state
+directory, written atomically and fsync'd, holding at most the outbox's ``maxsize`` messages
+(``mqtt.outbox_size``; ~0.5 kB each). The next start puts them in the outbox before any new
+message (:func:`load_spool`), so a subscriber sees every ``seq`` in order, or a gap that
+``mqtt_drops`` counts.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
+import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
+
+from bmsid.daemon.statedir import atomic_write, quarantine
+
+log = logging.getLogger(__name__)
+#: Version of the spool file's first line.
+SPOOL_FORMAT = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,6 +58,8 @@ class Outbox:
             raise ValueError("outbox maxsize must be >= 1")
         self.maxsize = maxsize
         self.dropped = 0
+        #: messages that ever left the head of the outbox (delivered or dropped)
+        self.taken = 0
         self._q: deque[_Row] = deque()
         self._nonempty = asyncio.Event()
 
@@ -53,6 +70,7 @@ class Outbox:
         if len(self._q) >= self.maxsize:
             self._q.popleft()
             self.dropped += 1
+            self.taken += 1
         self._q.append(_row(msg))
         self._nonempty.set()
 
@@ -64,6 +82,7 @@ class Outbox:
         """Remove the ``n`` oldest messages (those just delivered)."""
         for _ in range(min(n, len(self._q))):
             self._q.popleft()
+            self.taken += 1
         if not self._q:
             self._nonempty.clear()
 
@@ -74,6 +93,7 @@ class Outbox:
             if self._q and self._q[0] == _row(msg):
                 self._q.popleft()
                 n += 1
+        self.taken += n
         if not self._q:
             self._nonempty.clear()
         return n
@@ -81,3 +101,70 @@ class Outbox:
     async def wait(self) -> None:
         """Return once the outbox holds a message."""
         await self._nonempty.wait()
+
+
+def encode_spool(pack_id: str, messages: list[OutMessage]) -> bytes:
+    """The spool file: a JSON header line, then one JSON array per message (topic, qos, retain,
+    payload as Latin-1 text: any bytes round-trip). Sample times are not kept: monotonic
+    clocks do not survive a restart."""
+    head = {"bmsid_spool": SPOOL_FORMAT, "pack_id": pack_id, "messages": len(messages)}
+    lines = [json.dumps(head)]
+    lines += [json.dumps([m.topic, m.qos, m.retain, m.payload.decode("latin-1")]) for m in messages]
+    return ("\n".join(lines) + "\n").encode("utf-8")
+
+
+def decode_spool(data: bytes, pack_id: str) -> tuple[list[OutMessage], int, str | None]:
+    """(messages, messages announced, problem): the valid prefix of a spool file, how many
+    its header announced (0 when there is no header), and what is wrong with it (None)."""
+    lines = data.decode("utf-8", errors="replace").splitlines()
+    try:
+        head = json.loads(lines[0]) if lines else None
+    except json.JSONDecodeError:
+        head = None
+    if not isinstance(head, dict) or head.get("bmsid_spool") != SPOOL_FORMAT:
+        return [], 0, "no spool header"
+    if head.get("pack_id") != pack_id:
+        return [], 0, f"spooled for pack {head.get('pack_id')!r}"
+    announced = head.get("messages")
+    if not isinstance(announced, int) or announced < 0:
+        return [], 0, "bad message count in the header"
+    out: list[OutMessage] = []
+    for k, line in enumerate(lines[1:], 2):
+        try:
+            topic, qos, retain, payload = json.loads(line)
+            if not (
+                isinstance(topic, str)
+                and qos in (0, 1, 2)
+                and isinstance(retain, bool)
+                and isinstance(payload, str)
+            ):
+                raise ValueError("bad field")
+            out.append(OutMessage(topic, payload.encode("latin-1"), qos, retain))
+        except (ValueError, UnicodeEncodeError):
+            return out, announced, f"line {k} is damaged"
+    if len(out) != announced:
+        return out, announced, f"{len(out)} of {announced} messages (truncated)"
+    return out, announced, None
+
+
+def save_spool(path: Path, pack_id: str, messages: list[OutMessage]) -> None:
+    """Write ``messages`` to the spool file at ``path`` atomically (raises OSError)."""
+    data = encode_spool(pack_id, messages)
+    atomic_write(path, lambda fh: fh.write(data))
+
+
+def load_spool(path: Path, pack_id: str) -> tuple[list[OutMessage], int]:
+    """(messages, lost): the spooled messages (none without a file) and how many of those its
+    header announced could not be read back. A damaged file is quarantined (one WARNING line)
+    after its readable prefix is taken; the file itself stays until they are delivered."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return [], 0
+    except OSError as exc:
+        quarantine(path, "MQTT spool", f"unreadable: {exc.strerror or exc}")
+        return [], 0
+    messages, announced, problem = decode_spool(data, pack_id)
+    if problem is not None:
+        quarantine(path, "MQTT spool", f"{problem}; {len(messages)} messages recovered")
+    return messages, max(0, announced - len(messages))

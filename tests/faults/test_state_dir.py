@@ -1,0 +1,339 @@
+"""Faults of the state directory (issue 16, cases 3 and 5): each leaves the daemon starting
+fresh or refusing with one line, never a traceback, and no MQTT ``seq`` published twice.
+
+Runs in ~15 s: the checkpoint cases drive the bank host directly (what the daemon's worker
+runs at start); the refusals run ``bmsid run`` as a gateway does (a few seconds each).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+import pytest
+
+from bmsid.cli.main import main
+from bmsid.config.cell import paper_cell
+from bmsid.daemon import bank_worker
+from bmsid.daemon.bank_worker import BankHost, BankSpec
+from bmsid.daemon.checkpoint import CheckpointKey, save_checkpoint
+from bmsid.daemon.statedir import StateLock
+from bmsid.estimate.tuning import EstimatorTuning
+from bmsid.samples import Sample, SampleBlock
+
+REPO = Path(__file__).resolve().parents[2]
+N_CELLS = 4
+
+
+def _spec(state: Path, **kw: Any) -> BankSpec:
+    base: dict[str, Any] = {
+        "cell": paper_cell(),
+        "n_cells": N_CELLS,
+        "variant": "hy-affrls",
+        "tuning": EstimatorTuning(),
+        "soc0": 0.8,
+        "restore": True,
+        "ckpt_path": state / "p.ckpt.npz",
+        "ckpt_key": CheckpointKey("p", N_CELLS, "h"),
+        "pack_id": "p",
+        "topic_prefix": "bmsid",
+        "mqtt_enabled": True,
+        "qos": 1,
+        "publish_period_s": 0.0,
+    }
+    return BankSpec(**(base | kw))
+
+
+def _samples(t0: float, n: int) -> SampleBlock:
+    rng = np.random.default_rng(int(t0))
+    out = []
+    for k in range(n):
+        t = t0 + k
+        i = 60.0 * np.sin(t / 9.0) + 30.0 * np.sign(np.sin(t / 37.0))
+        v = 3.7 - 0.002 * i + rng.normal(0.0, 5e-4, N_CELLS)
+        out.append(Sample(t_s=t, current_A=float(i), cell_voltages_V=v))
+    return SampleBlock.from_samples(out)
+
+
+def _seqs(messages: list[Any]) -> list[int]:
+    return [json.loads(m.payload)["seq"] for m in messages]
+
+
+def _warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def _ran_and_checkpointed(state: Path) -> BankHost:
+    host = BankHost(_spec(state))
+    host.start()
+    host.update(_samples(0.0, 30))
+    host.checkpoint(clean=True)
+    return host
+
+
+def _assert_quarantined(state: Path, caplog: pytest.LogCaptureFixture, why: str) -> Path:
+    """The checkpoint moved aside with one WARNING line naming why and where it went."""
+    moved = sorted(state.glob("p.ckpt.npz.bad-*"))
+    assert len(moved) == 1, sorted(p.name for p in state.iterdir())
+    assert not (state / "p.ckpt.npz").exists()
+    lines = _warnings(caplog)
+    assert len(lines) == 1, lines
+    assert why in lines[0] and moved[0].name in lines[0] and "starting fresh" in lines[0]
+    return moved[0]
+
+
+def _rewrite_checkpoint(state: Path, change: Callable[[dict[str, Any]], None]) -> None:
+    """Load the checkpoint's arrays, ``change`` them, save them again under the same key."""
+    path = state / "p.ckpt.npz"
+    with np.load(path, allow_pickle=False) as npz:
+        header = json.loads(str(npz["__header__"]))
+        scalars = json.loads(str(npz["__scalars__"]))
+        flat = {k: npz[k] for k in npz.files if not k.startswith("__")}
+    change(flat)
+    state_dict: dict[str, Any] = {}
+    for key, value in {**flat, **scalars}.items():
+        *parents, leaf = key.split("/")
+        node = state_dict
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    save_checkpoint(path, CheckpointKey("p", N_CELLS, "h"), state_dict, header["extra"])
+
+
+def test_zero_byte_checkpoint_is_moved_aside_and_the_start_is_fresh(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    (tmp_path / "p.ckpt.npz").write_bytes(b"")
+    with caplog.at_level(logging.WARNING):
+        info = BankHost(_spec(tmp_path)).start()  # raised EOFError at every start before
+    assert not info.restored and info.seq == 0
+    moved = _assert_quarantined(tmp_path, caplog, "unreadable")
+    assert moved.read_bytes() == b""  # kept for a post-mortem, as it was
+
+
+def test_truncated_checkpoint_is_moved_aside_and_seq_continues(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    before = _ran_and_checkpointed(tmp_path)
+    path = tmp_path / "p.ckpt.npz"
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with caplog.at_level(logging.WARNING):
+        info = BankHost(_spec(tmp_path)).start()
+    assert not info.restored
+    assert info.seq == before.seq  # the numbering does not depend on the checkpoint
+    _assert_quarantined(tmp_path, caplog, "unreadable")
+
+
+def test_nan_checkpoint_is_moved_aside_not_restored(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    before = _ran_and_checkpointed(tmp_path)
+
+    def poison(flat: dict[str, Any]) -> None:
+        flat["params/R0"] = np.full_like(flat["params/R0"], np.nan)
+
+    _rewrite_checkpoint(tmp_path, poison)
+    with caplog.at_level(logging.WARNING):
+        host = BankHost(_spec(tmp_path))
+        info = host.start()
+    assert not info.restored and info.seq == before.seq
+    _assert_quarantined(tmp_path, caplog, "non-finite values in params/R0")
+    # the fresh state publishes numbers, not nulls, and nothing invented: seq continues
+    messages = host.update(_samples(100.0, 5)).messages
+    assert _seqs(messages) == list(range(before.seq, before.seq + 5 * (N_CELLS + 1)))
+    assert json.loads(messages[0].payload)["R0_ohm"] is not None
+
+
+def test_inconsistent_checkpoint_is_moved_aside(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    _ran_and_checkpointed(tmp_path)
+
+    def drop_a_cell(flat: dict[str, Any]) -> None:
+        flat["params/R0"] = flat["params/R0"][:-1]
+
+    _rewrite_checkpoint(tmp_path, drop_a_cell)
+    with caplog.at_level(logging.WARNING):
+        info = BankHost(_spec(tmp_path)).start()
+    assert not info.restored
+    _assert_quarantined(tmp_path, caplog, "inconsistent")
+
+
+def test_a_nan_state_is_never_checkpointed(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    host = _ran_and_checkpointed(tmp_path)
+    good = (tmp_path / "p.ckpt.npz").read_bytes()
+    state = host.bank.state_dict()
+    state["params"]["R0"][:] = np.nan  # a lost state, however it came about
+    host.bank.load_state_dict(state)
+    with caplog.at_level(logging.WARNING):
+        counters = host.checkpoint()
+        host.checkpoint()
+    assert (tmp_path / "p.ckpt.npz").read_bytes() == good  # the last good one is kept
+    assert counters["checkpoints_refused"] == 1 and host.counters["checkpoints_refused"] == 2
+    lines = _warnings(caplog)
+    assert len(lines) == 1 and "params/R0" in lines[0], lines  # not one per checkpoint
+    assert BankHost(_spec(tmp_path)).start().restored
+
+
+@contextlib.contextmanager
+def _read_only(path: Path, missing: Callable[[str], NoReturn]) -> Iterator[None]:
+    """``path`` read-only for this process: chmod for a user, a read-only bind mount for
+    root (whom permissions do not stop); EROFS then, as on a file system remounted ro."""
+    if os.geteuid() != 0:
+        path.chmod(0o555)
+        try:
+            yield
+        finally:
+            path.chmod(0o755)
+        return
+    cmd = ["mount", "--bind", "-o", "ro", str(path), str(path)]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False, timeout=30)
+    if done.returncode != 0:
+        missing(f"a read-only directory: {' '.join(cmd)} failed: {done.stderr.strip()}")
+    try:
+        yield
+    finally:
+        subprocess.run(["umount", str(path)], check=True, timeout=30)
+
+
+def test_state_dir_read_only_mid_run_never_publishes_a_seq_twice(
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+    real_part_missing: Callable[[str], NoReturn],
+) -> None:
+    # Small blocks, so that reservations fall due within the test (normally 100,000).
+    monkeypatch.setattr(bank_worker, "SEQ_BLOCK", 40)
+    published: list[int] = []
+    first = BankHost(_spec(tmp_path))
+    first.start()
+    published += _seqs(first.update(_samples(0.0, 10)).messages)
+    withheld = 0
+    with _read_only(tmp_path, real_part_missing), caplog.at_level(logging.WARNING):
+        more = first.update(_samples(10.0, 20))  # its reservation falls due and fails
+        published += _seqs(more.messages)
+        withheld += more.counters["mqtt_withheld"]
+        assert withheld > 0 and more.counters["seq_file_errors"] >= 1
+        # crash, then two restarts on the read-only directory
+        for k in range(2):
+            host = BankHost(_spec(tmp_path))
+            host.start()
+            out = host.update(_samples(100.0 * (k + 1), 10))
+            published += _seqs(out.messages)
+            withheld += out.counters["mqtt_withheld"]
+    assert len(published) == len(set(published)), "a seq was published twice"
+    assert withheld >= 2 * 10 * (N_CELLS + 1)  # the restarts published nothing unreserved
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert errors and all("withheld" in e for e in errors)
+    # writable again: the numbering resumes above everything published
+    again = BankHost(_spec(tmp_path))
+    again.start()
+    after = _seqs(again.update(_samples(400.0, 5)).messages)
+    assert min(after) > max(published)
+
+
+def _config(tmp_path: Path, state: Path, port: int) -> Path:
+    path = tmp_path / "bmsid.toml"
+    path.write_text(
+        f"""pack_id = "faultpack"
+systemd_notify = false
+[can]
+interface = "virtual"
+channel = "statedir-{tmp_path.name}"
+n_cells = 8
+[mqtt]
+url = "mqtt://127.0.0.1:{port}"
+[state]
+directory = "{state}"
+""",
+        encoding="utf-8",
+    )
+    return path
+
+
+def _bmsid(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(REPO / "service")}
+    return subprocess.run(
+        [sys.executable, "-m", "bmsid.cli.main", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+        check=False,
+    )
+
+
+def test_read_only_state_dir_refuses_every_start_with_one_line(
+    tmp_path: Path,
+    mosquitto_broker: Any,
+    require_tool: Callable[[str], str],
+    real_part_missing: Callable[[str], NoReturn],
+) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    sub = tmp_path / "sub.txt"
+    with sub.open("wb") as fh:
+        watcher = subprocess.Popen(
+            [require_tool("mosquitto_sub"), "-p", str(mosquitto_broker.port), "-t", "bmsid/#"],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+        )
+    try:
+        with _read_only(state, real_part_missing):
+            config = _config(tmp_path, state, mosquitto_broker.port)
+            runs = [_bmsid("run", "--config", str(config)) for _ in range(2)]
+    finally:
+        watcher.terminate()
+        watcher.wait(10)
+    for done in runs:
+        assert done.returncode == 2, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1, done.stderr  # one line, no traceback
+        assert "state.directory" in lines[0] and "not writable" in lines[0]
+        assert "Read-only file system" in lines[0] or "Permission denied" in lines[0]
+    assert sub.read_bytes() == b""  # nothing published, so no seq published twice
+
+
+def test_check_config_reports_a_read_only_state_dir(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    real_part_missing: Callable[[str], NoReturn],
+) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    config = _config(tmp_path, state, 1883)
+    assert main(["check-config", str(config)]) == 0
+    capsys.readouterr()
+    with _read_only(state, real_part_missing):
+        code = main(["check-config", str(config)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "state.directory" in err[0] and str(state) in err[0], err
+
+
+def test_second_daemon_on_the_same_state_dir_refuses_with_one_line(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    config = _config(tmp_path, state, 1)
+    held = StateLock.acquire(state, "faultpack")  # the first daemon (this process)
+    try:
+        done = _bmsid("run", "--config", str(config))
+    finally:
+        held.release()
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert f"another bmsid (pid {os.getpid()})" in lines[0] and "faultpack" in lines[0]
+    assert not (state / "faultpack.seq").exists()  # it touched nothing
+    # once released, the lock is free (a daemon killed with SIGKILL releases it too)
+    StateLock.acquire(state, "faultpack").release()
