@@ -287,7 +287,10 @@ class Settings(BaseSettings):
     mqtt: MqttSettings = MqttSettings()
     state: StateSettings = StateSettings()
     status_period_s: float = Field(10.0, gt=0.0)
-    """Counters go to the status topic and the log this often, s."""
+    """Counters go to the status topic this often, s."""
+    log_period_s: float = Field(300.0, gt=0.0)
+    """A counters line goes to the log (INFO) this often, s: the journal shows a healthy
+    daemon without filling up."""
     systemd_notify: bool = True
     """Send READY/WATCHDOG/STOPPING to $NOTIFY_SOCKET when systemd set one."""
 
