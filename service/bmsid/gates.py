@@ -22,11 +22,13 @@ Per sample: ``i_window``, the pack current beyond ``+-i_max_A`` (default
 state out), vectorised: a block whose cells all pass is checked in a handful of array
 operations; only the cells with a refused reading are walked sample by sample from their first
 refusal (the step check compares with the last *accepted* reading, which a refusal changes).
-:class:`InputGate` holds the state for the daemon's worker and offline identification.
+:class:`InputGate` holds the state for the daemon's worker and offline identification, and
+says what it refused in thinned log lines.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Self
 
@@ -39,12 +41,16 @@ from bmsid.samples import SampleBlock
 if TYPE_CHECKING:  # attributes only: the daemon's parent process never loads the engine
     from bmsid.estimate.cellmodel import CellModel
 
+log = logging.getLogger(__name__)
+
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
 
 #: Why a cell's reading was refused (counted per cell).
 VOLTAGE_REASONS = ("v_window", "v_step")
+#: The totals in the daemon's flat counters (:meth:`GateState.counters`).
+GATE_COUNTERS = ("gated_v_window", "gated_v_step", "gated_i_window")
 
 
 class GateConfig(BaseModel):
@@ -183,9 +189,12 @@ class GateState:
 
     def counters(self) -> dict[str, int]:
         """Totals over the cells, for the daemon's flat counters."""
-        out = {f"gated_{k}": int(v.sum()) for k, v in self.refused.items()}
-        out["gated_i_window"] = self.i_refused
-        return out
+        v_window, v_step, i_window = GATE_COUNTERS
+        return {
+            v_window: int(self.refused["v_window"].sum()),
+            v_step: int(self.refused["v_step"].sum()),
+            i_window: self.i_refused,
+        }
 
     def report(self) -> dict[str, Any]:
         """JSON-ready: refusals per reason and cell, missing and no-data cells."""
@@ -270,7 +279,9 @@ def _walk(
 
 
 class InputGate:
-    """The gates with their state, for one stream of blocks (daemon worker, offline run).
+    """The gates with their state, for one stream of blocks (daemon worker, offline run), and
+    the log lines a user reads: per cell and reason at the 1st, 10th, 100th, ... refusal, and
+    once the cells that never appeared, ``step_max_age_s`` of data after the first sample.
 
     Args:
         limits: what is plausible (:meth:`GateConfig.limits`).
@@ -280,7 +291,47 @@ class InputGate:
     def __init__(self, limits: GateLimits, n_cells: int) -> None:
         self.limits = limits
         self.state = GateState.fresh(n_cells)
+        self._t_first: float | None = None
+        self._missing_told = False
 
     def apply(self, block: SampleBlock) -> SampleBlock:
-        out, self.state = gate_block(block, self.limits, self.state)
+        before = self.state
+        out, self.state = gate_block(block, self.limits, before)
+        self._tell(before, self.state, block)
         return out
+
+    def _tell(self, before: GateState, after: GateState, block: SampleBlock) -> None:
+        lim = self.limits
+        what = {
+            "v_window": f"outside the plausible {lim.v_min_V:.3f}..{lim.v_max_V:.3f} V",
+            "v_step": f"more than {lim.max_step_V:.3f} V from its last accepted reading",
+        }
+        for k in VOLTAGE_REASONS:
+            for c in np.flatnonzero(_decade(before.refused[k], after.refused[k])).tolist():
+                log.warning(
+                    "cell %d: voltage reading %s refused (%d so far, %s): the cell is missing "
+                    "for those samples, not estimated from them",
+                    c, what[k], int(after.refused[k][c]), k,
+                )  # fmt: skip
+        if _decade(np.array([before.i_refused]), np.array([after.i_refused]))[0]:
+            log.warning(
+                "pack current beyond +-%g A refused (%d samples so far, i_window): the "
+                "previous current is held for those samples",
+                lim.i_max_A, after.i_refused,
+            )  # fmt: skip
+        if len(block) and not self._missing_told:
+            if self._t_first is None:
+                self._t_first = float(block.t_s[0])
+            if float(block.t_s[-1]) - self._t_first >= lim.step_max_age_s and after.missing:
+                self._missing_told = True
+                log.warning(
+                    "cells %s (0-based) configured but never on the bus: reported as "
+                    "missing_cells, not published as cells (check can.n_cells)",
+                    ", ".join(map(str, after.missing)),
+                )
+
+
+def _decade(before: IntArray, after: IntArray) -> BoolArray:
+    """Where a count crossed 1, 10, 100, ... (the thinning of repeated log lines)."""
+    digits_before = np.where(before > 0, np.floor(np.log10(np.maximum(before, 1))) + 1, 0)
+    return np.asarray(np.floor(np.log10(np.maximum(after, 1))) + 1 > digits_before) & (after > 0)
