@@ -95,14 +95,14 @@ class CoulombState:
     def step(self, ctx: TickContext) -> None:
         tick = ctx.tick
         m = self.model
-        if self._pending.any():
-            self._start(tick, self._pending)
         for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
         ip = tick.i_prev_A
         if tick.dt_s > 0:
             kappa = self._kappa_charge if ip < 0 else self._kappa_discharge
             self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
+        if self._pending.any():  # after the count: a cell's SOC is that of its start sample
+            self._start(tick, self._pending)
         ocv = m.ocv
         zc = np.minimum(np.maximum(self.z, ocv.soc_min), ocv.soc_max)
         ctx.soc_clamped = zc
