@@ -51,6 +51,7 @@ from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
 from bmsid.daemon.statedir import StateLock, check_writable
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
+from bmsid.gates import GATE_COUNTERS
 from bmsid.publish import payloads
 from bmsid.publish.discovery import discovery_messages
 from bmsid.publish.mqtt import MqttPublisher
@@ -133,6 +134,7 @@ class Daemon:
             qos=m.qos,
             publish_period_s=m.publish_period_s,
             keep_all_estimates=on_estimates is not None,
+            gates=settings.gates,
         )
         #: the bank's counters (samples, ticks, swarms, ...) as of its latest batch
         self.bank_counters: dict[str, int] = dict.fromkeys(("samples", "ticks", "swarms"), 0)
@@ -140,6 +142,8 @@ class Daemon:
         self.prefix = settings.mqtt.topic_prefix
         self.sd = SdNotifier(settings.systemd_notify)
         self.latest: Estimates | None = None
+        #: what the plausibility gates refused per cell, missing and no-data cells (status)
+        self.inputs: dict[str, object] | None = None
         self.restored = False
         self.seq = 0
         self.can_state = "starting"
@@ -514,6 +518,7 @@ class Daemon:
                     )
                 self._last_sample_mono = time.monotonic()
                 self.seq = result.seq
+                self.inputs = result.inputs
                 jumps = self.bank_counters.get("time_jumps_back", 0)
                 self.bank_counters.update(result.counters)
                 if self.bank_counters.get("time_jumps_back", 0) > jumps:
@@ -611,6 +616,7 @@ class Daemon:
                 uptime_s=time.monotonic() - self._t_start,
                 counters=self.snapshot(),
                 version=__version__,
+                inputs=self.inputs,
                 mqtt=(
                     {"state": self.mqtt.state, "last_error": self.mqtt.last_error}
                     if self.mqtt is not None
@@ -632,6 +638,7 @@ class Daemon:
             "ticks": self.bank_counters["ticks"],
             "swarms": self.bank_counters["swarms"],
             "time_jumps_back": self.bank_counters.get("time_jumps_back", 0),
+            **{k: self.bank_counters.get(k, 0) for k in GATE_COUNTERS},
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],
             "can_reopens": self.counters["can_reopens"],
