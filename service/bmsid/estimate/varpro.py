@@ -122,18 +122,20 @@ def fit_linear(
     return LinearFit(theta=theta, rmse_V=rmse, x_last=x_last, cov=cov5)
 
 
-def fixed_fit(
+def fixed_rmse(
     w: Window, tau1_s: float, tau2_s: float, theta: FloatArray, weights: FloatArray
-) -> tuple[float, FloatArray]:
-    """One fixed parameter set on the window: theta (5,) physical (R0, R1, R2 > 0 ohm, hysteresis
-    scale, offset V) at (tau1_s, tau2_s), only the two branch voltages at the window start solved
-    for (as in :func:`fit_linear`). Returns (weighted RMSE, V; the unit-gain branch states x1,
-    x2 at the last tick, A, the initial voltages included). What a clipped swarm result really
-    gives, to compare it with the parameters in force before they are replaced."""
+) -> float:
+    """Weighted window RMSE (V) of one fixed parameter set: theta (5,) physical (R0, R1, R2 ohm,
+    hysteresis scale, offset V) at (tau1_s, tau2_s), only the two branch voltages at the window
+    start solved for (as in :func:`fit_linear`). What a clipped swarm result really gives, to
+    compare it with the parameters in force before they are replaced."""
     n_w = w.current_A.shape[0]
     a1, a2 = float(rc_decay(w.dt_s, tau1_s)), float(rc_decay(w.dt_s, tau2_s))
-    x1, x2 = rc_filter(w.current_A, a1), rc_filter(w.current_A, a2)
-    pred = -theta[0] * w.current_A - theta[1] * x1 - theta[2] * x2
+    pred = (
+        -theta[0] * w.current_A
+        - theta[1] * rc_filter(w.current_A, a1)
+        - theta[2] * rc_filter(w.current_A, a2)
+    )
     if w.use_hysteresis:
         pred = pred + theta[3] * w.hm_V
     if w.use_offset:
@@ -144,10 +146,6 @@ def fixed_fit(
     Bw = B * weights[:, None]
     c = np.linalg.solve(B.T @ Bw + 1e-12 * np.eye(2), Bw.T @ r)
     res = r - B @ c
-    rmse = float(
+    return float(
         np.sqrt(max(float(res @ (res * weights)), 0.0) / max(float(weights.sum()), 1e-300))
     )
-    # the start voltage of branch j is U_j0 = -c_j (see fit_linear): x_j0 = -c_j / R_j
-    x_end = np.array([x1[-1] - c[0] / theta[1] * a1 ** (n_w - 1),
-                      x2[-1] - c[1] / theta[2] * a2 ** (n_w - 1)])  # fmt: skip
-    return rmse, x_end
