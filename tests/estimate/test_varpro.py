@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -58,17 +59,18 @@ def test_fixed_rmse_at_the_linear_optimum_is_the_optimum(
 
 
 def test_a_swarm_result_worse_than_the_parameters_in_force_is_not_applied() -> None:
-    """A fused cell and a 'finished swarm' whose optimum is far off (both poles at the lower
-    tau bound): the fusion keeps its poles, R and states, and counts the refusal; the same result
-    on a cell not yet fused is applied (there is nothing better to keep)."""
+    """A fused cell and a 'finished swarm' whose optimum is far off (two equal poles at the
+    fast branch's upper bound: 300x worse on the window, beyond swarm_reject_ratio): the
+    fusion keeps its poles, R and states, and counts the refusal; the same result on a cell not
+    yet fused is applied (there is nothing better to keep)."""
     run = paper_dst_case(900)
     bank = build_bank(run.cell, 1, "hy-affrls-lpso", FAST, soc0=0.98)
     bank.update_block(SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V))
     stage = bank.params
     assert isinstance(stage, FusionStage) and stage.fused[0]
     before = {k: np.array(getattr(stage, k)) for k in ("tau1", "tau2", "theta", "x1", "x2")}
-    lo, _ = stage._tau_box(0)
-    bad = np.log(lo)
+    lo, hi = stage._tau_box(0)
+    bad = np.log([0.99 * hi[0], hi[0]])
     rng = np.random.default_rng(0)
     swarm = lpso.swarm_init(np.log(lo), np.log(lo) + 1.0, 2, 1, rng, seeds=bad[None, :])
     swarm = replace(swarm, gbest=bad, gbest_f=1e-3)
@@ -81,4 +83,4 @@ def test_a_swarm_result_worse_than_the_parameters_in_force_is_not_applied() -> N
         np.testing.assert_array_equal(getattr(stage, k), v, err_msg=k)
     stage.fused[0] = False
     stage._apply_swarm(0, cs)
-    assert stage.fused[0] and stage.tau1[0] == lo[0]
+    assert stage.fused[0] and stage.tau2[0] == pytest.approx(hi[0])

@@ -69,6 +69,18 @@ def test_calce_nmc_within_6_mV(real_data_dir: Path, profile: str, temp: int) -> 
 
 
 @pytest.mark.slow
+def test_a_swarm_result_with_a_tiny_resistance_does_not_step_the_model(real_data_dir: Path) -> None:
+    """CALCE US06 45 C with the observer updating every 60 s: one swarm's window fit had R2 in
+    (0, its lower bound); applied clipped with the fit's branch state (the start voltage over
+    the tiny R2), the model voltage stepped by 284 mV at once and the run scored 59.7 mV. The
+    fusion now keeps that branch's voltage (estimate/fusion.py, _apply_swarm)."""
+    path = real_data_dir / "calce_inr18650-20r" / "calce_inr18650-20r_45C_US06_80soc.csv.gz"
+    cfg = CELLS / "calce_inr18650_20r_45C.toml"
+    tuning = EstimatorTuning(observer=ObserverTuning(update_period_s=60.0))
+    assert _rmse(path, cfg, "hy-affrls-lpso", 0.8, soc0=0.8, tuning=tuning) <= 6e-3
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["dfn_nmc_dst_15C", "dfn_nmc_bbdst_35C"])
 def test_physics_fusion_within_10_mV_and_best(name: str) -> None:
     """OCV fitted by fit-ocv from the C/20 test (configs/cells/dfn_nmc_lgm50_25C.toml)."""

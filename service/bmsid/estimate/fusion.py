@@ -303,16 +303,14 @@ class FusionStage:
         fit = fit_linear(
             window, taus[:1], taus[1:], sc, weights, self._offset_prior(c), with_cov=True
         )
-        # What is applied is clipped to the bounds: judged as applied, against the parameters in
-        # force, on the same window. An optimum whose linear part left the bounds can be far
-        # worse once clipped (measured, CALCE US06 45 C with 60 s observer updates: R2 at its
-        # lower bound, 284 mV of model error at once; 7 of 18 swarms refused there).
-        cand = np.clip(fit.theta[0], self._lin_lo[c], self._lin_hi[c])
+        # A result far worse on the window than the parameters in force is a wrong optimum: the
+        # cell keeps what it has (judged as applied: linear part clipped to the bounds).
         if self.fused[c]:
+            cand = np.clip(fit.theta[0], self._lin_lo[c], self._lin_hi[c])
             new_rmse = fixed_rmse(window, float(taus[0]), float(taus[1]), cand, weights)
             now = self.theta[c] * sc
             old_rmse = fixed_rmse(window, float(self.tau1[c]), float(self.tau2[c]), now, weights)
-            if not new_rmse <= old_rmse:
+            if not new_rmse <= tun.swarm_reject_ratio * old_rmse:
                 self.counters["swarms_rejected"] += 1
                 return
         self.tau1[c], self.tau2[c] = taus
@@ -328,7 +326,14 @@ class FusionStage:
         elif tr > tun.trace_max:
             P = P * (tun.trace_max / tr)
         self.P[c] = fusion_covariance(P)
-        self.x1[c], self.x2[c] = fit.x_last[0]
+        # The branch states are the fit's: x = x_unit - (c / R) a^k carries its start voltage
+        # c. Where the fit's R1 or R2 lies in (0, lower bound), x is that voltage over a tiny R
+        # and the clipped R would multiply it (measured, CALCE US06 45 C with 60 s observer
+        # updates: R2 clipped up ~100x, 284 mV of model error at once): there the branch
+        # voltage R x of the fit is kept instead.
+        r_fit, r_lo = fit.theta[0, 1:3], self._lin_lo[c, 1:3]
+        amplified = (r_fit > 0) & (r_fit < r_lo)
+        self.x1[c], self.x2[c] = np.where(amplified, fit.x_last[0] * r_fit / r_lo, fit.x_last[0])
         self.fused[c] = True
 
     # ------------------------------------------------------------------ protocol

@@ -90,6 +90,12 @@ class EstimatorTuning(BaseModel):
     """A swarm starts only when the window holds this many current changes of at least
     ``excitation_C``: a drive has hundreds, a constant-current charge one, whose step response
     cannot be told from the hysteresis swing and the OCV slope that follow it."""
+    swarm_reject_ratio: float = Field(2.0, gt=1.0)
+    """A finished swarm is not applied when its result, as applied (linear part clipped to the
+    bounds), fits the window more than this many times worse (RMS) than the parameters in
+    force. The swarm ranks candidates on the window it was started with and the result is
+    judged on the window at its end, so up to ~1.5x happens with good results (A123 DYN50:
+    0.67-1.6x, one 4.5x); a wrong optimum is far worse."""
     swarm_period_s: float = Field(600.0, gt=0.0)
     """A swarm starts every this many seconds per cell (cells of a bank are staggered)."""
     n_particles: int = Field(12, ge=4, le=200)
