@@ -30,7 +30,7 @@ from bmsid.daemon import bank_worker
 from bmsid.daemon.bank_worker import BankHost, BankSpec
 from bmsid.daemon.checkpoint import CheckpointKey, save_checkpoint
 from bmsid.daemon.core import Daemon
-from bmsid.daemon.statedir import StateLock
+from bmsid.daemon.statedir import StateLock, remove_stale_temps
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.publish.outbox import Outbox, OutMessage, encode_spool
@@ -456,3 +456,17 @@ def test_state_dir_failing_mid_run_shows_in_health_and_status(
     daemon._merge_bank_counters(cleared)
     assert not daemon._health(est) & HEALTH_STATE_DIR
     assert json.loads(daemon._online_payload())["state_dir"] == "ok"
+
+
+def test_temp_files_of_a_killed_writer_are_removed_at_the_next_start(tmp_path: Path) -> None:
+    # A worker killed mid-write (with its daemon) leaves atomic_write's temp file behind.
+    settings = make_settings(tmp_path, None)
+    state = settings.state.directory
+    state.mkdir()
+    daemon = Daemon(settings)
+    left = [state / f".{p.name}.4242.tmp" for p in daemon._state_files()]
+    other = [state / ".testpack.seq.seq.4242.tmp", state / ".testpack.seq.x.tmp"]
+    for path in left + other:  # another pack's ("testpack.seq"), a name not atomic_write's
+        path.write_bytes(b"torn")
+    assert remove_stale_temps(state, (p.name for p in daemon._state_files())) == 3
+    assert sorted(p.name for p in state.iterdir()) == sorted(p.name for p in other)

@@ -48,7 +48,7 @@ from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
-from bmsid.daemon.statedir import StateLock, check_writable
+from bmsid.daemon.statedir import StateLock, check_writable, remove_stale_temps
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
 from bmsid.publish import payloads
@@ -199,6 +199,7 @@ class Daemon:
         check_writable(directory)
         lock = StateLock.acquire(directory, self.settings.pack_id)
         try:
+            remove_stale_temps(directory, (p.name for p in self._state_files()))
             return await self._run_locked()
         finally:
             lock.release()
@@ -289,6 +290,10 @@ class Daemon:
         log.info("stopped: %s", self._counter_line())
 
     # ------------------------------------------------------------------ MQTT spool
+    def _state_files(self) -> tuple[Path, ...]:
+        """The pack's files in the state directory that are written atomically."""
+        return (self.ckpt_path, self.bank_spec.seq_path, self.spool_path)
+
     def _load_spool(self, outbox: Outbox) -> None:
         """Put the messages the last stop could not deliver in the outbox, before any new."""
         messages, lost = load_spool(self.spool_path, self.settings.pack_id)
