@@ -141,7 +141,8 @@ def main() -> int:
         w = "" if r.case.score_soc0 is None else f"{1e3 * r.window_V:.2f}"
         print(f"| {r.case.label} | `{r.case.variant}` | {w} | {1e3 * r.whole_V:.2f} | "
               f"{1e3 * r.startup_V:.2f} | {1e3 * r.after_startup_V:.2f} | "
-              f"{', '.join(r.on_bound) or '-'} | {', '.join(r.published_on_bound) or '-'} |")  # fmt: skip
+              f"{', '.join(r.on_bound) or '-'} | "
+              f"{', '.join(r.published_on_bound) or '-'} |")  # fmt: skip
         if r.published_on_bound:
             failures += 1
             print(f"FAIL {r.case.label} {r.case.variant}: published on a bound")

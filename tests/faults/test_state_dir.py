@@ -355,9 +355,11 @@ def test_unreadable_seq_file_refuses_the_start_with_one_line(tmp_path: Path) -> 
     seq.write_bytes(b"12\x00garbage\n")  # torn by hand or a disk error: no number
     done = _bmsid("run", "--config", str(_config(tmp_path, state, 1)))
     assert done.returncode == 2, done.stderr
-    lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1, done.stderr  # one line, no traceback
-    assert f"sequence file {seq} is unreadable" in lines[0] and "not a number" in lines[0]
+    # the lifecycle's INFO lines (the start), then one line, no traceback, nothing else said
+    *info, refusal = done.stderr.strip().splitlines()
+    assert all(" INFO " in line for line in info), done.stderr
+    assert refusal.startswith("bmsid run: error: ") and "Traceback" not in done.stderr
+    assert f"sequence file {seq} is unreadable" in refusal and "not a number" in refusal
     assert seq.read_bytes() == b"12\x00garbage\n"  # left for the operator, not overwritten
     assert not (state / "faultpack.ckpt.npz").exists()  # nothing ran
 

@@ -3,9 +3,11 @@
 The output is TOML (environment overrides applied, relative paths resolved, defaults filled in)
 with secrets redacted (``password`` as ``**********``; ``password_file`` by its path, never its
 content); a bad file or override gets one line naming the field and exit code 2. The files the
-daemon will read are checked too: cell config, bus mapping, and with MQTT enabled the password
-file (readable, not empty) and the TLS files (CA, client certificate and its key); and the state
-directory must be writable (the daemon refuses to start otherwise), or creatable.
+daemon will read are checked too: cell config, bus mapping, a replay log, and with MQTT enabled
+the password file (readable, not empty) and the TLS files (CA, client certificate and its key);
+and the state directory must be writable (the daemon refuses to start otherwise), or creatable.
+A secret every local user can read (a config holding ``mqtt.password``, the password file, the
+client key) gets a ``# WARNING:`` line: the config is still valid.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 import tomli_w
 
 from bmsid.canbus.mapping import default_mapping, load_mapping
+from bmsid.cli.preflight import check_replay_log, secret_file_warnings
 from bmsid.config.settings import load_settings
 from bmsid.daemon.statedir import writable_problem
 from bmsid.errors import UserError
@@ -45,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
             f"{args.config}: field can.n_cells: {settings.can.n_cells} > "
             f"{mapping.max_cells()} cells the mapping {mapping.name!r} carries"
         )
+    check_replay_log(settings)
     problem = writable_problem(settings.state.directory)
     if problem is not None:
         raise UserError(
@@ -57,5 +61,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"# {args.config}: valid (environment overrides applied, secrets redacted)")
     if settings.mqtt.enabled and settings.mqtt.tls_insecure:
         print("# WARNING: mqtt.tls_insecure = true: the broker's certificate is not verified")
+    for warning in secret_file_warnings(args.config, settings):
+        print(f"# WARNING: {warning}")
     print(tomli_w.dumps(settings.redacted()), end="")
     return 0

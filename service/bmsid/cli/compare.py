@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from bmsid.cli.outputs import output_dir
 from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import Variant
@@ -184,9 +185,7 @@ def run(args: argparse.Namespace) -> int:
     configs = _configs(args.cell_config, len(args.datasets))
     soc0s = _soc0s(args.soc0, len(args.datasets))
     score_soc0s = _soc0s(args.score_soc0, len(args.datasets), "--score-soc0")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory")
+    out = output_dir(Path(args.out))  # before hours of identification, not after
     # Read everything first: a bad file fails before hours of identification.
     data: list[LoadedInput] = [
         read_csv_input(p, charge_positive=args.charge_positive) for p in args.datasets
@@ -196,7 +195,6 @@ def run(args: argparse.Namespace) -> int:
         for p, d in zip(args.datasets, data, strict=True)
     ]
     displays = unique_displays(labels)
-    out.mkdir(parents=True, exist_ok=True)
 
     rows: list[Table2Row] = []
     band_rows: list[SocBandRow] = []

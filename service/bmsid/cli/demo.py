@@ -20,8 +20,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
+from pydantic import ValidationError
 
-from bmsid.config.settings import Settings
+from bmsid.cli.outputs import output_dir, positive
+from bmsid.config.settings import ReplaySettings, Settings
 from bmsid.daemon import demo_data
 from bmsid.daemon.local_broker import start_mosquitto
 from bmsid.errors import UserError
@@ -154,12 +156,15 @@ async def _run_demo(
 def run(args: argparse.Namespace) -> int:
     # The daemon pulls in the estimator stack (scipy): imported only when the demo runs.
     core = importlib.import_module("bmsid.daemon.core")
-    if args.speed <= 0:
-        raise UserError(f"--speed must be > 0, got {args.speed}")
+    positive(args.speed, "--speed")
+    positive(args.duration_s, "--duration-s")
+    try:
+        ReplaySettings(log=demo_data.DEMO_LOG, speed=args.speed)
+    except ValidationError as exc:
+        raise UserError(f"--speed {args.speed:g}: {exc.errors()[0]['msg'].lower()}") from None
     if not demo_data.DEMO_LOG.exists():
         raise UserError(f"the bundled demo log is missing: {demo_data.DEMO_LOG}")
-    out_dir = args.out or Path(tempfile.mkdtemp(prefix="bmsid-demo-"))
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = output_dir(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bmsid-demo-"))
     broker = None if args.no_mqtt else start_mosquitto(out_dir)
     if broker is None:
         why = "--no-mqtt" if args.no_mqtt else "no mosquitto installed (apt install mosquitto)"

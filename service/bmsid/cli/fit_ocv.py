@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from bmsid.cli.outputs import output_dir, output_file
 from bmsid.config.cell import InitialParameters, ParameterBounds, Range, save_cell_config
 from bmsid.errors import UserError
 from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files, write_report
@@ -163,6 +164,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in (".toml", ".json"):
         raise UserError(f"--out {out}: use a .toml or .json file name")
+    output_file(out)
+    if args.report:
+        output_dir(Path(args.report), "--report")
     spec = OcvFitSpec(
         name=args.name or out.stem,
         chemistry=args.chemistry,

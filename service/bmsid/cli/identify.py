@@ -31,6 +31,7 @@ from typing import Literal
 
 from tqdm import tqdm
 
+from bmsid.cli.outputs import output_dir
 from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
@@ -209,13 +210,11 @@ def run(args: argparse.Namespace) -> int:
     check_soc0(args.soc0)
     columns = parse_columns(args.columns)
     cell, note = cell_config(args.cell_config, args.capacity_ah, _ocv_coeffs(args.ocv_coeffs))
+    out = output_dir(Path(args.out))  # before reading and identifying, not after
     source = open_input(
         args.input, charge_positive=args.charge_positive, mapping=args.mapping,
         n_cells=args.n_cells, channel=args.channel, columns=columns,
     )  # fmt: skip
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory")
     cell, derived_note, checks = _check_input(args, source, cell, tuning)
     note = derived_note or note
     if args.score_soc0 is not None:

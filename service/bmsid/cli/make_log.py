@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 from pathlib import Path
 from typing import Any
 
 from bmsid.canbus.logs import csv_to_messages, write_log
 from bmsid.canbus.mapping import default_mapping, load_mapping
+from bmsid.cli.outputs import output_file, positive
 from bmsid.errors import UserError
 
 
@@ -23,6 +25,10 @@ def load_csv(path: Path) -> Any:
     except ModuleNotFoundError as exc:
         raise UserError("the CSV reader (bmsid.offline.csvio) is not installed") from exc
     return csvio.read_tester_csv(path)
+
+
+#: latest --t0: the year 2286, beyond any recording
+MAX_T0_S = 1e10
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -45,6 +51,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run(args: argparse.Namespace) -> int:
+    output_file(args.out)
+    positive(args.rate_hz, "--rate-hz")
+    # a candump line is "(time) channel id#data": a nan time or a blank in the channel name
+    # would write a log that no reader (bmsid's, candump's) takes back
+    if not (math.isfinite(args.t0) and 0.0 <= args.t0 < MAX_T0_S):
+        raise UserError(f"--t0 must be a Unix time in [0, {MAX_T0_S:.0e}) s, got {args.t0}")
+    if not args.channel or any(c.isspace() for c in args.channel):
+        raise UserError(f"--channel must be an interface name without blanks, got {args.channel!r}")
     mapping = load_mapping(args.mapping) if args.mapping else default_mapping()
     data = load_csv(args.input)
     messages = csv_to_messages(

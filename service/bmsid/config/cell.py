@@ -142,8 +142,9 @@ class InitialParameters(_Strict):
 class SocInit(_Strict):
     """How the initial SOC is chosen.
 
-    ``ocv_at_rest``: invert the OCV at the first voltage when |current| <= ``rest_current_C`` x
-    capacity (falls back to ``soc0`` or 0.5 when the cell is not at rest). ``fixed``: use ``soc0``.
+    ``ocv_at_rest``: invert the OCV at each cell's first valid voltage (at rest when |current|
+    <= ``rest_current_C`` x capacity, else corrected by the start R0 x current); a cell starts
+    at its own first valid voltage, never from a default. ``fixed``: use ``soc0`` for every cell.
     """
 
     policy: Literal["ocv_at_rest", "fixed"] = "ocv_at_rest"

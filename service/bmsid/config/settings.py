@@ -23,6 +23,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from bmsid.config.cell import CellConfig, load_cell_config, paper_cell
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning, Variant
+from bmsid.gates import GateConfig
 
 MQTT_SCHEMES = {"mqtt": False, "tcp": False, "mqtts": True, "tls": True, "ssl": True}
 DEFAULT_PORTS = {False: 1883, True: 8883}
@@ -286,8 +287,14 @@ class Settings(BaseSettings):
     estimator: EstimatorSettings = EstimatorSettings()
     mqtt: MqttSettings = MqttSettings()
     state: StateSettings = StateSettings()
+    gates: GateConfig = GateConfig()
+    """Plausibility gates before the estimators: a refused reading is a missing channel for
+    its tick, counted per cell in the status (limits from the cell config by default)."""
     status_period_s: float = Field(10.0, gt=0.0)
-    """Counters go to the status topic and the log this often, s."""
+    """Counters go to the status topic this often, s."""
+    log_period_s: float = Field(300.0, gt=0.0)
+    """A counters line goes to the log (INFO) this often, s: the journal shows a healthy
+    daemon without filling up."""
     systemd_notify: bool = True
     """Send READY/WATCHDOG/STOPPING to $NOTIFY_SOCKET when systemd set one."""
 

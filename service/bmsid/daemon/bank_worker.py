@@ -72,6 +72,7 @@ from bmsid.errors import UserError
 from bmsid.estimate.startvalues import StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
+from bmsid.gates import GateConfig, InputGate
 from bmsid.publish import payloads
 from bmsid.publish.outbox import OutMessage
 from bmsid.samples import SampleBlock
@@ -172,6 +173,8 @@ class BankSpec:
     publish_period_s: float
     #: return every tick's estimates (live view, tests), not only the newest of a batch
     keep_all_estimates: bool = False
+    #: plausibility gates before the bank (``bmsid.gates``)
+    gates: GateConfig = field(default_factory=GateConfig)
 
     @property
     def seq_path(self) -> Path:
@@ -192,6 +195,8 @@ class BatchResult:
     messages: list[OutMessage]
     counters: dict[str, int]
     seq: int
+    #: what the plausibility gates refused, missing and no-data cells (``GateState.report``)
+    inputs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -217,6 +222,10 @@ class BankHost:
         self.bank = self._fresh_bank()
         #: a fresh state: what a restored or saved one must look like (state_problem)
         self._reference = self.bank.state_dict()
+        # Limits from the OCV curve and capacity: the same whatever start values are measured.
+        limits = self.spec.gates.for_model(self.bank.model, self.spec.tuning.gap_s)
+        self.gate = InputGate(limits, self.spec.n_cells)
+        log.info("input gates: %s", limits.describe())
         self.counters = {
             "checkpoints": 0,
             "checkpoint_errors": 0,
@@ -367,10 +376,13 @@ class BankHost:
         """Feed a block of samples to the bank, in order, in chunks of about one tick."""
         estimates: list[Estimates] = []
         messages: list[OutMessage] = []
+        block = self.gate.apply(block)
         if self._probing:
             held = self._probe_block(block)
             if held is None:
-                return BatchResult(estimates, messages, self._counters(), self.seq)
+                return BatchResult(
+                    estimates, messages, self._counters(), self.seq, self.gate.state.report()
+                )
             block = held
         step = samples_per_tick(block.t_s, self.spec.tuning.id_period_s)
         for start in range(0, len(block), step):
@@ -387,7 +399,9 @@ class BankHost:
             # In thread isolation, hand the GIL to the event loop between chunks: otherwise the
             # loop waits a whole switch interval for every GIL release it makes (convoy effect).
             time.sleep(0)
-        return BatchResult(estimates, messages, self._counters(), self.seq)
+        return BatchResult(
+            estimates, messages, self._counters(), self.seq, self.gate.state.report()
+        )
 
     @property
     def state_dir_failing(self) -> bool:
@@ -399,6 +413,7 @@ class BankHost:
         # every batch and checkpoint: its CAN health and status follow without another call.
         return {
             **self.bank.counters,
+            **self.gate.state.counters(),
             **self.counters,
             "state_dir_failing": int(self.state_dir_failing),
         }
@@ -411,19 +426,21 @@ class BankHost:
         if s.publish_period_s > 0 and est.t_s - self._last_pub_t < s.publish_period_s - tol:
             return []
         self._last_pub_t = est.t_s
-        first = self._take_seqs(est.n_cells + 1)
+        seen = np.flatnonzero(self.gate.state.seen).tolist()
+        first = self._take_seqs(len(seen) + 1)
         if first is None:
-            self.counters["mqtt_withheld"] += est.n_cells + 1
+            self.counters["mqtt_withheld"] += len(seen) + 1
             return []
         out = []
-        for i in range(est.n_cells):
-            body = payloads.cell_payload(est, i, s.pack_id, first + i)
+        for k, i in enumerate(seen):
+            body = payloads.cell_payload(est, i, s.pack_id, first + k)
             topic = payloads.topic(s.topic_prefix, s.pack_id, "cell", i)
             out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
         # Input staleness cannot be true here: a sample just arrived.
-        seq = first + est.n_cells
+        seq = first + len(seen)
+        missing = self.gate.state.missing  # never on the bus: reported in the pack, not cells
         health = payloads.health_bits(est, state_dir_failing=self.state_dir_failing)
-        body = payloads.pack_payload(est, s.pack_id, seq, health)
+        body = payloads.pack_payload(est, s.pack_id, seq, health, missing)
         topic = payloads.topic(s.topic_prefix, s.pack_id, "pack")
         out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
         return out

@@ -51,6 +51,7 @@ from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
 from bmsid.daemon.statedir import StateLock, check_writable, remove_stale_temps
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
+from bmsid.gates import GATE_COUNTERS
 from bmsid.publish import payloads
 from bmsid.publish.discovery import discovery_messages
 from bmsid.publish.mqtt import MqttPublisher
@@ -133,6 +134,7 @@ class Daemon:
             qos=m.qos,
             publish_period_s=m.publish_period_s,
             keep_all_estimates=on_estimates is not None,
+            gates=settings.gates,
         )
         #: the bank's counters (samples, ticks, swarms, ...) as of its latest batch
         self.bank_counters: dict[str, int] = dict.fromkeys(("samples", "ticks", "swarms"), 0)
@@ -140,6 +142,8 @@ class Daemon:
         self.prefix = settings.mqtt.topic_prefix
         self.sd = SdNotifier(settings.systemd_notify)
         self.latest: Estimates | None = None
+        #: what the plausibility gates refused per cell, missing and no-data cells (status)
+        self.inputs: dict[str, object] | None = None
         self.restored = False
         self.seq = 0
         self.can_state = "starting"
@@ -161,6 +165,7 @@ class Daemon:
         self._pending_mono: list[float] = []
         self._stop: asyncio.Event | None = None
         self._last_sample_mono = 0.0
+        self._had_data = False
         self._t_start = time.monotonic()
         self._ready_sent = False
         self._restored_t_s: float | None = None
@@ -221,6 +226,9 @@ class Daemon:
             await asyncio.to_thread(self.worker.close)
 
     async def _run_with_worker(self, worker: BankWorker) -> int:
+        log.info("%s", self._start_line())
+        # before the worker looks at it (it may set an unusable checkpoint aside)
+        had_checkpoint = self.ckpt_path.exists()
         info = await worker.start()
         self.seq = info.seq
         if info.restored:
@@ -232,6 +240,14 @@ class Daemon:
                 info.t_s,
                 self.seq,
             )
+        else:
+            if not self.settings.state.restore:
+                why = "state.restore = false"
+            elif not had_checkpoint:
+                why = f"no checkpoint {self.ckpt_path} yet"
+            else:
+                why = f"checkpoint {self.ckpt_path} not usable (see the warning above)"
+            log.info("fresh start (%s); MQTT seq starts at %d", why, self.seq)
         mqtt_task: asyncio.Task[None] | None = None
         if self.settings.mqtt.enabled:
             self.outbox = Outbox(self.settings.mqtt.outbox_size)
@@ -243,6 +259,7 @@ class Daemon:
             asyncio.create_task(self._can_output(), name="can-output"),
             asyncio.create_task(self._checkpoints(), name="checkpoints"),
             asyncio.create_task(self._status(), name="status"),
+            asyncio.create_task(self._log_counters(), name="log-counters"),
             asyncio.create_task(self._lag_monitor(), name="loop-lag"),
         ]
         if self.sd.watchdog_s:
@@ -287,7 +304,9 @@ class Daemon:
                 mqtt_task.cancel()
             await asyncio.gather(mqtt_task, return_exceptions=True)
             self._spool_backlog()
-        log.info("stopped: %s", self._counter_line())
+        log.info(
+            "stopped: after %.0f s, %s", time.monotonic() - self._t_start, self._counter_line()
+        )
 
     # ------------------------------------------------------------------ MQTT spool
     def _state_files(self) -> tuple[Path, ...]:
@@ -385,7 +404,14 @@ class Daemon:
     # ------------------------------------------------------------------ CAN input
     def _set_can_state(self, state: str) -> None:
         if state != self.can_state:
-            log.log(logging.INFO if state == "up" else logging.WARNING, "CAN %s", state)
+            cs = self.settings.can
+            log.log(
+                logging.INFO if state == "up" else logging.WARNING,
+                "CAN %s/%s %s",
+                cs.interface,
+                cs.channel,
+                state,
+            )
             self.can_state = state
             if self.mqtt is not None:
                 self.mqtt.publish_status()
@@ -394,22 +420,28 @@ class Daemon:
         cs = self.settings.can
         backoff = cs.reopen_min_s
         assert self._samples is not None
+        failed_opens = 0  # in a row: the journal gets the 1st, 10th, 100th, ... of an outage
         while True:
             try:
                 src = open_source(cs.interface, cs.channel, cs.output_fd, cs.reader_queue_frames)
             except (can.CanError, OSError, ValueError) as exc:
                 self.counters["can_open_failures"] += 1
                 self._set_can_state("down")
-                log.warning(
-                    "CAN %s/%s cannot be opened: %s (retry in %.1f s)",
-                    cs.interface,
-                    cs.channel,
-                    exc,
-                    backoff,
-                )
+                failed_opens += 1
+                if failed_opens == 10 ** (len(str(failed_opens)) - 1):
+                    log.warning(
+                        "CAN %s/%s cannot be opened (%d attempt(s) so far): %s (retrying up "
+                        "to every %.0f s)",
+                        cs.interface,
+                        cs.channel,
+                        failed_opens,
+                        exc,
+                        cs.reopen_max_s,
+                    )
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2.0, cs.reopen_max_s)
                 continue
+            failed_opens = 0
             self._source = src
             backoff = cs.reopen_min_s
             self._set_can_state("up")
@@ -503,8 +535,19 @@ class Daemon:
             self.counters["batches_in_flight"] += 1
             try:
                 result = await self.worker.update(SampleBlock.concat(blocks))
+                if not self._had_data:
+                    self._had_data = True
+                    log.info(
+                        "first data: %d samples of %d cells up to sample time %.3f s "
+                        "(%d frames decoded)",
+                        n,
+                        self.settings.can.n_cells,
+                        float(blocks[-1].t_s[-1]),
+                        self.f2s.counters["frames"],
+                    )
                 self._last_sample_mono = time.monotonic()
                 self.seq = result.seq
+                self.inputs = result.inputs
                 jumps = self.bank_counters.get("time_jumps_back", 0)
                 self._merge_bank_counters(result.counters)
                 if self.bank_counters.get("time_jumps_back", 0) > jumps:
@@ -602,6 +645,7 @@ class Daemon:
                 uptime_s=time.monotonic() - self._t_start,
                 counters=self.snapshot(),
                 version=__version__,
+                inputs=self.inputs,
                 mqtt=(
                     {"state": self.mqtt.state, "last_error": self.mqtt.last_error}
                     if self.mqtt is not None
@@ -624,6 +668,7 @@ class Daemon:
             "ticks": self.bank_counters["ticks"],
             "swarms": self.bank_counters["swarms"],
             "time_jumps_back": self.bank_counters.get("time_jumps_back", 0),
+            **{k: self.bank_counters.get(k, 0) for k in GATE_COUNTERS},
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],
             "can_reopens": self.counters["can_reopens"],
@@ -648,20 +693,52 @@ class Daemon:
             }
         return out
 
+    def _start_line(self) -> str:
+        """What this daemon is about to do: version, pack, bus, broker, state directory."""
+        s = self.settings
+        cs, m = s.can, s.mqtt
+        bus = f"CAN {cs.interface}/{cs.channel} ({self.mapping.name})"
+        if cs.replay is not None:
+            bus += f" replaying {cs.replay.log} at {cs.replay.speed:g}x"
+        if not cs.output:
+            bus += ", no output frames"
+        if m.enabled:
+            host, port, tls = m.endpoint()
+            broker = f"MQTT {host}:{port}{' TLS' if tls else ''} as {s.client_id()}"
+            broker += f" under {self.prefix}/{s.pack_id}/"
+            if m.homeassistant.enabled:
+                broker += " with Home Assistant discovery"
+        else:
+            broker = "MQTT off"
+        return (
+            f"bmsid {__version__} starting: pack {s.pack_id}, {cs.n_cells} cells "
+            f"({self.cell.name}, {s.estimator.variant}); {bus}; {broker}; "
+            f"state in {s.state.directory}"
+        )
+
     def _counter_line(self) -> str:
         return " ".join(f"{k}={v}" for k, v in self.snapshot().items())
 
     async def _status(self) -> None:
         while True:
             await asyncio.sleep(self.settings.status_period_s)
+            log.debug("counters: %s", self._counter_line())
+            if self.mqtt is not None:
+                self.mqtt.publish_status()
+
+    async def _log_counters(self) -> None:
+        """The counters at INFO every ``log_period_s``: a healthy daemon's heartbeat."""
+        while True:
+            await asyncio.sleep(self.settings.log_period_s)
+            mqtt = f" mqtt={self.mqtt.state}" if self.mqtt is not None else ""
             log.info(
-                "counters: %s window_lag_max_ms=%.2f",
+                "counters: can=%s%s %s window_lag_max_ms=%.2f",
+                self.can_state,
+                mqtt,
                 self._counter_line(),
                 self._lag_window_max_s * 1e3,
             )
             self._lag_window_max_s = 0.0
-            if self.mqtt is not None:
-                self.mqtt.publish_status()
 
     async def _lag_monitor(self) -> None:
         while True:

@@ -19,6 +19,7 @@ import can
 
 from bmsid.canbus.bus import AsyncFrameReader, open_socketcan
 from bmsid.canbus.logs import read_log
+from bmsid.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -145,6 +146,10 @@ class LogReplayer:
     are discarded as they arrive so the in-process queue cannot grow. ``resume_after_s`` skips
     the frames up to that log time: a daemon restored from a checkpoint resumes the replay
     where its state left off, as a live bus would have moved on.
+
+    Raises:
+        UserError: the log cannot be opened (checked here, before the thread starts: a
+            missing log must stop the daemon with one line, not leave it on a silent bus).
     """
 
     def __init__(
@@ -155,6 +160,13 @@ class LogReplayer:
         start_delay_s: float,
         resume_after_s: float | None = None,
     ) -> None:
+        try:
+            with log_path.open("rb"):
+                pass
+        except OSError as exc:
+            raise UserError(
+                f"can.replay.log: cannot read {log_path}: {exc.strerror or exc}"
+            ) from None
         self.log_path = log_path
         self.speed = speed
         self.start_delay_s = start_delay_s
@@ -197,12 +209,22 @@ class LogReplayer:
                 if self.sent % 512 == 0:
                     while self._bus.recv(0) is not None:
                         pass
-            log.info(
-                "replay of %s finished: %d frames (%d skipped: before the checkpoint)",
-                self.log_path,
-                self.sent,
-                self.skipped,
-            )
+            if self.sent == 0 and self.skipped:
+                log.warning(
+                    "replay of %s: all %d frames are older than the restored checkpoint, none "
+                    "sent (state.restore = false, or another state.directory, replays it again)",
+                    self.log_path,
+                    self.skipped,
+                )
+            else:
+                log.info(
+                    "replay of %s finished: %d frames (%d skipped: before the checkpoint)",
+                    self.log_path,
+                    self.sent,
+                    self.skipped,
+                )
+        except (UserError, OSError) as exc:  # the file went away or became unreadable
+            log.error("replay of %s stopped after %d frames: %s", self.log_path, self.sent, exc)
         except Exception:
             log.exception("replay of %s failed", self.log_path)
         finally:

@@ -36,7 +36,7 @@ from bmsid.estimate.fusion import FusionStage
 from bmsid.estimate.guard import PublishGuard
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, per_cell_limit
-from bmsid.estimate.state import CoulombState
+from bmsid.estimate.state import CoulombState, without_data
 from bmsid.estimate.ticks import Tick, TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import VARIANTS, EstimateBlock, Estimates, Quality
@@ -119,7 +119,8 @@ class EstimatorBank:
 
     @property
     def soc_init_method(self) -> str:
-        """How SOC started: ``given``, ``ocv_at_rest``, ``config``, ``default_0.5``, ``pending``."""
+        """How SOC started: ``given``, ``ocv_at_rest``, ``ocv_ir_corrected``, ``config``, or
+        ``pending`` while no cell had a valid voltage (cells start at their own first one)."""
         return self.state.soc_init_method
 
     @property
@@ -203,6 +204,8 @@ class EstimatorBank:
         q[self.params.clamped] = Quality.OUT_OF_BOUNDS
         q[~self.params.converged] = Quality.CONVERGING
         cells, q, reinit = self.guard.apply(tick.t_s, cells, q, self.params.clamped, ctx.learn)
+        if self.state.no_data.any():  # no valid reading since the (re)start: nothing to say
+            cells, q = without_data(cells, q, self.state.no_data)
         if reinit.any():
             self.reset(reinit)
         return cells, q

@@ -27,9 +27,10 @@ SocPolicy = Literal["ocv_at_rest", "fixed"]
 
 @dataclass(frozen=True)
 class SocStart:
-    """How SOC starts when none is given: ``ocv_at_rest`` inverts the OCV at the first voltage
-    when |I| <= ``rest_current_C`` x capacity, else (and for ``fixed``) ``soc0`` (a fraction;
-    None = 0.5, said so in the bank's ``soc_init_method``)."""
+    """How SOC starts when none is given: ``ocv_at_rest`` inverts the OCV at each cell's first
+    valid voltage (IR-corrected when |I| > ``rest_current_C`` x capacity; a cell without one
+    waits for it: ``CoulombState.no_data``); ``fixed`` starts every cell at ``soc0`` (a
+    fraction; ``fixed`` without ``soc0`` behaves as ``ocv_at_rest``)."""
 
     policy: SocPolicy = "ocv_at_rest"
     soc0: float | None = None

@@ -266,9 +266,14 @@ class ObserverState(CoulombState):
         self._kappa_charge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, -1.0)
 
     # ------------------------------------------------------------------ start
-    def _start(self, tick: Tick, cells: BoolArray) -> None:
-        super()._start(tick, cells)
+    def _start(self, tick: Tick, cells: BoolArray) -> BoolArray:
+        cells = super()._start(tick, cells)
+        if not cells.any():
+            return cells
         n = self.n
+        # what the count accumulated for a deferred cell before its start is not its own
+        self._g = np.where(cells, 0.0, self._g)
+        self._qz = np.where(cells, 0.0, self._qz)
         sigma = np.where(cells, np.sqrt(self._start_var), np.sqrt(np.diag(self.P)[:n]))
         keep = ~cells
         self.P[:n, :n] *= np.outer(keep, keep)  # a restarted cell forgets its correlations
@@ -276,6 +281,7 @@ class ObserverState(CoulombState):
         self.P[n, :n] *= keep
         self.P[np.arange(n), np.arange(n)] = sigma**2
         self._gate_learning()
+        return cells
 
     def _gate_learning(self) -> None:
         """Cells whose SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV."""
@@ -291,7 +297,7 @@ class ObserverState(CoulombState):
         if method == "given":
             self._start_var = np.full(self.n, tun.given_soc_sigma**2)
             return
-        if method in ("config", "default_0.5"):  # a guess, not a measurement
+        if method == "config":  # a value the user fixed, not a measurement
             self._start_var = np.full(self.n, tun.start_soc_sigma_max**2)
             return
         m = self.model

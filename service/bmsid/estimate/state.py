@@ -15,8 +15,21 @@ from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.ticks import Tick
+from bmsid.estimate.types import IntArray, Quality
 from bmsid.model.ecm import hysteresis_kappa, hysteresis_step, soc_step
 from bmsid.model.ocv import OcvModel
+
+_NO_DATA = int(Quality.NO_DATA)
+
+
+def without_data(
+    cells: dict[str, FloatArray], quality: IntArray, no_data: BoolArray
+) -> tuple[dict[str, FloatArray], IntArray]:
+    """``cells`` with every field NaN and ``quality`` ``NO_DATA`` for the ``no_data`` cells:
+    what is published for a cell whose state came from no reading (new arrays: the fields
+    may be a stage's live state)."""
+    out = {k: np.where(no_data, np.nan, v) for k, v in cells.items()}
+    return out, np.where(no_data, _NO_DATA, quality)
 
 
 def _uniform(x: FloatArray) -> float | FloatArray:
@@ -82,14 +95,14 @@ class CoulombState:
     def step(self, ctx: TickContext) -> None:
         tick = ctx.tick
         m = self.model
-        if self._pending.any():
-            self._start(tick, self._pending)
         for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
         ip = tick.i_prev_A
         if tick.dt_s > 0:
             kappa = self._kappa_charge if ip < 0 else self._kappa_discharge
             self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
+        if self._pending.any():  # after the count: a cell's SOC is that of its start sample
+            self._start(tick, self._pending)
         ocv = m.ocv
         zc = np.minimum(np.maximum(self.z, ocv.soc_min), ocv.soc_max)
         ctx.soc_clamped = zc
@@ -102,12 +115,14 @@ class CoulombState:
         else:
             ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
 
-    def _start(self, tick: Tick, cells: BoolArray) -> None:
-        """SOC of ``cells`` from the caller's soc0, else the first voltage through the OCV
-        (IR-corrected with the start R0 when a current flows: a gateway that restarts under
-        the 12 V converter's load, or mid-drive), else the config's soc0 or a default."""
+    def _start(self, tick: Tick, cells: BoolArray) -> BoolArray:
+        """SOC of ``cells`` from the caller's soc0 or a fixed policy's config value, else from
+        each cell's first valid voltage through the OCV (IR-corrected with the start R0 when a
+        current flows: a gateway that restarts under the 12 V converter's load, or mid-drive).
+        A cell without a valid voltage this tick stays pending: it starts at its own first
+        valid reading, never from a fallback (its coulomb count starts there too). Returns the
+        cells started."""
         si = self.model.soc_start
-        fallback = si.soc0 if si.soc0 is not None else 0.5
         if self.soc0 is not None:
             z = np.broadcast_to(np.asarray(self.soc0, dtype=float), (self.n,)).copy()
             method = "given"
@@ -117,21 +132,24 @@ class CoulombState:
         else:
             rest = abs(tick.current_A) <= si.rest_current_C * self.model.capacity_Ah
             v_eq = tick.v_V + self.model.start("R0_ohm") * tick.current_A
-            from_ocv = self.model.ocv.soc_from_ocv(np.where(np.isfinite(v_eq), v_eq, np.nan))
-            known = np.isfinite(from_ocv)
-            z = np.where(known, from_ocv, fallback)
-            if not known[cells].all():
-                method = "config" if si.soc0 is not None else "default_0.5"
-            elif np.all(rest):
-                method = "ocv_at_rest"
-            else:
-                method = "ocv_ir_corrected"
+            z = self.model.ocv.soc_from_ocv(np.where(tick.ok & np.isfinite(v_eq), v_eq, np.nan))
+            cells = cells & np.isfinite(z)
+            if not cells.any():
+                return cells
+            method = "ocv_at_rest" if np.all(rest) else "ocv_ir_corrected"
         self.z = np.where(cells, z, self.z)
         self.h = np.where(cells, 0.0, self.h)
         if cells.all() or self.soc_init_method == "pending":
             self.soc_init_method = method
-        self._pending = np.zeros(self.n, dtype=bool)
+        self._pending = self._pending & ~cells
         self.start_variance(tick, method, z)
+        return cells
+
+    @property
+    def no_data(self) -> BoolArray:
+        """Cells without a valid reading since their (re)start: their SOC is not known, so
+        nothing of theirs is published (quality ``NO_DATA``, fields NaN)."""
+        return self._pending
 
     def start_variance(self, tick: Tick, method: str, z: FloatArray) -> None:
         """Hook for a stage that keeps SOC uncertainty (the observer); none here."""

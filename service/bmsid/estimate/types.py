@@ -30,6 +30,9 @@ class Quality(IntEnum):
     #: the model error stayed far beyond its running scale, or SOC left [0, 1] (or a value was not
     #: finite): the last good values are published, the cell re-initialised (``estimate/guard.py``)
     DIVERGED = 4
+    #: no valid reading of the cell since its (re)start: its SOC is unknown, every field is
+    #: null (NaN) and the cell counts in no pack aggregate (``CoulombState.no_data``)
+    NO_DATA = 5
 
 
 @dataclass(frozen=True, slots=True)

@@ -31,6 +31,7 @@ from bmsid.estimate.guard import ON_BOUND_REL, WATCHED
 from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
+from bmsid.gates import GateConfig, InputGate
 from bmsid.offline.csvio import ColumnMap, TesterData
 from bmsid.offline.inputs import DEFAULT_BLOCK_SIZE, InputSource, LoadedInput, open_input
 from bmsid.offline.outputs import OutputSpec, prepare_out_dir, write_metrics_json, write_plots
@@ -77,6 +78,8 @@ class IdentifySpec:
         Samples per block fed to the bank (the results do not depend on it).
     output : OutputSpec
         What is written when the run is given an output directory.
+    gates : GateConfig
+        The plausibility gates before the estimators (``bmsid.gates``), as the daemon's.
     """
 
     cell: CellConfig
@@ -91,6 +94,16 @@ class IdentifySpec:
     columns: Mapping[str, ColumnMap] | None = None
     block_size: int = DEFAULT_BLOCK_SIZE
     output: OutputSpec = field(default_factory=OutputSpec)
+    gates: GateConfig = field(default_factory=GateConfig)
+
+
+def input_gate(
+    cell: CellConfig, n_cells: int, tuning: EstimatorTuning | None, gates: GateConfig
+) -> InputGate:
+    """Fresh plausibility gates for ``n_cells`` cells of type ``cell`` (limits from its OCV
+    curve and capacity, the step check's age from the tuning's ``gap_s``)."""
+    tun = tuning or EstimatorTuning()
+    return InputGate(gates.for_model(cell_model(cell, n_cells, None, tun), tun.gap_s), n_cells)
 
 
 def run_blocks(
@@ -104,8 +117,10 @@ def run_blocks(
     cell_names: Sequence[str] | None = None,
     sink: EstimateSink | None = None,
     start: StartValues | None = None,
+    gates: GateConfig | None = None,
 ) -> IdentifyResult:
-    """Feed sample blocks in order to a new bank of ``n_cells`` cells.
+    """Feed sample blocks in order, through the plausibility gates, to a new bank of
+    ``n_cells`` cells.
 
     Parameters
     ----------
@@ -125,19 +140,23 @@ def run_blocks(
     start : StartValues or None
         Start values measured on the record (:func:`probe_start_values`) for what ``cell``
         leaves out.
+    gates : GateConfig or None
+        The plausibility gates; None: the defaults.
 
     Returns
     -------
     IdentifyResult
-        ``runtime_s`` counts the bank's time only (no reading, writing or progress).
+        ``runtime_s`` counts the gates' and the bank's time only (no reading, writing or
+        progress); ``input_gates`` what the gates refused.
     """
     bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0, start=start)
+    gate = input_gate(cell, n_cells, tuning, gates or GateConfig())
     parts: list[EstimateBlock] = []
     n = 0
     runtime = 0.0
     for block in blocks:
         t0 = time.perf_counter()
-        est = bank.update_block(block)
+        est = bank.update_block(gate.apply(block))
         runtime += time.perf_counter() - t0
         n += len(block)
         if est.n_ticks:
@@ -151,23 +170,27 @@ def run_blocks(
         variant=variant,
         trace=EstimateBlock.concat(parts, n_cells),
         soc_init_method=bank.soc_init_method,
-        counters=dict(bank.counters),
+        counters={**bank.counters, **gate.state.counters()},
         runtime_s=runtime,
         n_samples=n,
         cell_names=names,
         start_values=start,
+        input_gates=gate.state.report(),
     )
 
 
-def probe_start_values(blocks: Iterable[SampleBlock], cell: CellConfig) -> StartValues | None:
+def probe_start_values(
+    blocks: Iterable[SampleBlock], cell: CellConfig, gate: InputGate | None = None
+) -> StartValues | None:
     """Start values measured on the record's first ``PROBE_S`` seconds, when the cell config
     leaves start values or bounds out (None when it gives both, or the record has too few
-    current steps: the config's capacity rule and default bounds then apply)."""
+    current steps: the config's capacity rule and default bounds then apply); through ``gate``
+    (fresh plausibility gates) when given."""
     if cell.initial is not None and cell.bounds is not None:
         return None
     head: list[SampleBlock] = []
     for block in blocks:
-        head.append(block)
+        head.append(block if gate is None else gate.apply(block))
         if len(block) and block.t_s[-1] - head[0].t_s[0] >= PROBE_S:
             break
     if not head:
@@ -262,16 +285,17 @@ def identify_source(
             if spec.output.params_csv:
                 writer = stack.enter_context(ParamsCsvWriter(out / "params.csv", source.cell_names))
                 sink = writer.append
-        start = probe_start_values(source.blocks(spec.block_size), spec.cell)
+        probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
+        start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
         result = run_blocks(
             source.blocks(spec.block_size), source.n_cells, spec.cell, spec.variant, spec.tuning,
-            spec.soc0, progress, source.cell_names, sink, start,
+            spec.soc0, progress, source.cell_names, sink, start, spec.gates,
         )  # fmt: skip
     if out is not None:
         doc = {
             **metrics_document(result, spec.window),
             "start_values": start_values_document(spec.cell, start, spec.tuning, source.n_cells),
-            "input_checks": source.input_report,
+            "input_checks": {**source.input_report, "gates": result.input_gates},
             "bounds": bound_findings(
                 result.trace, spec.cell, start, spec.tuning, result.cell_names
             ),
@@ -327,7 +351,8 @@ def run_arrays(
     block = SampleBlock.from_arrays(t_s, current_A, v)
     names = list(cell_names) if cell_names else [f"cell_{c + 1:02d}" for c in range(v.shape[1])]
     src = LoadedInput(source="<arrays>", samples=block, cell_names=names)
-    start = probe_start_values(src.blocks(), cell)
+    gate = input_gate(cell, src.n_cells, tuning, GateConfig())
+    start = probe_start_values(src.blocks(), cell, gate)
     return run_blocks(
         src.blocks(),
         src.n_cells,

@@ -109,9 +109,8 @@ def soc_init_text(result: IdentifyResult) -> str:
         "ocv_at_rest": "from the first voltage through the OCV curve (the cell was at rest)",
         "ocv_ir_corrected": "from the first voltage plus R0 x current through the OCV curve "
         "(a current flowed; the SOC observer refines it)",
-        "config": "the config's soc0 (the first current was not a rest current)",
-        "default_0.5": "a default of 50 %: the first sample has no valid voltage and the "
-        "config gives no soc0 (the SOC observer corrects it from the voltages that follow)",
+        "config": "the config's soc0 (soc_init.policy fixed)",
+        "pending": "none: no cell carried a valid voltage",
     }.get(result.soc_init_method, result.soc_init_method)
     return f"initial SOC {socs}: {how}"
 

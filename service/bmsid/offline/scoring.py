@@ -318,7 +318,8 @@ class IdentifyResult:
     trace : EstimateBlock
         The bank's estimates at every identification tick.
     soc_init_method : str
-        How the initial SOC was found (``given``, ``ocv_at_rest``, ``config``, ``default_0.5``).
+        How the initial SOC was found (``given``, ``ocv_at_rest``,
+        ``ocv_ir_corrected``, ``config``; ``pending`` when no cell had a valid voltage).
     counters : dict of str to int
         The bank's event counters at the end.
     runtime_s : float
@@ -330,6 +331,9 @@ class IdentifyResult:
     start_values : StartValues or None
         Start values measured on the record for what the cell config left out (None: the
         config gave them, or the record had too few current steps).
+    input_gates : dict
+        What the plausibility gates refused, per reason and cell, and the cells that never
+        carried a reading or never a valid one (``bmsid.gates.GateState.report``).
     """
 
     variant: Variant
@@ -340,6 +344,7 @@ class IdentifyResult:
     n_samples: int
     cell_names: list[str] = field(default_factory=list)
     start_values: StartValues | None = None
+    input_gates: dict[str, Any] = field(default_factory=dict)
 
 
 def _parts(s: ScoreSet, n_ticks: int, n_startup: int) -> dict[str, Any]:

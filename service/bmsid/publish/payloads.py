@@ -2,13 +2,16 @@
 
 Topics: ``<prefix>/<pack_id>/cell/<n>`` (n = 0-based cell index, as the CAN ``CellIndex``),
 ``<prefix>/<pack_id>/pack`` and ``<prefix>/<pack_id>/status`` (retained). Every quantity carries
-its unit in the key; values that are not finite (a missing cell voltage) are ``null``.
+its unit in the key; values that are not finite (a missing cell voltage) are ``null``. A cell of
+quality ``no_data`` (no valid reading since its start) has every field ``null``: nothing is
+invented for it, and it counts in no pack aggregate.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +28,8 @@ SCHEMA_VERSION = 1
 HEALTH_CONVERGING = 1  #: at least one cell still converging
 HEALTH_POORLY_EXCITED = 2  #: the current carries too little information
 HEALTH_OUT_OF_BOUNDS = 4  #: at least one cell hit its bounds (its last good values are published)
-HEALTH_INPUT_STALE = 8  #: no sample within the staleness window (set by the daemon)
+#: no sample within the staleness window (set by the daemon), or a cell without a valid reading
+HEALTH_INPUT_STALE = 8
 HEALTH_DIVERGED = 16  #: at least one cell diverged (held, being re-initialised)
 #: the latest checkpoint or ``.seq`` reservation could not be written (state directory
 #: read-only, full, failing): a restart would lose state, data messages may be withheld
@@ -108,6 +112,10 @@ def cell_schema() -> dict[str, Any]:
     """The JSON schema (draft 2020-12) of :func:`cell_payload`, built from ``CELL_FIELDS``."""
     props: dict[str, Any] = dict(_CELL_SCHEMA_HEAD)
     props |= {s.out_key: field_schema(s) for s in fields.CELL_FIELDS if s.mqtt}
+    specs = [s for s in fields.CELL_FIELDS if s.mqtt]
+    # Every field may be null, but only a NO_DATA cell has non-nullable fields null.
+    for s in specs:
+        props[s.out_key]["type"] = ["number", "null"]
     props["quality"] = {
         "type": "integer",
         "enum": [int(q) for q in Quality],
@@ -122,6 +130,9 @@ def cell_schema() -> dict[str, Any]:
         "properties": props,
         "required": list(props),
         "additionalProperties": False,
+        "if": {"properties": {"quality": {"const": int(Quality.NO_DATA)}}},
+        "then": {"properties": {s.out_key: {"type": "null"} for s in specs}},
+        "else": {"properties": {s.out_key: {"type": "number"} for s in specs if not s.nullable}},
     }
 
 
@@ -132,7 +143,7 @@ def schema_text(schema: dict[str, Any]) -> str:
 
 def health_bits(est: Estimates, *, state_dir_failing: bool = False) -> int:
     """The ``HEALTH_*`` bits of ``est``'s cells, and :data:`HEALTH_STATE_DIR` if
-    ``state_dir_failing`` (the input's staleness is the daemon's to add)."""
+    ``state_dir_failing`` (a stale input, seen over time, is the daemon's to add)."""
     q = est.quality
     bits = HEALTH_STATE_DIR if state_dir_failing else 0
     if np.any(q == Quality.CONVERGING):
@@ -143,12 +154,18 @@ def health_bits(est: Estimates, *, state_dir_failing: bool = False) -> int:
         bits |= HEALTH_OUT_OF_BOUNDS
     if np.any(q == Quality.DIVERGED):
         bits |= HEALTH_DIVERGED
+    if np.any(q == Quality.NO_DATA):
+        bits |= HEALTH_INPUT_STALE
     return bits
 
 
-def pack_payload(est: Estimates, pack_id: str, seq: int, health: int) -> dict[str, Any]:
+def pack_payload(
+    est: Estimates, pack_id: str, seq: int, health: int, missing: Sequence[int] = ()
+) -> dict[str, Any]:
     """Pack summary: R0 and SOC spread, the weakest cell (largest R0), the current-sensor
-    offset (one per pack: the mean of the cells' finite values), quality counts."""
+    offset (one per pack: the mean of the cells' finite values), quality counts, and the
+    configured cells that never carried a reading (``missing``, 0-based). Aggregates are over
+    the cells with data only (a ``no_data`` cell's fields are NaN)."""
     r0 = np.asarray(est.R0_ohm, dtype=np.float64)
     soc = np.asarray(est.soc, dtype=np.float64)
     offset = np.asarray(est.cells["current_offset_A"], dtype=np.float64)
@@ -177,6 +194,7 @@ def pack_payload(est: Estimates, pack_id: str, seq: int, health: int) -> dict[st
         "soc_max": stat(soc, "max"),
         "health": int(health),
         "quality_counts": counts,
+        "missing_cells": [int(c) for c in missing],
     }
 
 
@@ -189,11 +207,14 @@ def status_payload(
     counters: dict[str, float] | None = None,
     version: str = "",
     mqtt: dict[str, str | None] | None = None,
+    inputs: dict[str, Any] | None = None,
     state_dir: str | None = None,
 ) -> dict[str, Any]:
     """``online``/``offline`` with the daemon's counters (the will carries ``offline`` only);
-    ``mqtt`` is the connection's ``{"state", "last_error"}`` (never a secret), ``state_dir``
-    ``"ok"`` or ``"failing"`` (:data:`HEALTH_STATE_DIR`)."""
+    ``mqtt`` is the connection's ``{"state", "last_error"}`` (never a secret); ``inputs`` what
+    the plausibility gates refused per cell, and the missing and no-data cells
+    (``bmsid.gates.GateState.report``); ``state_dir`` ``"ok"`` or ``"failing"``
+    (:data:`HEALTH_STATE_DIR`)."""
     out: dict[str, Any] = {"schema": SCHEMA_VERSION, "state": state, "pack_id": pack_id}
     if version:
         out["version"] = version
@@ -205,6 +226,8 @@ def status_payload(
             out["state_dir"] = state_dir
         out["uptime_s"] = round(float(uptime_s), 3)
         out["counters"] = dict(counters or {})
+        if inputs is not None:
+            out["inputs"] = inputs
     return out
 
 
