@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import signal
 import subprocess
 import time
@@ -109,7 +110,12 @@ def test_kill_9_then_restart_continues(
     while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not [pid for pid in workers if Path(f"/proc/{pid}").exists()]
-    before = _cell0(cap)[-1]
+    # what the broker still had in flight reaches the subscriber: it belongs to the first run
+    settled = -1
+    while settled != len(cap.messages()):
+        settled = len(cap.messages())
+        time.sleep(0.3)
+    first_run = _cell0(cap)
     seq_before = max(p["seq"] for _, p in cap.messages() if "seq" in p)
     n_before = len(cap.messages())
     second = start_daemon(config, log)
@@ -130,9 +136,20 @@ def test_kill_9_then_restart_continues(
     assert after["t_s"] > T0_S + 300  # continued, not restarted from the log's beginning
     settings = make_settings(tmp_path, None)
     ref = offline_estimates(demo_frames(after["t_s"] - T0_S + 0.5), settings)[after["t_s"]]
-    # SOC continues: equal to the uninterrupted run, and close to the last value before the kill
+    # SOC continues: equal to the uninterrupted run, and close to the first run's value nearest
+    # in sample time, by at most what SOC moved at its steepest in the first run (past its
+    # first 300 s of convergence) over the time between them. The checkpoint may be older than
+    # the last message before the kill (the restart then repeats a stretch) or newer (messages
+    # not yet delivered at the kill): the distance is absolute, the tolerance never negative.
     assert after["soc"] == pytest.approx(float(ref.soc[0]), abs=0.005)
-    assert abs(after["soc"] - before["soc"]) < 0.005 + 1e-4 * (after["t_s"] - before["t_s"])
+    nearest = min(first_run, key=lambda p: abs(p["t_s"] - after["t_s"]))
+    steepest = max(
+        abs(b["soc"] - a["soc"]) / (b["t_s"] - a["t_s"])
+        for a, b in itertools.pairwise(first_run)
+        if b["t_s"] > a["t_s"] >= T0_S + 300
+    )  # 1/s
+    gap_s = abs(after["t_s"] - nearest["t_s"])
+    assert abs(after["soc"] - nearest["soc"]) <= 0.005 + steepest * gap_s, (nearest, after)
     # parameters carry on: the identified values, not the cell config's start values
     init = paper_cell().initial_parameters()
     assert after["R0_ohm"] == pytest.approx(float(ref.R0_ohm[0]), rel=0.02)

@@ -9,7 +9,9 @@ for the signal cases (each starts a worker process that imports the estimator st
 from __future__ import annotations
 
 import asyncio
+import errno
 import gc
+import io
 import json
 import logging
 import os
@@ -36,6 +38,8 @@ from daemon_helpers import (
 from bmsid.config.settings import Settings
 from bmsid.daemon.core import Daemon
 from bmsid.daemon.demo_data import DEMO_LOG, T0_S
+from bmsid.publish import outbox
+from bmsid.publish.outbox import Outbox, OutMessage
 from conftest import free_loopback_port
 
 REPO = Path(__file__).resolve().parents[2]
@@ -163,6 +167,77 @@ def test_wrong_password_at_shutdown_makes_few_connects(
     spool = tmp_path / "state" / "testpack.spool"
     lines = spool.read_text().splitlines()
     assert json.loads(lines[0])["messages"] == daemon.seq == len(lines) - 1  # all kept
+
+
+# ------------------------------------------------------------------ a spool too large
+def _disk_that_takes(limit_bytes: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The state directory takes files up to ``limit_bytes`` (a full disk, a quota); larger
+    ones fail with ENOSPC (0: every write fails with EROFS, a file system gone read-only)."""
+    real = outbox.atomic_write
+
+    def write(path: Path, fill: Callable[[Any], object]) -> None:
+        buf = io.BytesIO()
+        fill(buf)
+        if limit_bytes == 0:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        if len(buf.getvalue()) > limit_bytes:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        real(path, fill)
+
+    monkeypatch.setattr(outbox, "atomic_write", write)
+
+
+def _stopped_with_backlog(tmp_path: Path, n: int) -> tuple[Settings, Daemon]:
+    """A daemon at the end of its stop, ``n`` messages left that the flush could not deliver."""
+    settings = make_settings(tmp_path, 1)
+    settings.state.directory.mkdir()
+    daemon = Daemon(settings)
+    daemon.outbox = Outbox(1000)
+    for k in range(n):
+        daemon.outbox.put(OutMessage(f"bmsid/testpack/cell/{k % 8}", b'{"seq":%d}' % k))
+    return settings, daemon
+
+
+def _errors(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+def test_spool_too_large_for_the_disk_carries_its_count_to_the_next_start(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    settings, daemon = _stopped_with_backlog(tmp_path, 50)  # a ~1.5 kB spool
+    _disk_that_takes(200, monkeypatch)
+    with caplog.at_level(logging.WARNING):
+        daemon._spool_backlog()
+    assert daemon.outbox is not None and daemon.outbox.dropped == 50  # this run's mqtt_drops
+    assert _errors(caplog) == [
+        "MQTT: 50 messages not delivered at shutdown (no connection) and not spooled (No space "
+        "left on device): lost, a seq gap counted in mqtt_drops now and after the restart"
+    ]
+    caplog.clear()
+    box = Outbox(1000)
+    with caplog.at_level(logging.WARNING):
+        Daemon(settings)._load_spool(box)
+    assert box.dropped == 50 and len(box) == 0  # counted, nothing invented
+    assert len(caplog.messages) == 1 and "50 messages" in caplog.messages[0], caplog.messages
+    assert not daemon.spool_path.exists()  # the start after does not count it again
+    again = Outbox(1000)
+    Daemon(settings)._load_spool(again)
+    assert again.dropped == 0
+
+
+def test_read_only_state_dir_at_shutdown_says_the_count_is_not_kept(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _, daemon = _stopped_with_backlog(tmp_path, 50)
+    _disk_that_takes(0, monkeypatch)
+    with caplog.at_level(logging.WARNING):
+        daemon._spool_backlog()
+    assert daemon.outbox is not None and daemon.outbox.dropped == 50
+    [line] = _errors(caplog)
+    assert "50 messages not delivered" in line and "Read-only file system" in line
+    assert "counted in mqtt_drops now but not after the restart" in line
+    assert not daemon.spool_path.exists()
 
 
 # ------------------------------------------------------------------ signals, as a gateway runs it
@@ -301,3 +376,74 @@ def test_sigkill_leaks_no_semaphore_or_process_and_never_reuses_a_seq(
     assert min(after) > max(before)  # continues above every seq published before the kill
     assert len(set(before + after)) == len(before + after)
     assert "never retrieved" not in log.read_text()
+
+
+#: Runs ``bmsid run`` as a subreaper (orphans are re-parented to it, so it can read how the
+#: bank worker ended), SIGKILLs the daemon alone once it checkpointed, and reports the worker's
+#: end: ``{"signal": n or null, "code": n or null, "ckpt_changed": bool}``.
+_KILL_DAEMON_ALONE = """
+import ctypes, json, os, signal, subprocess, sys, time
+from pathlib import Path
+
+config, ckpt = sys.argv[1], Path(sys.argv[2])
+ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
+daemon = subprocess.Popen(
+    [sys.executable, "-m", "bmsid.cli.main", "run", "--config", config],
+    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+)
+
+def worker():
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (stat.parent / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == daemon.pid and b"spawn_main" in cmd:
+            return int(stat.parent.name)
+    return None
+
+deadline = time.monotonic() + 60
+while not (ckpt.exists() and worker()) and time.monotonic() < deadline:
+    time.sleep(0.05)
+pid = worker()
+if pid is None:
+    sys.exit("no worker and checkpoint within 60 s")
+daemon.send_signal(signal.SIGKILL)  # the daemon only, as the OOM killer picks one process
+daemon.wait()
+seen = ckpt.stat().st_mtime_ns
+_, status = os.waitpid(pid, 0)  # re-parented to this subreaper
+changed = ckpt.stat().st_mtime_ns != seen
+while True:  # the resource tracker, if any, ends with its pipe
+    try:
+        os.waitpid(-1, 0)
+    except ChildProcessError:
+        break
+print(json.dumps({
+    "signal": os.WTERMSIG(status) if os.WIFSIGNALED(status) else None,
+    "code": os.WEXITSTATUS(status) if os.WIFEXITED(status) else None,
+    "ckpt_changed": changed,
+}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_worker_dies_with_a_daemon_killed_alone(tmp_path: Path) -> None:
+    # The lock died with the daemon: a worker living on (it polled its parent every 0.5 s and
+    # exited 0) could write a checkpoint over the one the next daemon restored. The kernel now
+    # kills it with its parent, before it runs another instruction.
+    config = _config(tmp_path, 1)  # no broker needed: MQTT retries in the background
+    env = {**os.environ, "PYTHONPATH": str(REPO / "service")}
+    ckpt = tmp_path / "state" / "sigpack.ckpt.npz"
+    done = subprocess.run(
+        [sys.executable, "-c", _KILL_DAEMON_ALONE, str(config), str(ckpt)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    end = json.loads(done.stdout.strip().splitlines()[-1])
+    assert end == {"signal": signal.SIGKILL, "code": None, "ckpt_changed": False}

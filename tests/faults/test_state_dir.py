@@ -17,16 +17,24 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
 
+import jsonschema
 import numpy as np
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
+from daemon_helpers import SCHEMA_DIR, make_settings
 
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell
 from bmsid.daemon import bank_worker
 from bmsid.daemon.bank_worker import BankHost, BankSpec
 from bmsid.daemon.checkpoint import CheckpointKey, save_checkpoint
-from bmsid.daemon.statedir import StateLock
+from bmsid.daemon.core import Daemon
+from bmsid.daemon.statedir import StateLock, remove_stale_temps
+from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
+from bmsid.publish.outbox import Outbox, OutMessage, encode_spool
+from bmsid.publish.payloads import HEALTH_STATE_DIR
 from bmsid.samples import Sample, SampleBlock
 
 REPO = Path(__file__).resolve().parents[2]
@@ -337,3 +345,130 @@ def test_second_daemon_on_the_same_state_dir_refuses_with_one_line(tmp_path: Pat
     assert not (state / "faultpack.seq").exists()  # it touched nothing
     # once released, the lock is free (a daemon killed with SIGKILL releases it too)
     StateLock.acquire(state, "faultpack").release()
+
+
+# ------------------------------------------------------------------ the sequence file
+def test_unreadable_seq_file_refuses_the_start_with_one_line(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    state.mkdir()
+    seq = state / "faultpack.seq"
+    seq.write_bytes(b"12\x00garbage\n")  # torn by hand or a disk error: no number
+    done = _bmsid("run", "--config", str(_config(tmp_path, state, 1)))
+    assert done.returncode == 2, done.stderr
+    # the lifecycle's INFO lines (the start), then one line, no traceback, nothing else said
+    *info, refusal = done.stderr.strip().splitlines()
+    assert all(" INFO " in line for line in info), done.stderr
+    assert refusal.startswith("bmsid run: error: ") and "Traceback" not in done.stderr
+    assert f"sequence file {seq} is unreadable" in refusal and "not a number" in refusal
+    assert seq.read_bytes() == b"12\x00garbage\n"  # left for the operator, not overwritten
+    assert not (state / "faultpack.ckpt.npz").exists()  # nothing ran
+
+
+def test_seq_file_the_system_cannot_read_refuses_the_start(tmp_path: Path) -> None:
+    (tmp_path / "p.seq").mkdir()  # read(2) fails (EISDIR), as on an I/O error
+    with pytest.raises(UserError) as refused:
+        BankHost(_spec(tmp_path)).start()
+    text = str(refused.value)
+    assert "\n" not in text
+    assert f"sequence file {tmp_path / 'p.seq'} is unreadable (Is a directory)" in text
+
+
+# ------------------------------------------------------------------ the MQTT spool
+def _spooled(k: int) -> OutMessage:
+    return OutMessage(f"bmsid/faultpack/cell/{k % 8}", b'{"seq":%d}' % k, 1)
+
+
+def test_damaged_spool_is_quarantined_its_readable_part_kept_and_the_rest_counted(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    settings = make_settings(tmp_path, 1)
+    daemon = Daemon(settings)
+    spool = daemon.spool_path
+    spool.parent.mkdir(parents=True)
+    sent = [_spooled(k) for k in range(10)]
+    lines = encode_spool(settings.pack_id, sent).splitlines(keepends=True)
+    lines[5] = lines[5][: len(lines[5]) // 2] + b"\n"  # message 4 torn, 5..9 behind it
+    spool.write_bytes(b"".join(lines))
+    box = Outbox(100)
+    with caplog.at_level(logging.WARNING):
+        daemon._load_spool(box)
+    # nothing lost that could be read, nothing invented, the rest counted
+    assert [(m.topic, m.payload) for m in box.peek(100)] == [(m.topic, m.payload) for m in sent[:4]]
+    assert box.dropped == 6  # mqtt_drops: the seq gap 4..9 a subscriber will see
+    moved = sorted(spool.parent.glob("testpack.spool.bad-*"))
+    assert len(moved) == 1 and moved[0].read_bytes() == b"".join(lines)  # for a post-mortem
+    warned = _warnings(caplog)
+    assert len(warned) == 1, warned
+    assert "line 6 is damaged" in warned[0] and "4 messages recovered, 6 lost" in warned[0]
+    # the readable part is spooled again until delivered: a crash now loses nothing more
+    again = Outbox(100)
+    Daemon(settings)._load_spool(again)
+    assert len(again) == 4 and again.dropped == 6
+    daemon.outbox = box
+    box.pop(4)  # delivered
+    daemon._on_published(sent[3])
+    assert not spool.exists()
+
+
+# ------------------------------------------------------------------ failures during a run
+def test_state_dir_failing_mid_run_shows_in_health_and_status(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    real_part_missing: Callable[[str], NoReturn],
+) -> None:
+    monkeypatch.setattr(bank_worker, "SEQ_BLOCK", 40)  # a reservation falls due in the test
+    pack_schema = json.loads((SCHEMA_DIR / "pack.json").read_text())
+    status_schema = json.loads((SCHEMA_DIR / "status.json").read_text())
+
+    def health(messages: list[Any]) -> list[int]:
+        out = [json.loads(m.payload) for m in messages if m.topic.endswith("/pack")]
+        for body in out:
+            jsonschema.validate(body, pack_schema)
+        return [body["health"] & HEALTH_STATE_DIR for body in out]
+
+    host = BankHost(_spec(tmp_path))
+    host.start()
+    ok = host.update(_samples(0.0, 3))
+    assert health(ok.messages) == [0, 0, 0] and ok.counters["state_dir_failing"] == 0
+    with _read_only(tmp_path, real_part_missing):
+        failed = host.checkpoint()
+        after_ckpt = host.update(_samples(3.0, 3))  # within the reserved seq block
+        withheld = host.update(_samples(6.0, 10))  # the next reservation fails too
+    assert failed["checkpoint_errors"] == 1 and failed["state_dir_failing"] == 1
+    assert health(after_ckpt.messages) == [HEALTH_STATE_DIR] * 3
+    assert withheld.counters["mqtt_withheld"] > 0 and withheld.counters["state_dir_failing"] == 1
+    # the daemon's view: CAN health and the retained status say so, not only the counters
+    daemon = Daemon(make_settings(tmp_path / "d", 1))
+    assert json.loads(daemon._online_payload())["state_dir"] == "ok"
+    daemon._merge_bank_counters(withheld.counters)
+    assert after_ckpt.estimates
+    est = after_ckpt.estimates[-1]
+    assert daemon._health(est) & HEALTH_STATE_DIR
+    status = json.loads(daemon._online_payload())
+    jsonschema.validate(status, status_schema)
+    assert status["state_dir"] == "failing"
+    frame = daemon.encoder.decode(daemon.encoder.pack_frame(est, daemon._health(est)))
+    assert frame is not None and frame["health"] == daemon._health(est) & 31  # no room for 32
+    # writable again: the next reservation and checkpoint clear it
+    resumed = host.update(_samples(16.0, 3))
+    assert resumed.messages and resumed.counters["state_dir_failing"] == 1  # checkpoint pending
+    cleared = host.checkpoint()
+    assert cleared["state_dir_failing"] == 0
+    assert health(host.update(_samples(19.0, 2)).messages) == [0, 0]
+    daemon._merge_bank_counters(cleared)
+    assert not daemon._health(est) & HEALTH_STATE_DIR
+    assert json.loads(daemon._online_payload())["state_dir"] == "ok"
+
+
+def test_temp_files_of_a_killed_writer_are_removed_at_the_next_start(tmp_path: Path) -> None:
+    # A worker killed mid-write (with its daemon) leaves atomic_write's temp file behind.
+    settings = make_settings(tmp_path, None)
+    state = settings.state.directory
+    state.mkdir()
+    daemon = Daemon(settings)
+    left = [state / f".{p.name}.4242.tmp" for p in daemon._state_files()]
+    other = [state / ".testpack.seq.seq.4242.tmp", state / ".testpack.seq.x.tmp"]
+    for path in left + other:  # another pack's ("testpack.seq"), a name not atomic_write's
+        path.write_bytes(b"torn")
+    assert remove_stale_temps(state, (p.name for p in daemon._state_files())) == 3
+    assert sorted(p.name for p in state.iterdir()) == sorted(p.name for p in other)

@@ -150,11 +150,12 @@ class ParameterEncoder:
 
     def pack_frame(self, est: Estimates, health: int = 0) -> can.Message:
         """Pack summary: min/mean/max R0 (ohm) over cells with a finite R0, weakest cell = the
-        largest R0, ``health`` bits (``publish.payloads.HEALTH_*``, 0..31: bits 1..8 in
-        ``Health``, bit 16 in ``Diverged``)."""
+        largest R0, ``health`` bits (``publish.payloads.HEALTH_*``: bits 1..8 in ``Health``,
+        bit 16 in ``Diverged``; higher bits have no room in the frame and are left out, not
+        clamped, which would set every bit)."""
         r0 = np.asarray(est.R0_ohm, dtype=np.float64)
         finite = np.isfinite(r0)
-        h = min(max(int(health), 0), MAX_HEALTH)
+        h = max(int(health), 0) & MAX_HEALTH
         values: dict[str, float] = {
             "Health": float(h & _HEALTH_LOW_BITS),
             "Diverged": float(h >> _HEALTH_DIVERGED_SHIFT),

@@ -19,7 +19,14 @@ reserved (a disk error, a file system gone read-only) is not used: the tick's me
 withheld and counted (``mqtt_withheld``) until a reservation succeeds again, so a number is
 never published unreserved. A sequence file that exists but cannot be read refuses the start:
 the numbers already published are unknown. Only one daemon per pack uses these files (the
-lock of :mod:`bmsid.daemon.statedir`, taken by the daemon before the worker starts).
+lock of :mod:`bmsid.daemon.statedir`, taken by the daemon before the worker starts). The lock
+is the daemon's, so a worker must not outlive it: on Linux the kernel kills the worker the
+moment the daemon dies (``PR_SET_PDEATHSIG``), before a checkpoint or ``.seq`` write of an
+orphan could land on the files of the daemon started next.
+
+A write to the state directory that fails (a checkpoint, a ``.seq`` reservation) is a state,
+not only a count: until the same write succeeds again, the pack's health carries
+:data:`~bmsid.publish.payloads.HEALTH_STATE_DIR` and the counters ``state_dir_failing`` = 1.
 
 The worker process talks to the daemon over two pipes (calls, log records), not through
 ``ProcessPoolExecutor`` and ``multiprocessing.Queue``: those create 8 named POSIX semaphores
@@ -32,6 +39,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import ctypes
 import dataclasses
 import gc
 import logging
@@ -40,6 +48,7 @@ import math
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 import traceback
@@ -83,8 +92,11 @@ SEQ_BLOCK = 100_000
 #: Longest the daemon holds samples to measure start values (and samples, whichever first).
 PROBE_LIMIT_S = 1800.0
 PROBE_LIMIT_SAMPLES = 200_000
-#: How often the worker checks that the daemon still lives, s.
+#: How often the worker checks that the daemon still lives, s (where the kernel cannot
+#: kill it with its parent: not Linux).
 PARENT_POLL_S = 0.5
+#: prctl(2) option: the signal a process gets when the thread that created it dies (Linux).
+PR_SET_PDEATHSIG = 1
 #: Longest wait for the worker process to end after ``close()`` asked it to, s.
 CLOSE_TIMEOUT_S = 10.0
 
@@ -197,6 +209,9 @@ class BankHost:
     counters: dict[str, int] = field(default_factory=dict)
     _seq_reserved: int = 0
     _last_pub_t: float = -float("inf")
+    #: why the latest checkpoint / ``.seq`` write failed; None once one succeeds again
+    _ckpt_error: str | None = None
+    _seq_error: str | None = None
 
     #: start values measured on the first samples (None: the config's or the capacity rule's)
     start_values: StartValues | None = None
@@ -321,6 +336,7 @@ class BankHost:
         try:
             atomic_write(path, lambda fh: fh.write(f"{value}\n".encode("ascii")))
         except OSError as exc:
+            self._seq_error = str(exc.strerror or exc)
             self.counters["seq_file_errors"] += 1
             n = self.counters["seq_file_errors"]
             if _log_now(n):
@@ -332,6 +348,7 @@ class BankHost:
                     n,
                 )
             return False
+        self._seq_error = None
         return True
 
     def _take_seqs(self, n: int) -> int | None:
@@ -386,8 +403,20 @@ class BankHost:
             estimates, messages, self._counters(), self.seq, self.gate.state.report()
         )
 
+    @property
+    def state_dir_failing(self) -> bool:
+        """The latest checkpoint or ``.seq`` write failed (and has not succeeded since)."""
+        return self._ckpt_error is not None or self._seq_error is not None
+
     def _counters(self) -> dict[str, int]:
-        return {**self.bank.counters, **self.gate.state.counters(), **self.counters}
+        # state_dir_failing is a state (0/1), sent with the counters the daemon merges after
+        # every batch and checkpoint: its CAN health and status follow without another call.
+        return {
+            **self.bank.counters,
+            **self.gate.state.counters(),
+            **self.counters,
+            "state_dir_failing": int(self.state_dir_failing),
+        }
 
     def _messages(self, est: Estimates, t_mono: float | None) -> list[OutMessage]:
         s = self.spec
@@ -410,7 +439,8 @@ class BankHost:
         # Input staleness cannot be true here: a sample just arrived.
         seq = first + len(seen)
         missing = self.gate.state.missing  # never on the bus: reported in the pack, not cells
-        body = payloads.pack_payload(est, s.pack_id, seq, payloads.health_bits(est), missing)
+        health = payloads.health_bits(est, state_dir_failing=self.state_dir_failing)
+        body = payloads.pack_payload(est, s.pack_id, seq, health, missing)
         topic = payloads.topic(s.topic_prefix, s.pack_id, "pack")
         out.append(OutMessage(topic, payloads.encode(body), s.qos, t_sample_mono=t_mono))
         return out
@@ -453,15 +483,24 @@ class BankHost:
                 },
             )
         except OSError as exc:
+            self._ckpt_error = str(exc.strerror or exc)
             self.counters["checkpoint_errors"] += 1
             if _log_now(self.counters["checkpoint_errors"]):
                 log.error(
-                    "checkpoint %s failed (%d time(s)): %s",
+                    "checkpoint %s failed (%d time(s)): %s; health bit %d set until one succeeds",
                     self.spec.ckpt_path,
                     self.counters["checkpoint_errors"],
                     exc,
+                    payloads.HEALTH_STATE_DIR,
                 )
         else:
+            if self._ckpt_error is not None:
+                log.warning(
+                    "checkpoint %s written again (%d failure(s) so far)",
+                    self.spec.ckpt_path,
+                    self.counters["checkpoint_errors"],
+                )
+            self._ckpt_error = None
             self.counters["checkpoints"] += 1
 
 
@@ -478,9 +517,27 @@ class _RemoteTracebackError(Exception):
         return str(self.args[0])
 
 
+def _die_with_parent() -> bool:
+    """Ask the kernel to SIGKILL this process when its parent dies; True if it will (Linux).
+
+    A daemon killed with SIGKILL cannot stop its worker, and the lock of the pack's files died
+    with the daemon: an orphan still computing could write a checkpoint over the one the next
+    daemon restored (polling the parent left it up to :data:`PARENT_POLL_S` to do so). SIGKILL
+    ends it before its next instruction; a write already in its rename lands whole or not at
+    all (:func:`~bmsid.daemon.statedir.atomic_write`). The kernel sends it when the *thread*
+    that started the worker exits: :class:`BankWorker` is created on the event loop's thread.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return bool(libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0)
+    except (OSError, AttributeError):
+        return False
+
+
 def _exit_with_parent(parent_pid: int) -> None:
-    # A parent killed with SIGKILL cannot stop its worker: the worker notices it was re-parented
-    # and exits, so a crash-restart never leaves an orphan bank computing (and checkpointing).
+    # Where the kernel cannot (see _die_with_parent): notice the re-parenting and exit.
     while os.getppid() == parent_pid:
         time.sleep(PARENT_POLL_S)
     os._exit(0)
@@ -509,7 +566,10 @@ def _child_main(
     root = logging.getLogger()
     root.handlers[:] = [logging.handlers.QueueHandler(_PipeQueue(log_conn))]  # type: ignore[arg-type]
     root.setLevel(level)
-    threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
+    if not _die_with_parent():
+        threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
+    if os.getppid() != parent_pid:  # died before the kernel was asked: nobody to serve
+        os._exit(0)
     host: BankHost | None = None
     init_error: BaseException | None = None
     try:

@@ -48,7 +48,7 @@ from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
-from bmsid.daemon.statedir import StateLock, check_writable
+from bmsid.daemon.statedir import StateLock, check_writable, remove_stale_temps
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
 from bmsid.gates import GATE_COUNTERS
@@ -204,6 +204,7 @@ class Daemon:
         check_writable(directory)
         lock = StateLock.acquire(directory, self.settings.pack_id)
         try:
+            remove_stale_temps(directory, (p.name for p in self._state_files()))
             return await self._run_locked()
         finally:
             lock.release()
@@ -308,6 +309,10 @@ class Daemon:
         )
 
     # ------------------------------------------------------------------ MQTT spool
+    def _state_files(self) -> tuple[Path, ...]:
+        """The pack's files in the state directory that are written atomically."""
+        return (self.ckpt_path, self.bank_spec.seq_path, self.spool_path)
+
     def _load_spool(self, outbox: Outbox) -> None:
         """Put the messages the last stop could not deliver in the outbox, before any new."""
         messages, lost = load_spool(self.spool_path, self.settings.pack_id)
@@ -315,6 +320,9 @@ class Daemon:
         for msg in messages:
             outbox.put(msg)
         self._spooled = len(messages)
+        if not messages:  # a count of lost messages only: in this run's mqtt_drops now
+            with contextlib.suppress(OSError):
+                self.spool_path.unlink(missing_ok=True)
         if messages:
             log.info(
                 "MQTT: %d messages spooled at the last stop are sent first (%s)",
@@ -332,7 +340,8 @@ class Daemon:
                 self.spool_path.unlink(missing_ok=True)
 
     def _spool_backlog(self) -> None:
-        """Spool what the shutdown flush could not deliver; count it as dropped if it can't."""
+        """Spool what the shutdown flush could not deliver; if it can't, count it as dropped
+        in this run and, through a spool holding only that count, in the next one."""
         assert self.outbox is not None
         left = len(self.outbox)
         if left == 0:  # a spool loaded at start left the outbox: delivered or counted dropped
@@ -345,12 +354,19 @@ class Daemon:
             save_spool(self.spool_path, self.settings.pack_id, self.outbox.peek(left))
         except OSError as exc:
             self.outbox.dropped += left
+            try:
+                save_spool(self.spool_path, self.settings.pack_id, [], dropped=left)
+            except OSError:
+                after = "but not after the restart: the state directory cannot hold even the count"
+            else:
+                after = "and after the restart"
             log.error(
                 "MQTT: %d messages not delivered at shutdown (%s) and not spooled (%s): lost, a "
-                "seq gap counted in mqtt_drops",
+                "seq gap counted in mqtt_drops now %s",
                 left,
                 why,
                 exc.strerror or exc,
+                after,
             )
             return
         log.warning(
@@ -365,7 +381,20 @@ class Daemon:
     async def _checkpoint(self, clean: bool = False) -> None:
         """Checkpoint in the bank's worker, between two batches (the state is consistent)."""
         assert self.worker is not None
-        self.bank_counters.update(await self.worker.checkpoint(clean))
+        self._merge_bank_counters(await self.worker.checkpoint(clean))
+
+    @property
+    def state_dir_failing(self) -> bool:
+        """The worker's latest checkpoint or ``.seq`` write failed (health bit 32)."""
+        return bool(self.bank_counters.get("state_dir_failing", 0))
+
+    def _merge_bank_counters(self, counters: dict[str, int]) -> None:
+        """Take the worker's counters; a change of the state directory's state is published
+        in the status at once, as a change of the CAN state is."""
+        failing = self.state_dir_failing
+        self.bank_counters.update(counters)
+        if self.state_dir_failing != failing and self.mqtt is not None:
+            self.mqtt.publish_status()
 
     async def _checkpoints(self) -> None:
         while True:
@@ -520,7 +549,7 @@ class Daemon:
                 self.seq = result.seq
                 self.inputs = result.inputs
                 jumps = self.bank_counters.get("time_jumps_back", 0)
-                self.bank_counters.update(result.counters)
+                self._merge_bank_counters(result.counters)
                 if self.bank_counters.get("time_jumps_back", 0) > jumps:
                     log.warning(
                         "the sample clock went back by more than %.0f s (a replay restarted, "
@@ -540,7 +569,7 @@ class Daemon:
                     q.task_done()
 
     def _health(self, est: Estimates) -> int:
-        bits = payloads.health_bits(est)
+        bits = payloads.health_bits(est, state_dir_failing=self.state_dir_failing)
         if time.monotonic() - self._last_sample_mono > self.settings.can.staleness_s + 1.0:
             bits |= payloads.HEALTH_INPUT_STALE
         return bits
@@ -622,6 +651,7 @@ class Daemon:
                     if self.mqtt is not None
                     else None
                 ),
+                state_dir="failing" if self.state_dir_failing else "ok",
             )
         )
 

@@ -15,7 +15,8 @@ only if the daemon can write there and no other daemon writes the same files, so
   same pack refuses with one line instead of reusing the first one's numbers. Per pack, not
   per directory: packs share nothing there, and one directory may serve several.
 - :func:`atomic_write`: temp file, fsync, rename, fsync of the directory: a crash leaves the
-  old file or the new one, never a torn one.
+  old file or the new one, never a torn one (and perhaps the temp file, which
+  :func:`remove_stale_temps` removes at the next start, under the lock).
 - :func:`quarantine`: a file that cannot be used is renamed beside itself with a UTC time
   stamp (kept for a post-mortem, never read again) and the daemon starts fresh.
 """
@@ -25,10 +26,11 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import glob
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import BinaryIO
 
@@ -164,6 +166,22 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
     finally:
         tmp.unlink(missing_ok=True)
     fsync_directory(path.parent)
+
+
+def remove_stale_temps(directory: Path, names: Iterable[str]) -> int:
+    """Remove the temp files :func:`atomic_write` left for ``names`` in ``directory`` when its
+    process was killed mid-write (``.<name>.<pid>.tmp``); returns how many. Only with the
+    pack's :class:`StateLock` held: then no live process writes them."""
+    removed = 0
+    for name in names:
+        for tmp in directory.glob(f".{glob.escape(name)}.*.tmp"):
+            if tmp.name[len(name) + 2 : -len(".tmp")].isdigit():  # not another pack's file
+                with contextlib.suppress(OSError):
+                    tmp.unlink()
+                    removed += 1
+    if removed:
+        log.info("removed %d temp file(s) a killed bmsid left in %s", removed, directory)
+    return removed
 
 
 def quarantine(path: Path, what: str, why: str) -> Path | None:

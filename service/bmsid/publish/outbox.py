@@ -13,7 +13,11 @@ What a shutdown cannot deliver is spooled (:func:`save_spool`): one file in the 
 directory, written atomically and fsync'd, holding at most the outbox's ``maxsize`` messages
 (``mqtt.outbox_size``; ~0.5 kB each). The next start puts them in the outbox before any new
 message (:func:`load_spool`), so a subscriber sees every ``seq`` in order, or a gap that
-``mqtt_drops`` counts.
+``mqtt_drops`` counts. A spool too large for what the directory still takes (full, over
+quota) is replaced by one that holds only the count of the lost messages (a few bytes, in the
+same file: one file says what the last stop left, and the ``.seq`` file stays one number
+written by the worker alone); the next start adds it to its ``mqtt_drops``, so the gap those
+messages leave is counted after the restart too.
 """
 
 from __future__ import annotations
@@ -103,19 +107,26 @@ class Outbox:
         await self._nonempty.wait()
 
 
-def encode_spool(pack_id: str, messages: list[OutMessage]) -> bytes:
+def encode_spool(pack_id: str, messages: list[OutMessage], dropped: int = 0) -> bytes:
     """The spool file: a JSON header line, then one JSON array per message (topic, qos, retain,
     payload as Latin-1 text: any bytes round-trip). Sample times are not kept: monotonic
-    clocks do not survive a restart."""
-    head = {"bmsid_spool": SPOOL_FORMAT, "pack_id": pack_id, "messages": len(messages)}
+    clocks do not survive a restart. ``dropped``: messages of the stop that are not in the
+    file (lost: a ``seq`` gap the next start counts)."""
+    head = {
+        "bmsid_spool": SPOOL_FORMAT,
+        "pack_id": pack_id,
+        "messages": len(messages),
+        "dropped": dropped,
+    }
     lines = [json.dumps(head)]
     lines += [json.dumps([m.topic, m.qos, m.retain, m.payload.decode("latin-1")]) for m in messages]
     return ("\n".join(lines) + "\n").encode("utf-8")
 
 
 def decode_spool(data: bytes, pack_id: str) -> tuple[list[OutMessage], int, str | None]:
-    """(messages, messages announced, problem): the valid prefix of a spool file, how many
-    its header announced (0 when there is no header), and what is wrong with it (None)."""
+    """(messages, lost, problem): the valid prefix of a spool file, how many messages of the
+    stop that wrote it are not in that prefix (the header's ``dropped`` and its announced
+    messages that cannot be read; 0 without a usable header), and what is wrong (None)."""
     lines = data.decode("utf-8", errors="replace").splitlines()
     try:
         head = json.loads(lines[0]) if lines else None
@@ -125,9 +136,11 @@ def decode_spool(data: bytes, pack_id: str) -> tuple[list[OutMessage], int, str 
         return [], 0, "no spool header"
     if head.get("pack_id") != pack_id:
         return [], 0, f"spooled for pack {head.get('pack_id')!r}"
-    announced = head.get("messages")
+    announced, dropped = head.get("messages"), head.get("dropped", 0)  # no "dropped": older
     if not isinstance(announced, int) or announced < 0:
         return [], 0, "bad message count in the header"
+    if not isinstance(dropped, int) or dropped < 0:
+        return [], announced, "bad dropped count in the header"
     out: list[OutMessage] = []
     for k, line in enumerate(lines[1:], 2):
         try:
@@ -141,22 +154,28 @@ def decode_spool(data: bytes, pack_id: str) -> tuple[list[OutMessage], int, str 
                 raise ValueError("bad field")
             out.append(OutMessage(topic, payload.encode("latin-1"), qos, retain))
         except (ValueError, UnicodeEncodeError):
-            return out, announced, f"line {k} is damaged"
+            return out, dropped + announced - len(out), f"line {k} is damaged"
     if len(out) != announced:
-        return out, announced, f"{len(out)} of {announced} messages (truncated)"
-    return out, announced, None
+        return out, dropped + announced - len(out), f"{len(out)} of {announced} messages"
+    return out, dropped, None
 
 
-def save_spool(path: Path, pack_id: str, messages: list[OutMessage]) -> None:
-    """Write ``messages`` to the spool file at ``path`` atomically (raises OSError)."""
-    data = encode_spool(pack_id, messages)
+def save_spool(path: Path, pack_id: str, messages: list[OutMessage], dropped: int = 0) -> None:
+    """Write ``messages`` (and the count of the ``dropped`` ones) to the spool file at ``path``
+    atomically (raises OSError)."""
+    data = encode_spool(pack_id, messages, dropped)
     atomic_write(path, lambda fh: fh.write(data))
 
 
 def load_spool(path: Path, pack_id: str) -> tuple[list[OutMessage], int]:
-    """(messages, lost): the spooled messages (none without a file) and how many of those its
-    header announced could not be read back. A damaged file is quarantined (one WARNING line)
-    after its readable prefix is taken; the file itself stays until they are delivered."""
+    """(messages, lost): the spooled messages (none without a file) and how many messages of
+    the stop that wrote it are lost (its count of dropped ones, and those that cannot be read
+    back). One WARNING line when some are lost.
+
+    A damaged file is quarantined after its readable prefix is taken, and that prefix is
+    spooled again (with the lost count): the file stays until its messages are delivered, so
+    a crash before then loses nothing more.
+    """
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -164,7 +183,27 @@ def load_spool(path: Path, pack_id: str) -> tuple[list[OutMessage], int]:
     except OSError as exc:
         quarantine(path, "MQTT spool", f"unreadable: {exc.strerror or exc}")
         return [], 0
-    messages, announced, problem = decode_spool(data, pack_id)
-    if problem is not None:
-        quarantine(path, "MQTT spool", f"{problem}; {len(messages)} messages recovered")
-    return messages, max(0, announced - len(messages))
+    messages, lost, problem = decode_spool(data, pack_id)
+    if problem is None:
+        if lost:
+            log.warning(
+                "MQTT: %d messages the last stop could neither deliver nor spool are lost (%s): "
+                "a seq gap, counted in mqtt_drops",
+                lost,
+                path,
+            )
+        return messages, lost
+    why = f"{problem}; {len(messages)} messages recovered, {lost} lost (counted in mqtt_drops)"
+    quarantine(path, "MQTT spool", why)
+    if messages:
+        try:
+            save_spool(path, pack_id, messages, lost)
+        except OSError as exc:
+            log.warning(
+                "MQTT spool %s: the %d recovered messages cannot be spooled again (%s): a crash "
+                "before they are delivered loses them",
+                path,
+                len(messages),
+                exc.strerror or exc,
+            )
+    return messages, lost

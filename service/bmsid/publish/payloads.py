@@ -24,13 +24,16 @@ from bmsid.estimate.types import Estimates, Quality
 SCHEMA_VERSION = 1
 
 #: Health bits of the pack summary (MQTT ``health``; on CAN, ``PackSummary``'s ``Health`` holds
-#: bits 1..8 and its ``Diverged`` bit 16).
+#: bits 1..8 and its ``Diverged`` bit 16; the frame has no room for bit 32).
 HEALTH_CONVERGING = 1  #: at least one cell still converging
 HEALTH_POORLY_EXCITED = 2  #: the current carries too little information
 HEALTH_OUT_OF_BOUNDS = 4  #: at least one cell hit its bounds (its last good values are published)
 #: no sample within the staleness window (set by the daemon), or a cell without a valid reading
 HEALTH_INPUT_STALE = 8
 HEALTH_DIVERGED = 16  #: at least one cell diverged (held, being re-initialised)
+#: the latest checkpoint or ``.seq`` reservation could not be written (state directory
+#: read-only, full, failing): a restart would lose state, data messages may be withheld
+HEALTH_STATE_DIR = 32
 
 
 def topic(prefix: str, pack_id: str, *levels: str | int) -> str:
@@ -138,9 +141,11 @@ def schema_text(schema: dict[str, Any]) -> str:
     return json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
 
 
-def health_bits(est: Estimates) -> int:
+def health_bits(est: Estimates, *, state_dir_failing: bool = False) -> int:
+    """The ``HEALTH_*`` bits of ``est``'s cells, and :data:`HEALTH_STATE_DIR` if
+    ``state_dir_failing`` (a stale input, seen over time, is the daemon's to add)."""
     q = est.quality
-    bits = 0
+    bits = HEALTH_STATE_DIR if state_dir_failing else 0
     if np.any(q == Quality.CONVERGING):
         bits |= HEALTH_CONVERGING
     if np.any(q == Quality.POORLY_EXCITED):
@@ -203,11 +208,13 @@ def status_payload(
     version: str = "",
     mqtt: dict[str, str | None] | None = None,
     inputs: dict[str, Any] | None = None,
+    state_dir: str | None = None,
 ) -> dict[str, Any]:
     """``online``/``offline`` with the daemon's counters (the will carries ``offline`` only);
     ``mqtt`` is the connection's ``{"state", "last_error"}`` (never a secret); ``inputs`` what
     the plausibility gates refused per cell, and the missing and no-data cells
-    (``bmsid.gates.GateState.report``)."""
+    (``bmsid.gates.GateState.report``); ``state_dir`` ``"ok"`` or ``"failing"``
+    (:data:`HEALTH_STATE_DIR`)."""
     out: dict[str, Any] = {"schema": SCHEMA_VERSION, "state": state, "pack_id": pack_id}
     if version:
         out["version"] = version
@@ -215,6 +222,8 @@ def status_payload(
         out["can"] = can_state
         if mqtt is not None:
             out["mqtt"] = dict(mqtt)
+        if state_dir is not None:
+            out["state_dir"] = state_dir
         out["uptime_s"] = round(float(uptime_s), 3)
         out["counters"] = dict(counters or {})
         if inputs is not None:
