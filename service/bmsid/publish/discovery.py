@@ -123,9 +123,9 @@ def _project_url() -> str | None:
     except importlib.metadata.PackageNotFoundError:
         return None
     for entry in meta.get_all("Project-URL") or ():
-        _, _, url = entry.partition(",")
-        if url.strip().startswith(("http://", "https://")):
-            return url.strip()
+        url = str(entry).partition(",")[2].strip()
+        if url.startswith(("http://", "https://")):
+            return url
     return None
 
 
@@ -221,9 +221,9 @@ class PublishedConfigs:
 
     def __init__(self, directory: Path) -> None:
         self.path = directory / RECORD_FILE
+        self._warned = False  # one line per run about the record, whatever goes wrong
         self._known: set[str] = self._load()
         self._current: set[str] = set()
-        self._warned = False
 
     def _load(self) -> set[str]:
         try:
@@ -234,6 +234,7 @@ class PublishedConfigs:
         except FileNotFoundError:
             return set()
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            self._warned = True
             log.warning(
                 "%s unreadable (%s): configs of removed cells or a renamed pack published "
                 "before stay in Home Assistant (delete them there)",
@@ -257,6 +258,7 @@ class PublishedConfigs:
     def _save(self, topics: set[str]) -> None:
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             with tmp.open("w", encoding="utf-8") as fh:
                 json.dump({"format": _RECORD_FORMAT, "topics": sorted(topics)}, fh, indent=0)
                 fh.flush()
