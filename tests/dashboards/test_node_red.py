@@ -36,6 +36,7 @@ from dashboard_tools import (
 from bmsid.estimate.fields import CELL_FIELDS
 from bmsid.estimate.types import Estimates, Quality
 from bmsid.publish import payloads
+from conftest import require_tool
 
 FLOW = REPO / "deploy" / "dashboard" / "node-red-flow.json"
 NODE_RED_DIR = TOOLS_DIR / "node-red"
@@ -109,6 +110,7 @@ def probed_flow(port: int, probe_file: Path) -> list[dict[str, Any]]:
 
 @pytest.fixture
 def node_red_home() -> Path:
+    require_tool("node")
     red = require_path(NODE_RED_DIR / "node_modules" / "node-red" / "red.js", "Node-RED")
     dashboard = NODE_RED_DIR / "node_modules" / "@flowfuse" / "node-red-dashboard"
     require_path(dashboard / "package.json", "@flowfuse/node-red-dashboard")
@@ -146,7 +148,7 @@ def test_flow_runs_on_dashboard_2_at_sample_time_with_gaps(
         " logging: {console: {level: 'info', metrics: false, audit: false}}};\n"
     )
     red = Process(
-        ["node", str(node_red_home / "node_modules" / "node-red" / "red.js"),
+        [require_tool("node"), str(node_red_home / "node_modules" / "node-red" / "red.js"),
          "--userDir", str(user_dir), "--port", str(port), "--settings",
          str(user_dir / "settings.js")],
         tmp_path / "node-red.log", user_dir, {**os.environ, "NODE_RED_ENABLE_PROJECTS": ""},
