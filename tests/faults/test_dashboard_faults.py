@@ -2,7 +2,8 @@
 record of published configs unreadable or unwritable. Each asserts what the broker retains (via
 ``mosquitto_sub --retained-only``, an independent peer) or the one line logged.
 
-About 3 s in all (four short in-process daemon runs against a real Mosquitto).
+About 6 s in all (five short in-process daemon runs against a real Mosquitto, the bank in a
+thread).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ def run_daemon(tmp_path: Path, port: int, state: Path, pack_id: str, n_cells: in
         port,
         pack_id=pack_id,
         can={"n_cells": n_cells},
+        estimator={"isolation": "thread"},  # no bank process to spawn: discovery is the point
         mqtt={"homeassistant": {"enabled": True}},
         state={"directory": str(state), "checkpoint_period_s": 1.0},
     )
