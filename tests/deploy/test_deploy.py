@@ -754,7 +754,7 @@ def test_node_red_flow_reads_only_published_topics_and_fields() -> None:
         for outputs in node.get("wires", []):
             for target in outputs:
                 assert target in by_id, f"{node['id']} wired to missing {target}"
-        for ref in ("broker", "group", "tab", "z"):
+        for ref in ("broker", "group", "tab", "z", "page", "ui", "theme"):
             if ref in node and not (node["type"] == "mqtt-broker" and ref == "broker"):
                 assert node[ref] in by_id, f"{node['id']}.{ref} -> missing {node[ref]}"
     # the daemon's topics (publish/payloads.py) for a sample pack
@@ -791,7 +791,8 @@ def test_node_red_flow_reads_only_published_topics_and_fields() -> None:
             assert fn["outputs"] == len(fn["wires"])
             widgets |= {by_id[t]["type"] for outs in fn["wires"] for t in outs}
     assert covered == set(published)
-    assert {"ui_chart", "ui_gauge", "ui_text"} <= widgets
+    # FlowFuse Dashboard 2's widgets (the deprecated node-red-dashboard's were ui_chart, ...)
+    assert {"ui-chart", "ui-gauge", "ui-text"} <= widgets
     # the quantities the dashboard promises
     cell_fn = next(n for n in flow if n["type"] == "function" and "cell" in n["name"])
     assert {"R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "soc", "v_error_V"} <= (

@@ -135,7 +135,9 @@ def test_added_field_appears_in_home_assistant_discovery(added: tuple[FieldSpec,
     msgs = dict(discovery.discovery_messages("homeassistant", "bmsid", "p1", 2, "0"))
     cfg = json.loads(msgs["homeassistant/sensor/bmsid_p1/cell1_energy_wh/config"])
     assert cfg["name"] == "cell 1 energy" and cfg["unit_of_measurement"] == "Wh"
-    assert cfg["value_template"] == "{{ (value_json.energy_Wh) | round(2) }}"
+    assert cfg["value_template"] == (
+        "{{ (value_json.energy_Wh) | round(2) if value_json.energy_Wh is number else none }}"
+    )
     assert cfg["state_topic"] == "bmsid/p1/cell/1" and cfg["state_class"] == "measurement"
     assert not any("nis" in t for t in msgs)  # no ha entry: no sensor
 
@@ -265,14 +267,19 @@ def test_discovery_offers_the_table_with_todays_entity_ids() -> None:
     assert set(cfgs) == TODAYS_OBJECT_IDS
     for spec, ha in discovery.ha_fields():
         cfg = cfgs[f"cell0_{spec.out_key}".lower()]
-        assert cfg["unique_id"] == cfg["object_id"] == f"bmsid_p1_cell0_{spec.out_key}".lower()
+        assert cfg["unique_id"] == f"bmsid_p1_cell0_{spec.out_key}".lower()
+        assert cfg["default_entity_id"] == f"sensor.{cfg['unique_id']}"
         assert cfg.get("unit_of_measurement") == ha.unit
         assert cfg.get("device_class") == ha.device_class
         assert (cfg.get("entity_category") == "diagnostic") == ha.diagnostic
-    assert cfgs["cell0_r0_ohm"]["value_template"] == "{{ (value_json.R0_ohm * 1000) | round(4) }}"
+    assert cfgs["cell0_r0_ohm"]["value_template"] == (
+        "{{ (value_json.R0_ohm * 1000) | round(4) if value_json.R0_ohm is number else none }}"
+    )
     # `lambda` is reserved in the template language: subscripted, as before the table
-    assert cfgs["cell0_lambda"]["value_template"] == "{{ (value_json['lambda']) | round(4) }}"
-    assert cfgs["cell0_quality"]["value_template"] == "{{ value_json.quality_name }}"
+    assert cfgs["cell0_lambda"]["value_template"] == (
+        "{{ (value_json['lambda']) | round(4) if value_json['lambda'] is number else none }}"
+    )
+    assert cfgs["cell0_quality"]["device_class"] == "enum"
 
 
 @pytest.mark.parametrize("fd", [False, True])

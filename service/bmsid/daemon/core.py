@@ -53,7 +53,7 @@ from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
 from bmsid.gates import GATE_COUNTERS
 from bmsid.publish import payloads
-from bmsid.publish.discovery import discovery_messages
+from bmsid.publish.discovery import PublishedConfigs, discovery_messages
 from bmsid.publish.mqtt import MqttPublisher
 from bmsid.publish.outbox import Outbox, OutMessage, load_spool, save_spool
 from bmsid.samples import Sample, SampleBlock
@@ -608,12 +608,15 @@ class Daemon:
             payloads.status_payload("offline", s.pack_id, version=__version__)
         )
         discovery = None
+        record: PublishedConfigs | None = None
         if s.mqtt.homeassistant.enabled:
             ha = s.mqtt.homeassistant.prefix
             n = s.can.n_cells
+            record = published = PublishedConfigs(s.state.directory)
 
             def discovery() -> list[tuple[str, bytes]]:
-                return discovery_messages(ha, self.prefix, s.pack_id, n, __version__)
+                current = discovery_messages(ha, self.prefix, s.pack_id, n, __version__)
+                return published.messages(current)
 
         self.mqtt = MqttPublisher(
             s.mqtt,
@@ -623,6 +626,7 @@ class Daemon:
             self._online_payload,
             offline,
             discovery=discovery,
+            on_discovery_sent=None if record is None else record.sent,
             on_published=self._on_published,
         )
         await self.mqtt.run()

@@ -424,6 +424,7 @@ class MqttPublisher:
         status_topic: retained status topic; ``online_payload()`` is published on every connect,
             ``offline_payload`` is the will and the last word at shutdown.
         discovery: callable returning the (topic, payload) Home Assistant config messages.
+        on_discovery_sent: called (in a thread) once the broker acknowledged all of them.
         on_published: called with each delivered message (latency figures).
 
     Attributes for the status (all secret-free):
@@ -443,6 +444,7 @@ class MqttPublisher:
         online_payload: Callable[[], bytes],
         offline_payload: bytes,
         discovery: Callable[[], list[tuple[str, bytes]]] | None = None,
+        on_discovery_sent: Callable[[], None] | None = None,
         on_published: Callable[[OutMessage], None] | None = None,
     ) -> None:
         self.settings = settings
@@ -452,6 +454,7 @@ class MqttPublisher:
         self.online_payload = online_payload
         self.offline_payload = offline_payload
         self.discovery = discovery
+        self.on_discovery_sent = on_discovery_sent
         self.on_published = on_published
         self.connected = False
         self.state = CONNECTING
@@ -698,6 +701,8 @@ class MqttPublisher:
         for topic, payload in await asyncio.to_thread(self.discovery):
             await client.publish(topic, payload, qos=1, retain=True)
             self.counters["discovery_sent"] += 1
+        if self.on_discovery_sent is not None:
+            await asyncio.to_thread(self.on_discovery_sent)
 
     async def _receive(self, client: aiomqtt.Client) -> None:
         async for msg in client.messages:
