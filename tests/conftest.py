@@ -31,6 +31,7 @@ Hooks:
 
 from __future__ import annotations
 
+import logging
 import os
 import pwd
 import shutil
@@ -55,6 +56,17 @@ _FALSE_WORDS = frozenset({"", "0", "false", "no"})
 _SBIN_DIRS = ("/usr/local/sbin", "/usr/sbin", "/sbin")  # mosquitto lives in /usr/sbin
 BROKER_START_TIMEOUT_S = 15.0  # generous: UML syscalls are slow
 BROKER_STOP_TIMEOUT_S = 5.0
+
+
+@pytest.fixture(autouse=True)
+def _restore_root_logger() -> Iterator[None]:
+    """``bmsid.cli.main`` sets the root logger's level and handler (the CLI and fault tests
+    call it in-process): leave them as found for later tests."""
+    root = logging.getLogger()
+    level, handlers = root.level, list(root.handlers)
+    yield
+    root.setLevel(level)
+    root.handlers[:] = handlers
 
 
 def _env_flag(name: str) -> bool:

@@ -29,17 +29,6 @@ from bmsid.errors import UserError
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(autouse=True)
-def _restore_root_logger() -> Iterator[None]:
-    import logging
-
-    root = logging.getLogger()
-    level, handlers = root.level, list(root.handlers)
-    yield
-    root.setLevel(level)
-    root.handlers[:] = handlers
-
-
 def _writable(directory: Path) -> bool:
     try:
         fd, probe = tempfile.mkstemp(dir=directory)

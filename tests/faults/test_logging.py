@@ -17,7 +17,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -33,16 +33,6 @@ REPO = Path(__file__).resolve().parents[2]
 REPLAY_CONFIG = REPO / "configs" / "bmsid.replay.toml"
 UNIT = REPO / "deploy" / "systemd" / "bmsid.service"
 SERVICE = REPO / "service"
-
-
-@pytest.fixture(autouse=True)
-def _restore_root_logger() -> Iterator[None]:
-    """main() sets the root logger's level and handler: leave them as found for later tests."""
-    root = logging.getLogger()
-    level, handlers = root.level, list(root.handlers)
-    yield
-    root.setLevel(level)
-    root.handlers[:] = handlers
 
 
 # --------------------------------------------------------------------------------- levels
