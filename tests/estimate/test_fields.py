@@ -117,11 +117,14 @@ def test_added_field_appears_in_payload_and_schema(added: tuple[FieldSpec, ...])
         for spec in added:
             assert body[spec.out_key] == float(est[spec.name][i])
     props = schema["properties"]
+    # every field may be null (a no_data cell), a non-nullable one only then
     assert props["nis"] == {
-        "type": "number",
+        "type": ["number", "null"],
         "exclusiveMinimum": 0,
         "description": "normalised innovation squared (observer)",
     }
+    assert schema["else"]["properties"]["nis"] == {"type": "number"}
+    assert "energy_Wh" not in schema["else"]["properties"]
     assert props["energy_Wh"]["type"] == ["number", "null"]
     assert props["energy_Wh"]["description"] == "identified energy [Wh]"
     assert {"nis", "energy_Wh"} <= set(schema["required"])

@@ -24,8 +24,8 @@ from bmsid.offline.scoring import EvalWindow
 
 PARAMS_HEADER = (
     "t_s,cell,R0_ohm,R1_ohm,C1_F,R2_ohm,C2_F,tau1_s,tau2_s,lambda,h,soc,soc_std,capacity_Ah,"
-    "capacity_std_Ah,current_offset_A,v_model_V,v_meas_V,v_error_V,M_V,ocv_offset_V,arx_error_V,"
-    "quality"
+    "capacity_std_Ah,current_offset_A,v_model_V,v_meas_V,v_error_V,M_V,ocv_offset_V,on_bound,"
+    "arx_error_V,quality"
 )
 METRIC_KEYS = ("algorithm", "n_samples", "max_abs_error_V", "rmse_V", "mape_pct", "runtime_s")
 TRUTH = {"R0_ohm": 1.2e-3, "R1_ohm": 0.8e-3, "tau1_s": 30.0, "R2_ohm": 1.0e-3, "tau2_s": 600.0}
