@@ -447,8 +447,11 @@ def test_state_dir_failing_mid_run_shows_in_health_and_status(
     status = json.loads(daemon._online_payload())
     jsonschema.validate(status, status_schema)
     assert status["state_dir"] == "failing"
-    frame = daemon.encoder.decode(daemon.encoder.pack_frame(est, daemon._health(est)))
-    assert frame is not None and frame["health"] == daemon._health(est) & 31  # no room for 32
+    summary, state = (
+        daemon.encoder.decode(f) for f in daemon.encoder.pack_frames(est, daemon._health(est))
+    )
+    assert summary is not None and summary["health"] == daemon._health(est) & 31  # no room for 32
+    assert state is not None and state["health"] == daemon._health(est)  # PackState carries it
     # writable again: the next reservation and checkpoint clear it
     resumed = host.update(_samples(16.0, 3))
     assert resumed.messages and resumed.counters["state_dir_failing"] == 1  # checkpoint pending
