@@ -173,4 +173,4 @@ def test_estimator_internals_are_diagnostic_and_disabled_by_default() -> None:
     assert disabled == internals and internals
     assert all(c["entity_category"] == "diagnostic" for c in configs if c["unique_id"] in disabled)
     enabled = {c["unique_id"] for c in configs} - disabled
-    assert {f"bmsid_p1_cell0_{k}" for k in ("soc", "r0_ohm", "v_meas_v")} <= enabled
+    assert {f"bmsid_p1_cell0_{k}" for k in ("soc", "r0_ohm", "tau1_s", "quality")} <= enabled
