@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import math
+from pathlib import Path
 
+import can
+import cantools
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -11,8 +15,11 @@ from hypothesis import strategies as st
 
 from bmsid.canbus.dbcgen import CLASSIC_STATE_MASK_BITS, SATURATION_BITS
 from bmsid.canbus.encoder import CLASSIC_PAGES, PACK_PAGES, ParameterEncoder
+from bmsid.canbus.mapping import PACKAGE_DBC_DIR
 from bmsid.estimate.types import Estimates, Quality
 from bmsid.publish import payloads
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def estimates(n: int = 3, **over: float) -> Estimates:
@@ -163,7 +170,11 @@ def test_pack_frames_carry_the_current_offset_and_every_health_bit(ext: bool) ->
     assert summary is not None and state is not None
     assert summary["health"] == health
     assert summary["R0_mean_ohm"] == pytest.approx(1.2e-3)
-    assert state == {"current_offset_A": pytest.approx(0.0421, abs=5e-6), "saturated_mask": 0}
+    assert state == {
+        "current_offset_A": pytest.approx(0.0421, abs=5e-6),
+        "saturated_mask": 0,
+        "health": health,
+    }
     assert enc.decode(enc.pack_frame(est, health)) == summary  # the first of the pack frames
     # MQTT says the same
     body = payloads.pack_payload(est, "p", 0, health)
@@ -176,6 +187,83 @@ def test_health_round_trips_through_both_signals(health: int) -> None:
     enc = ParameterEncoder()
     d = enc.decode(enc.pack_frame(estimates(), health))
     assert d is not None and d["health"] == health
+
+
+ALL_HEALTH_BITS = (
+    payloads.HEALTH_CONVERGING
+    | payloads.HEALTH_POORLY_EXCITED
+    | payloads.HEALTH_OUT_OF_BOUNDS
+    | payloads.HEALTH_INPUT_STALE
+    | payloads.HEALTH_DIVERGED
+    | payloads.HEALTH_STATE_DIR
+)
+
+
+@functools.cache
+def _cantools_db(path: Path) -> cantools.database.can.Database:
+    """A DBC as a receiver loads it: plain cantools (~0.8 s a load here, hence the cache)."""
+    db = cantools.database.load_file(str(path), strict=True)
+    assert isinstance(db, cantools.database.can.Database)
+    return db
+
+
+def _cantools_pack_health(db: cantools.database.Database, frames: list[can.Message]) -> int:
+    """Health as a receiver with only cantools and a DBC reads it: the OR of both pack frames
+    (dbc/README.md), PackState's ``Health`` absent from a DBC older than it."""
+    summary, state = (db.decode_message(f.arbitration_id, bytes(f.data)) for f in frames)
+    assert isinstance(summary, dict) and isinstance(state, dict)
+    return int(summary["Health"]) | int(summary["Diverged"]) << 4 | int(state.get("Health", 0))
+
+
+@pytest.mark.parametrize("ext", [True, False])
+@pytest.mark.parametrize(
+    "health", [payloads.HEALTH_STATE_DIR, payloads.HEALTH_STATE_DIR | 16 | 1, ALL_HEALTH_BITS]
+)
+def test_health_bit_32_round_trips_through_cantools(ext: bool, health: int) -> None:
+    frames = ParameterEncoder(extended_id=ext).pack_frames(estimates(), health)
+    db = _cantools_db(REPO / "dbc" / "bmsid.dbc")  # the shipped copies are identical (test_can_dbc)
+    state = db.decode_message(frames[1].arbitration_id, bytes(frames[1].data))
+    assert isinstance(state, dict) and state["Health"] == health
+    assert _cantools_pack_health(db, frames) == health
+
+
+def test_every_health_bit_fits_the_pack_state_signal() -> None:
+    enc = ParameterEncoder()
+    assert ALL_HEALTH_BITS & enc.state_health_mask == ALL_HEALTH_BITS
+    d = enc.decode(enc.pack_frames(estimates(), ALL_HEALTH_BITS)[1])
+    assert d is not None and d["health"] == ALL_HEALTH_BITS
+
+
+def _old_dbc(tmp_path: Path) -> Path:
+    """bmsid.dbc as it was before PackState carried ``Health``."""
+    text = (PACKAGE_DBC_DIR / "bmsid.dbc").read_text(encoding="utf-8")
+    old = "\n".join(
+        line
+        for line in text.splitlines()
+        if not line.startswith(" SG_ Health : 32|16")
+        and not (line.startswith("CM_ SG_ ") and ' Health "every pack health bit' in line)
+    )
+    assert old.count("SG_ Health") == text.count("SG_ Health") - 2  # 29- and 11-bit PackState
+    path = tmp_path / "bmsid-old.dbc"
+    path.write_text(old + "\n", encoding="utf-8")
+    return path
+
+
+def test_old_receivers_decode_the_new_pack_frames_as_before(tmp_path: Path) -> None:
+    old_dbc = _old_dbc(tmp_path)
+    old_db = _cantools_db(old_dbc)
+    est = estimates(current_offset_A=0.0421)
+    new_frames = ParameterEncoder().pack_frames(est, 63)
+    old_frames = ParameterEncoder(old_dbc).pack_frames(est, 63)  # an old sender
+    assert bytes(new_frames[0].data) == bytes(old_frames[0].data)  # PackSummary unchanged
+    for frames in (new_frames, old_frames):
+        state = old_db.decode_message(frames[1].arbitration_id, bytes(frames[1].data))
+        assert state == {"CurrentOffset": pytest.approx(0.0421, abs=5e-6), "Saturated": 0}
+        assert _cantools_pack_health(old_db, frames) == 31  # what an old receiver always saw
+    # a new receiver hearing an old sender: the bits that sender could carry, bit 32 absent
+    new_db = _cantools_db(REPO / "dbc" / "bmsid.dbc")
+    assert _cantools_pack_health(new_db, old_frames) == 31
+    assert _cantools_pack_health(new_db, new_frames) == 63
 
 
 def test_pack_state_sends_nan_offset_as_not_available_and_saturates() -> None:

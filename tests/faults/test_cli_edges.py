@@ -8,6 +8,7 @@ it was, no output is half-written). In-process, except the missing replay log, w
 
 from __future__ import annotations
 
+import logging
 import os
 import stat
 import subprocess
@@ -16,9 +17,11 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+import can
 import pytest
 
 import bmsid.cli.check_config
+from bmsid.canbus.logs import write_log
 from bmsid.cli.main import main
 from bmsid.cli.preflight import secret_file_warnings
 from bmsid.config.settings import load_settings
@@ -206,6 +209,37 @@ def test_replayer_refuses_a_log_that_vanished_after_the_check(tmp_path: Path) ->
     (a UserError that stops the daemon), not a thread's traceback."""
     with pytest.raises(UserError, match=r"can.replay.log: cannot read .*gone\.log"):
         LogReplayer(tmp_path / "gone.log", f"t{os.getpid()}", 1.0, 0.0)
+
+
+def test_replay_older_than_the_restored_checkpoint_sends_nothing_and_says_so(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """README row "replay of LOG: all N frames are older than the restored checkpoint, none
+    sent": a restarted replay daemon whose state is past the log's end feeds nothing again
+    (no sample seen twice) and says why in one WARNING."""
+    log = tmp_path / "short.log"
+    frames = [
+        can.Message(timestamp=100.0 + k, arbitration_id=0x100, is_extended_id=False, data=b"\0" * 8)
+        for k in range(20)
+    ]
+    write_log(log, frames)
+    channel = f"t{os.getpid()}-replay-old"
+    listener = can.Bus(interface="virtual", channel=channel)
+    try:
+        with caplog.at_level(logging.INFO, logger="bmsid"):
+            replayer = LogReplayer(log, channel, 1000.0, 0.0, resume_after_s=119.0)
+            replayer.start()
+            assert replayer.done.wait(10)
+            replayer.stop()
+        assert listener.recv(0.2) is None  # nothing sent
+    finally:
+        listener.shutdown()
+    assert (replayer.sent, replayer.skipped) == (0, 20)
+    lines = [r for r in caplog.records if "replay of" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].levelno == logging.WARNING
+    said = lines[0].getMessage()
+    assert said.startswith(f"replay of {log}: all 20 frames are older than the restored checkpoint")
+    assert "none sent" in said
 
 
 def _mqtt_config(tmp_path: Path, mqtt: str, mode: int) -> Path:

@@ -3,7 +3,7 @@ record of published configs unreadable or unwritable. Each asserts what the brok
 ``mosquitto_sub --retained-only``, an independent peer) or the one line logged.
 
 About 6 s in all (five short in-process daemon runs against a real Mosquitto, the bank in a
-thread).
+thread); the two checks of the configs themselves (no ``object_id``, internals disabled) are pure.
 """
 
 from __future__ import annotations
@@ -22,7 +22,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
 from daemon_helpers import make_settings, wait_for
 
 from bmsid.daemon.core import Daemon
-from bmsid.publish.discovery import RECORD_FILE, PublishedConfigs, discovery_messages
+from bmsid.publish.discovery import (
+    RECORD_FILE,
+    PublishedConfigs,
+    discovery_messages,
+    ha_fields,
+    is_internal,
+)
 
 
 def retained_configs(sub: str, port: int) -> dict[str, dict[str, Any]]:
@@ -137,3 +143,34 @@ def test_unwritable_record_costs_one_line_and_still_clears_within_the_run(
     cleared = [t for t, p in out if p == b""]
     assert set(cleared) == {t for t, _ in eight} - {t for t, _ in five}
     assert out[len(cleared) :] == five
+
+
+def _configs(n_cells: int) -> list[dict[str, Any]]:
+    return [
+        json.loads(p) for _, p in discovery_messages("homeassistant", "bmsid", "p1", n_cells, "x")
+    ]
+
+
+def test_no_config_carries_the_deprecated_object_id() -> None:
+    """README row 'HA repair "uses the deprecated option object_id"': none of bmsid's configs
+    has it (HA 2025.10 raises one repair per entity, 2026.4 drops it); ``default_entity_id``
+    keeps each entity id what ``object_id`` made it: ``sensor.<unique_id>``."""
+    configs = _configs(3)
+    assert len(configs) == len({c["unique_id"] for c in configs})
+    for cfg in configs:
+        assert "object_id" not in cfg, cfg["unique_id"]
+        assert cfg["default_entity_id"] == f"sensor.{cfg['unique_id']}"
+
+
+def test_estimator_internals_are_diagnostic_and_disabled_by_default() -> None:
+    """README row "estimator internals ... missing in HA": disabled by default (enable them on
+    the device page), always diagnostic; the cell values a user reads stay enabled."""
+    configs = _configs(1)
+    disabled = {c["unique_id"] for c in configs if c.get("enabled_by_default") is False}
+    internals = {
+        f"bmsid_p1_cell0_{spec.out_key}".lower() for spec, ha in ha_fields() if is_internal(ha)
+    }
+    assert disabled == internals and internals
+    assert all(c["entity_category"] == "diagnostic" for c in configs if c["unique_id"] in disabled)
+    enabled = {c["unique_id"] for c in configs} - disabled
+    assert {f"bmsid_p1_cell0_{k}" for k in ("soc", "r0_ohm", "tau1_s", "quality")} <= enabled

@@ -111,6 +111,23 @@ def test_refusals_are_said_in_one_line_per_decade(caplog: pytest.LogCaptureFixtu
     assert "(1 so far, v_window)" in lines[0] and "(10 so far, v_window)" in lines[1]
 
 
+def test_step_and_current_refusals_are_one_line_each(caplog: pytest.LogCaptureFixture) -> None:
+    """README rows "... more than X V from its last accepted reading refused (..., v_step)" and
+    "pack current beyond +-A A refused (..., i_window)": one line each at the first refusal."""
+    gate = InputGate(LIMITS, 1)
+    with caplog.at_level(logging.WARNING, logger="bmsid.gates"):
+        out = gate.apply(_block([[3.9], [3.9], [2.5], [2.5]], i=[10.0, 10.0, 10.0, 9000.0]))
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == [
+        "cell 0: voltage reading more than 1.053 V from its last accepted reading refused "
+        "(2 so far, v_step): the cell is missing for those samples, not estimated from them",
+        "pack current beyond +-2100 A refused (1 samples so far, i_window): the previous "
+        "current is held for those samples",
+    ]
+    np.testing.assert_array_equal(out.cell_voltages_V[:, 0], [3.9, 3.9, np.nan, np.nan])
+    assert out.current_A[:3].tolist() == [10.0] * 3 and np.isnan(out.current_A[3])
+
+
 def test_disabled_gates_pass_every_reading() -> None:
     off = GateConfig(enabled=False).limits(3.111, 4.164, 70.0, 30.0)
     v = [[0.0], [3.7]]

@@ -175,6 +175,28 @@ def test_inconsistent_checkpoint_is_moved_aside(
     _assert_quarantined(tmp_path, caplog, "inconsistent")
 
 
+def test_checkpoint_of_another_setup_is_one_line_kept_and_the_start_is_fresh(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """README row "checkpoint ... is for ..., not ...: starting fresh": a changed config
+    starts fresh with one WARNING, leaves the file as it was (restoring the old config before
+    the next checkpoint keeps the state) and continues the numbering."""
+    before = _ran_and_checkpointed(tmp_path)
+    path = tmp_path / "p.ckpt.npz"
+    kept = path.read_bytes()
+    changed = _spec(tmp_path, ckpt_key=CheckpointKey("p", N_CELLS, "another tuning"))
+    with caplog.at_level(logging.WARNING):
+        info = BankHost(changed).start()
+    assert not info.restored and info.seq == before.seq
+    lines = _warnings(caplog)
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"checkpoint {path} is for ") and "'another tuning'" in lines[0]
+    assert lines[0].endswith(": starting fresh")
+    assert path.read_bytes() == kept and not list(tmp_path.glob("*.bad-*"))
+    back = BankHost(_spec(tmp_path)).start()  # the old config again: its state is there
+    assert back.restored and back.seq == before.seq
+
+
 def test_a_nan_state_is_never_checkpointed(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -364,6 +386,19 @@ def test_unreadable_seq_file_refuses_the_start_with_one_line(tmp_path: Path) -> 
     assert not (state / "faultpack.ckpt.npz").exists()  # nothing ran
 
 
+def test_removed_seq_file_restarts_numbering_from_the_checkpoint(tmp_path: Path) -> None:
+    """README row "sequence file ... is unreadable": removing the file is the other way out;
+    numbering restarts from the checkpoint's ``seq``, never below it."""
+    host = _ran_and_checkpointed(tmp_path)
+    host.update(_samples(30.0, 3))  # published after the checkpoint: these may be reused
+    host.checkpoint(clean=False)
+    after_ckpt = host.seq
+    host.update(_samples(33.0, 3))
+    (tmp_path / "p.seq").unlink()
+    info = BankHost(_spec(tmp_path)).start()
+    assert info.restored and info.seq == after_ckpt < host.seq
+
+
 def test_seq_file_the_system_cannot_read_refuses_the_start(tmp_path: Path) -> None:
     (tmp_path / "p.seq").mkdir()  # read(2) fails (EISDIR), as on an I/O error
     with pytest.raises(UserError) as refused:
@@ -447,8 +482,11 @@ def test_state_dir_failing_mid_run_shows_in_health_and_status(
     status = json.loads(daemon._online_payload())
     jsonschema.validate(status, status_schema)
     assert status["state_dir"] == "failing"
-    frame = daemon.encoder.decode(daemon.encoder.pack_frame(est, daemon._health(est)))
-    assert frame is not None and frame["health"] == daemon._health(est) & 31  # no room for 32
+    summary, state = (
+        daemon.encoder.decode(f) for f in daemon.encoder.pack_frames(est, daemon._health(est))
+    )
+    assert summary is not None and summary["health"] == daemon._health(est) & 31  # no room for 32
+    assert state is not None and state["health"] == daemon._health(est)  # PackState carries it
     # writable again: the next reservation and checkpoint clear it
     resumed = host.update(_samples(16.0, 3))
     assert resumed.messages and resumed.counters["state_dir_failing"] == 1  # checkpoint pending

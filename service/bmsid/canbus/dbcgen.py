@@ -247,7 +247,9 @@ def _pack_summary() -> tuple[SignalSpec, ...]:
         SignalSpec("R0Mean", 16, 16, 1e-5, unit="Ohm", sna=True, comment="mean cell R0"),
         SignalSpec("R0Max", 32, 16, 1e-5, unit="Ohm", sna=True, comment="largest cell R0"),
         SignalSpec("WeakestCell", 48, 10, sna=True, comment="index of the cell with largest R0"),
-        SignalSpec("Health", 58, 4, comment="estimator health code, 0 = ok"),
+        SignalSpec(
+            "Health", 58, 4, comment="health bits 1-8, 0 = ok (every bit: PackState Health)"
+        ),
         SignalSpec("Saturated", 62, 1, comment="a summary value saturated at its range"),
         SignalSpec("Diverged", 63, 1, comment="a cell diverged (health bit 16)"),
     )
@@ -266,6 +268,19 @@ def _pack_state() -> tuple[SignalSpec, ...]:
             comment="pack current-sensor offset, positive = reads too much discharge",
         ),
         SignalSpec("Saturated", 24, 1, comment="a value saturated at its range"),
+        # PackSummary's 8 bytes are full (Health holds bits 1-8, Diverged bit 16): every health
+        # bit goes here, in bits old senders left 0, so PackSummary and its receivers stay as
+        # they were and OR-ing both frames' health is right for old and new senders alike.
+        SignalSpec(
+            "Health",
+            32,
+            16,
+            comment=(
+                "every pack health bit (MQTT health): 1 converging, 2 poorly excited, "
+                "4 out of bounds, 8 input stale or a cell without data, 16 a cell diverged, "
+                "32 state directory failing; 0 = ok"
+            ),
+        ),
     )
 
 
@@ -370,7 +385,15 @@ def messages() -> tuple[MessageSpec, ...]:
             8,
             False,
         ),
-        ("PackState", 0x06, _pack_state(), "pack states: current-sensor offset", None, 8, False),
+        (
+            "PackState",
+            0x06,
+            _pack_state(),
+            "pack states: current-sensor offset, every health bit",
+            None,
+            8,
+            False,
+        ),
         (
             "CellParamsFD",
             0x10,

@@ -6,9 +6,9 @@ Classic CAN: four 8-byte frames per cell (``CellR``, ``CellTau``, ``CellState``,
 Values outside a signal's range are clamped and their bits set in the cell's ``Saturated`` mask
 (``dbcgen.SATURATION_BITS``; ``CellState``'s mask has room for bits 0-10, ``CellCapacity``'s and
 the FD frame's for all); NaN is sent as the signal's not-available value. Per pack, on both
-buses: ``PackSummary`` (R0 spread, weakest cell, health) and ``PackState`` (the current-sensor
-offset). Ids are 29-bit by default, keeping bmsid out of the 11-bit space most BMSs use;
-``extended_id=False`` selects the ``*_11bit`` twins.
+buses: ``PackSummary`` (R0 spread, weakest cell, health bits 1..16) and ``PackState`` (the
+current-sensor offset, every health bit). Ids are 29-bit by default, keeping bmsid out of the
+11-bit space most BMSs use; ``extended_id=False`` selects the ``*_11bit`` twins.
 """
 
 from __future__ import annotations
@@ -49,8 +49,9 @@ PACK = "PackSummary"
 #: The pack frames of one output round, in order (:meth:`ParameterEncoder.pack_frames`).
 PACK_PAGES = (PACK, "PackState")
 MAX_QUALITY_CLASSIC = 7
-#: ``PackSummary`` carries health bits 1..8 in ``Health`` (4 bits) and bit 16 in ``Diverged``.
-MAX_HEALTH = 31
+#: ``PackSummary`` carries health bits 1..8 in ``Health`` (4 bits) and bit 16 in ``Diverged``;
+#: ``PackState``'s ``Health`` carries every bit its DBC signal has room for (16 in bmsid.dbc).
+MAX_SUMMARY_HEALTH = 31
 _HEALTH_LOW_BITS = 15
 _HEALTH_DIVERGED_SHIFT = 4
 
@@ -73,6 +74,10 @@ class ParameterEncoder:
             self._pack_state = db.get_message_by_name(f"BMSID_{PACK_PAGES[1]}{suffix}")
         except KeyError as exc:
             raise UserError(f"output DBC {path} lacks message {exc}") from None
+        # an output DBC older than PackState's Health signal: the frame goes out without it
+        state_health = next((s for s in self._pack_state.signals if s.name == "Health"), None)
+        #: the health bits ``PackState`` carries (0 when its DBC has no ``Health`` signal)
+        self.state_health_mask = 0 if state_health is None else (1 << state_health.length) - 1
         self.extended_id = extended_id
         self.fd = fd
         #: per page: (DBC signal, Estimates field) of the cell fields it carries
@@ -139,10 +144,13 @@ class ParameterEncoder:
     def pack_frames(self, est: Estimates, health: int = 0) -> list[can.Message]:
         """The pack frames of an output round (:data:`PACK_PAGES`): :meth:`pack_frame`, then
         ``PackState``: the current-sensor offset (A; the mean of the cells' finite
-        ``current_offset_A``, one value per pack, else not available)."""
+        ``current_offset_A``, one value per pack, else not available) and every ``health`` bit
+        (bits beyond :attr:`state_health_mask` left out, not clamped)."""
         off = np.asarray(est.cells["current_offset_A"], dtype=np.float64)
         off = off[np.isfinite(off)]
         values = {"CurrentOffset": float(off.mean()) if off.size else math.nan}
+        if self.state_health_mask:
+            values["Health"] = float(max(int(health), 0) & self.state_health_mask)
         _, saturated = encode_saturating(self._pack_state, values)
         values["Saturated"] = 1.0 if saturated else 0.0
         data, _ = encode_saturating(self._pack_state, values)
@@ -152,10 +160,10 @@ class ParameterEncoder:
         """Pack summary: min/mean/max R0 (ohm) over cells with a finite R0, weakest cell = the
         largest R0, ``health`` bits (``publish.payloads.HEALTH_*``: bits 1..8 in ``Health``,
         bit 16 in ``Diverged``; higher bits have no room in the frame and are left out, not
-        clamped, which would set every bit)."""
+        clamped, which would set every bit: ``PackState`` carries them)."""
         r0 = np.asarray(est.R0_ohm, dtype=np.float64)
         finite = np.isfinite(r0)
-        h = max(int(health), 0) & MAX_HEALTH
+        h = max(int(health), 0) & MAX_SUMMARY_HEALTH
         values: dict[str, float] = {
             "Health": float(h & _HEALTH_LOW_BITS),
             "Diverged": float(h >> _HEALTH_DIVERGED_SHIFT),
@@ -177,8 +185,8 @@ class ParameterEncoder:
 
     def decode(self, msg: can.Message) -> dict[str, float] | None:
         """Decode one of bmsid's output frames (keys in :data:`DECODED_NAMES`, NaN = not
-        available; ``health`` with ``Diverged`` folded in as bit 16); None for any other or
-        malformed frame."""
+        available; ``PackSummary``'s ``health`` with ``Diverged`` folded in as bit 16,
+        ``PackState``'s every bit); None for any other or malformed frame."""
         if msg.is_error_frame or msg.is_remote_frame:
             return None
         m = self._by_key.get((msg.arbitration_id, bool(msg.is_extended_id)))

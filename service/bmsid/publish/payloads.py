@@ -23,8 +23,8 @@ from bmsid.estimate.types import Estimates, Quality
 
 SCHEMA_VERSION = 1
 
-#: Health bits of the pack summary (MQTT ``health``; on CAN, ``PackSummary``'s ``Health`` holds
-#: bits 1..8 and its ``Diverged`` bit 16; the frame has no room for bit 32).
+#: Health bits of the pack summary (MQTT ``health``; on CAN, ``PackState``'s ``Health`` holds
+#: every bit, ``PackSummary``'s ``Health`` bits 1..8 and its ``Diverged`` bit 16).
 HEALTH_CONVERGING = 1  #: at least one cell still converging
 HEALTH_POORLY_EXCITED = 2  #: the current carries too little information
 HEALTH_OUT_OF_BOUNDS = 4  #: at least one cell hit its bounds (its last good values are published)
