@@ -73,6 +73,7 @@ def test_bus_off_is_one_state_change_in_the_status_and_loses_no_frame(
         daemon = asyncio.run(main())
     assert seen["status"] == "bus_off" and daemon.can_state == "up"
     assert daemon.counters["bus_off"] == 1
+    assert daemon.snapshot()["can_bus_off"] == 1  # users see it in the status
     assert _state_lines(caplog, channel) == [
         (logging.INFO, f"CAN virtual/{channel} up"),
         (logging.WARNING, f"CAN virtual/{channel} bus_off"),

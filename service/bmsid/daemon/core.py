@@ -677,6 +677,7 @@ class Daemon:
             "can_send_errors": self.counters["can_send_errors"],
             "can_reopens": self.counters["can_reopens"],
             "can_open_failures": self.counters["can_open_failures"],
+            "can_bus_off": self.counters["bus_off"],
             "reader_drops": self.counters["reader_dropped"]
             + (self._source.dropped if self._source is not None else 0),
             "checkpoints": self.bank_counters.get("checkpoints", 0),
