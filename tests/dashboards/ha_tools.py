@@ -102,7 +102,9 @@ class HomeAssistant:
 
     def enable_entity(self, entity_id: str) -> None:
         """Settings > Entities > (a disabled entity) > Enabled, then reload the MQTT integration
-        at once (HA itself reloads it 30 s after the last such change)."""
+        at once. HA reloads it again 30 s after the change (a timer this cannot cancel): a
+        test that runs longer must survive entities resubscribing (the messages in between
+        are lost to HA)."""
         commands = [{"type": "config/entity_registry/update", "entity_id": entity_id,
                      "disabled_by": None}]  # fmt: skip
         url = self.base.replace("http://", "ws://") + "/api/websocket"
