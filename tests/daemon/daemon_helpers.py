@@ -204,6 +204,21 @@ async def full_can_output_cycle(daemon: Daemon, timeout_s: float = 30.0) -> None
     )
 
 
+def all_published(daemon: Daemon, n_frames: int) -> bool:
+    """``daemon`` has read ``n_frames`` frames, estimated every sample and handed every message
+    to the broker (safe to call from another thread: it only reads)."""
+    q = daemon._samples
+    done = (
+        daemon.f2s.counters["frames"] >= n_frames
+        and q is not None
+        and q.empty()
+        and daemon.counters["batches_in_flight"] == 0
+    )
+    if daemon.outbox is not None:
+        done = done and len(daemon.outbox) == 0
+    return done
+
+
 async def run_with_frames(
     daemon: Daemon,
     frames: list[can.Message],
@@ -226,17 +241,7 @@ async def run_with_frames(
     n = len(frames)
 
     def drained() -> bool:
-        q = daemon._samples
-        done = (
-            not sender.is_alive()
-            and daemon.f2s.counters["frames"] >= n
-            and q is not None
-            and q.empty()
-            and daemon.counters["batches_in_flight"] == 0
-        )
-        if daemon.outbox is not None:
-            done = done and len(daemon.outbox) == 0
-        return done or task.done()
+        return (not sender.is_alive() and all_published(daemon, n)) or task.done()
 
     await wait_for(drained, timeout_s, "the frames to be processed and published")
     if after is not None:

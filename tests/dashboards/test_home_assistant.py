@@ -1,12 +1,9 @@
 """bmsid's discovery and data in a real Home Assistant (pinned, installed by
 scripts/install-dashboard-tools), through a real Mosquitto.
 
-Home Assistant runs as its users run it, only lighter: ``hass`` with a minimal
-configuration.yaml (http on loopback, api, onboarding, mqtt and what HA always sets up),
-``--skip-pip`` (nothing is fetched at test time), the owner created through the onboarding API
-(which hands out the access token), the MQTT integration added through its config flow, as a
-user does in the UI. bmsid's messages are what the daemon publishes (``discovery_messages``,
-``payloads``), a lost voltage frame as null.
+Home Assistant runs as its users run it, only lighter (``ha_tools.running_home_assistant``).
+bmsid's messages are what the daemon publishes (``discovery_messages``, ``payloads``), a lost
+voltage frame as null; test_home_assistant_replay.py feeds HA from the daemon itself.
 
 Asserted: every entity bmsid announces exists under its ``default_entity_id`` with its unit,
 device class and state; a null gives ``unknown`` (not the stale value); quality is an enum;
@@ -17,82 +14,21 @@ error, no template error and no deprecation warning. About 15 s (HA starts in ab
 from __future__ import annotations
 
 import json
-import os
 import time
-import urllib.parse
-import urllib.request
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
-from dashboard_tools import TOOLS_DIR, Process, pin, publish, require_path, wait_until
+from dashboard_tools import pin, publish, wait_until
+from ha_tools import log_problems, running_home_assistant
 
 from bmsid.estimate.fields import CELL_FIELDS
 from bmsid.estimate.types import Estimates, Quality
 from bmsid.publish import payloads
 from bmsid.publish.discovery import discovery_messages, quality_options, with_clears
-from conftest import free_loopback_port
 
-HA_DIR = TOOLS_DIR / "home-assistant"
-START_TIMEOUT_S = 120.0
 PACK = "p1"
 N_CELLS = 2
-#: HA's own lines about this test's set-up, not about bmsid's entities
-SETUP_WARNINGS = (
-    "Skipping pip installation of required modules",  # --skip-pip: nothing fetched at test time
-    "zlib_ng and isal are not available",  # an optional speed-up of its web server
-    "We found a custom integration",  # never: none is installed (kept for the message)
-)
-
-
-class HomeAssistant:
-    """The REST API of a running HA, with the owner's access token."""
-
-    def __init__(self, port: int) -> None:
-        self.base = f"http://127.0.0.1:{port}"
-        self.token = ""
-
-    def call(self, method: str, path: str, body: Any = None, *, form: bool = False) -> Any:
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
-        data = None
-        if body is not None:
-            if form:
-                data = urllib.parse.urlencode(body).encode()
-                headers["Content-Type"] = "application/x-www-form-urlencoded"
-            else:
-                data = json.dumps(body).encode()
-                headers["Content-Type"] = "application/json"
-        request = urllib.request.Request(self.base + path, data, headers, method=method)
-        with urllib.request.urlopen(request, timeout=30) as response:
-            return json.loads(response.read() or b"null")
-
-    def onboard(self) -> None:
-        """Create the owner through onboarding and take its access token (no UI, no storage
-        edits: the same two calls the frontend makes)."""
-        client_id = self.base + "/"
-        user = {"client_id": client_id, "name": "test", "username": "test",
-                "password": "bmsid-test-password", "language": "en"}  # fmt: skip
-        code = self.call("POST", "/api/onboarding/users", user)["auth_code"]
-        grant = {"grant_type": "authorization_code", "code": code, "client_id": client_id}
-        self.token = self.call("POST", "/auth/token", grant, form=True)["access_token"]
-
-    def add_mqtt(self, port: int) -> None:
-        """Settings > Devices & services > Add integration > MQTT, as a user does."""
-        flow = self.call("POST", "/api/config/config_entries/flow", {"handler": "mqtt"})
-        result = self.call(
-            "POST", f"/api/config/config_entries/flow/{flow['flow_id']}",
-            {"broker": "127.0.0.1", "port": port},
-        )  # fmt: skip
-        assert result["type"] == "create_entry" and result["result"]["state"] == "loaded", result
-
-    def states(self) -> dict[str, dict[str, Any]]:
-        return {s["entity_id"]: s for s in self.call("GET", "/api/states")}
-
-
-def installed_version(venv: Path) -> str:
-    (dist,) = venv.glob("lib/python3.*/site-packages/homeassistant-*.dist-info")
-    return dist.name.removeprefix("homeassistant-").removesuffix(".dist-info")
 
 
 def estimates(t_s: float, *, lost_cell: int | None = None) -> Estimates:
@@ -118,37 +54,11 @@ def data(est: Estimates, seq: int) -> list[tuple[str, bytes, bool]]:
     return [*out, (payloads.topic("bmsid", PACK, "pack"), payloads.encode(pack), False)]
 
 
-@pytest.fixture
-def hass_exe() -> Path:
-    exe = require_path(HA_DIR / "bin" / "hass", "Home Assistant")
-    assert installed_version(HA_DIR) == pin("HOME_ASSISTANT_VERSION")
-    return exe
-
-
 def test_home_assistant_shows_bmsid_with_unknown_for_null_and_no_errors(
-    tmp_path: Path, mosquitto_broker: Any, hass_exe: Path
+    tmp_path: Path, mosquitto_broker: Any
 ) -> None:
-    port = free_loopback_port()
-    config = tmp_path / "ha"
-    config.mkdir()
-    (config / "configuration.yaml").write_text(
-        "homeassistant:\n  name: bmsid test\n  latitude: 0\n  longitude: 0\n  elevation: 0\n"
-        "  unit_system: metric\n  time_zone: UTC\n  currency: EUR\n  country: DE\n"
-        "  language: en\n"
-        f"http:\n  server_host: 127.0.0.1\n  server_port: {port}\n"
-        "api:\nonboarding:\nlogger:\n  default: warning\n",
-        encoding="utf-8",
-    )
-    ha = HomeAssistant(port)
-    hass = Process(
-        [str(hass_exe), "--config", str(config), "--skip-pip", "--log-no-color"],
-        tmp_path / "hass.log", config, {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
-    )  # fmt: skip
     configs = discovery_messages("homeassistant", "bmsid", PACK, N_CELLS, "0.1.0")
-    try:
-        started_s = hass.wait_port(port, START_TIMEOUT_S, "Home Assistant")
-        ha.onboard()
-        ha.add_mqtt(mosquitto_broker.port)
+    with running_home_assistant(tmp_path, mosquitto_broker.port) as (ha, hass, started_s):
         status = payloads.status_payload("online", PACK, can_state="up", version="0.1.0")
         publish(
             mosquitto_broker.port,
@@ -182,8 +92,6 @@ def test_home_assistant_shows_bmsid_with_unknown_for_null_and_no_errors(
         publish(mosquitto_broker.port, clears)
         wait_until(lambda: soc1 not in ha.states(), 30, "cell 1's entities removed", hass)
         after_clear = ha.states()
-    finally:
-        hass.stop()
 
     enabled = [json.loads(p) for _, p in configs if json.loads(p).get("enabled_by_default", True)]
     disabled = [json.loads(p) for _, p in configs if not json.loads(p).get("enabled_by_default", 1)]
@@ -211,12 +119,6 @@ def test_home_assistant_shows_bmsid_with_unknown_for_null_and_no_errors(
     assert not [e for e in after_clear if e.startswith("sensor.bmsid_p1_cell1_")]
     assert "sensor.bmsid_p1_cell0_soc" in after_clear
     # the log: no error, no template error, no deprecation, nothing about bmsid's configs
-    log_lines = hass.log().splitlines()
-    bad = [
-        line for line in log_lines
-        if (" ERROR " in line or " WARNING " in line or "Traceback" in line
-            or "Template" in line or "deprecat" in line.lower())
-        and not any(ok in line for ok in SETUP_WARNINGS)
-    ]  # fmt: skip
+    bad = log_problems(hass.log())
     assert not bad, "\n".join(bad)
     print(f"Home Assistant {pin('HOME_ASSISTANT_VERSION')} listening after {started_s:.1f} s")
