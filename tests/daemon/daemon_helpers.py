@@ -25,7 +25,7 @@ from bmsid.config.settings import Settings
 from bmsid.daemon.core import Daemon
 from bmsid.daemon.demo_data import DEMO_LOG, N_CELLS
 from bmsid.estimate.types import Estimates
-from bmsid.samples import SampleBlock
+from bmsid.samples import Sample, SampleBlock
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "service" / "bmsid" / "publish" / "schemas"
 #: Short swarm windows so the LPSO fusion runs within a few hundred seconds of data.
@@ -53,9 +53,11 @@ def demo_frames(duration_s: float) -> list[can.Message]:
     ]
 
 
-def start_daemon(config: Path, log: Path) -> subprocess.Popen[bytes]:
+def start_daemon(config: Path, log: Path, new_session: bool = False) -> subprocess.Popen[bytes]:
     """``bmsid run --config CONFIG`` as a separate process (the way a gateway runs it), its
-    output appended to ``log`` (so restarts of one test share a log)."""
+    output appended to ``log`` (so restarts of one test share a log); ``new_session``: in a
+    session of its own, so that signals can go to its whole process group (a terminal's
+    hang-up, systemd's cgroup kill)."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "service")}
     with log.open("ab") as fh:
         return subprocess.Popen(
@@ -64,6 +66,7 @@ def start_daemon(config: Path, log: Path) -> subprocess.Popen[bytes]:
             stderr=subprocess.STDOUT,
             env=env,
             cwd=config.parent,
+            start_new_session=new_session,
         )
 
 
@@ -148,8 +151,10 @@ class MqttCapture:
         raise AssertionError(f"mosquitto_sub did not subscribe: {self.path.read_text()}")
 
     def messages(self, prefix: str = "bmsid/") -> list[tuple[str, dict[str, Any]]]:
+        """Every complete line so far (mosquitto_sub may be half-way through the last one)."""
         out = []
-        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+        text = self.path.read_text(encoding="utf-8", errors="replace")
+        for line in text[: text.rfind("\n") + 1].splitlines():
             topic, _, payload = line.partition(" ")
             if topic.startswith(prefix):
                 out.append((topic, json.loads(payload)))
@@ -275,3 +280,16 @@ def assert_matches_offline(payload: dict[str, Any], est: Estimates) -> None:
 def contiguous(seqs: list[int]) -> bool:
     u = np.unique(seqs)
     return bool(u.size and u[-1] - u[0] + 1 == u.size)
+
+
+def drive_samples(t0: float, n: int, n_cells: int) -> SampleBlock:
+    """``n`` 1 s samples of a drive-like current (A) and a plain ohmic cell response (V) for
+    ``n_cells`` cells, reproducible from ``t0``: bank-worker plumbing tests, not accuracy."""
+    rng = np.random.default_rng(int(t0))
+    out = []
+    for k in range(n):
+        t = t0 + k
+        i = 60.0 * np.sin(t / 9.0) + 30.0 * np.sign(np.sin(t / 37.0))
+        v = 3.7 - 0.002 * i + rng.normal(0.0, 5e-4, n_cells)
+        out.append(Sample(t_s=t, current_A=float(i), cell_voltages_V=v))
+    return SampleBlock.from_samples(out, [0.0] * n)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from daemon_helpers import drive_samples
 
 from bmsid.config.cell import paper_cell
 from bmsid.config.engine import build_bank
@@ -51,14 +52,7 @@ def _spec(tmp_path: Path, **kw: object) -> BankSpec:
 
 
 def _samples(t0: float, n: int) -> SampleBlock:
-    rng = np.random.default_rng(int(t0))
-    out = []
-    for k in range(n):
-        t = t0 + k
-        i = 60.0 * np.sin(t / 9.0) + 30.0 * np.sign(np.sin(t / 37.0))
-        v = 3.7 - 0.002 * i + rng.normal(0.0, 5e-4, N_CELLS)
-        out.append(Sample(t_s=t, current_A=float(i), cell_voltages_V=v))
-    return SampleBlock.from_samples(out, [0.0] * n)
+    return drive_samples(t0, n, N_CELLS)
 
 
 async def _run(spec: BankSpec, isolation: Isolation, batches: int) -> list[bytes]:

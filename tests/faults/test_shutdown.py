@@ -32,6 +32,7 @@ from daemon_helpers import (
     make_settings,
     run_with_frames,
     send_virtual,
+    start_daemon,
     wait_for,
 )
 
@@ -267,21 +268,6 @@ checkpoint_period_s = 1.0
     return path
 
 
-def _start(config: Path, log: Path) -> subprocess.Popen[bytes]:
-    """``bmsid run`` in a session of its own: signals can go to its whole process group, as
-    a terminal's hang-up or systemd's cgroup kill send them to the daemon and its worker."""
-    env = {**os.environ, "PYTHONPATH": str(REPO / "service")}
-    with log.open("ab") as fh:
-        return subprocess.Popen(
-            [sys.executable, "-m", "bmsid.cli.main", "-v", "run", "--config", str(config)],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env=env,
-            cwd=config.parent,
-            start_new_session=True,
-        )
-
-
 def _group(pgid: int) -> list[int]:
     """Live processes of process group ``pgid``."""
     out = []
@@ -321,7 +307,7 @@ def test_sighup_is_ignored_and_the_stop_still_checkpoints(
     config = _config(tmp_path, mosquitto_broker.port)
     log = tmp_path / "daemon.log"
     ckpt = tmp_path / "state" / "sigpack.ckpt.npz"
-    proc = _start(config, log)
+    proc = start_daemon(config, log, new_session=True)
     try:
         _wait(lambda: ckpt.exists() and len(_group(proc.pid)) >= 2, 60, "a checkpoint", log)
         os.killpg(proc.pid, signal.SIGHUP)  # the daemon and its worker, as a closed terminal
@@ -348,7 +334,7 @@ def test_sigkill_leaks_no_semaphore_or_process_and_never_reuses_a_seq(
         cap.wait_ready(require_tool("mosquitto_pub"), mosquitto_broker.port)
         config = _config(tmp_path, mosquitto_broker.port)
         log = tmp_path / "daemon.log"
-        proc = _start(config, log)
+        proc = start_daemon(config, log, new_session=True)
         _wait(
             lambda: any(p["t_s"] - T0_S >= 240 for _, p in cap.messages() if "t_s" in p),
             90,
@@ -362,7 +348,7 @@ def test_sigkill_leaks_no_semaphore_or_process_and_never_reuses_a_seq(
         proc.wait(10)
         _wait(lambda: not _group(proc.pid), 10, "every process of the group to end", log)
         before = _data_seqs(cap)
-        second = _start(config, log)
+        second = start_daemon(config, log, new_session=True)
         try:
             _wait(lambda: len(_data_seqs(cap)) > len(before) + 20, 90, "a restart", log)
             os.kill(second.pid, signal.SIGTERM)

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
-from daemon_helpers import SCHEMA_DIR, make_settings
+from daemon_helpers import SCHEMA_DIR, drive_samples, make_settings
 
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell
@@ -35,7 +35,7 @@ from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.publish.outbox import Outbox, OutMessage, encode_spool
 from bmsid.publish.payloads import HEALTH_STATE_DIR
-from bmsid.samples import Sample, SampleBlock
+from bmsid.samples import SampleBlock
 
 REPO = Path(__file__).resolve().parents[2]
 N_CELLS = 4
@@ -61,14 +61,7 @@ def _spec(state: Path, **kw: Any) -> BankSpec:
 
 
 def _samples(t0: float, n: int) -> SampleBlock:
-    rng = np.random.default_rng(int(t0))
-    out = []
-    for k in range(n):
-        t = t0 + k
-        i = 60.0 * np.sin(t / 9.0) + 30.0 * np.sign(np.sin(t / 37.0))
-        v = 3.7 - 0.002 * i + rng.normal(0.0, 5e-4, N_CELLS)
-        out.append(Sample(t_s=t, current_A=float(i), cell_voltages_V=v))
-    return SampleBlock.from_samples(out)
+    return drive_samples(t0, n, N_CELLS)
 
 
 def _seqs(messages: list[Any]) -> list[int]:
