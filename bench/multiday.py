@@ -18,6 +18,7 @@ Scenarios (``--scenario``, default all):
 - ``start-load``: the first 30 min under a 0.17 A auxiliary load instead of at rest;
 - ``temp-ageing``: +-8 degC a day (Arrhenius on R0 and R1, 30 kJ/mol), R0 +3 %/day, capacity
   -0.5 %/day;
+- ``temp-ea50``: ``temp-ageing`` with a 50 kJ/mol activation energy (the engine's prior is 30);
 - ``all``: all of the above at once (0.7 A offset).
 
 Per day: SOC error (max |error| and RMS, SOC points), the offset estimate's error at the day's
@@ -85,6 +86,8 @@ SCENARIOS: tuple[Scenario, ...] = (
     Scenario("offset-0.7-soc-wrong", MultidayOptions(current_offset_A=0.7), -0.30),
     Scenario("start-load", MultidayOptions(start_load_A=0.17)),
     Scenario("temp-ageing", TEMP_AGEING),
+    # the same with an activation energy far from the engine's 30 kJ/mol prior: B is learnt
+    Scenario("temp-ea50", replace(TEMP_AGEING, activation_energy_J_mol=50_000.0)),
     Scenario("all", replace(TEMP_AGEING, current_offset_A=0.7, start_load_A=0.17), -0.30),
 )
 BY_NAME = {s.name: s for s in SCENARIOS}

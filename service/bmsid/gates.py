@@ -253,7 +253,7 @@ def gate_block(
     gated_v = v if clean.all() else np.where(accepted, v, np.nan)
     out = block
     if n_i or not clean.all():
-        out = SampleBlock(t, current, gated_v, block.t_complete_mono)
+        out = SampleBlock(t, current, gated_v, block.t_complete_mono, block.temperature_C)
     return out, GateState(
         v_last_V=v_last,
         t_last_s=t_last,

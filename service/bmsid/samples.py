@@ -45,10 +45,11 @@ class Sample:
 class SampleBlock:
     """Consecutive pack samples as columns: what the estimator bank consumes.
 
-    Only what the bank reads is carried; temperatures, the bus counter and the decoder's flags
-    stay with the decoder. As columns, a backlog of blocks costs the garbage collector nothing
-    (numpy arrays are not tracked; 50k queued ``Sample`` objects cost ~55 ms per full
-    collection on the daemon's loop) and a block pickles to the bank worker in one piece.
+    Only what the bank reads is carried (the pack temperature included: the mean of the
+    sample's sensors); the bus counter and the decoder's flags stay with the decoder. As
+    columns, a backlog of blocks costs the garbage collector nothing (numpy arrays are not
+    tracked; 50k queued ``Sample`` objects cost ~55 ms per full collection on the daemon's
+    loop) and a block pickles to the bank worker in one piece.
 
     Attributes:
         t_s: sample times in seconds, shape (n,).
@@ -56,12 +57,15 @@ class SampleBlock:
         cell_voltages_V: cell terminal voltages in volts, NaN where missing, shape (n, n_cells).
         t_complete_mono: monotonic time in seconds at which each sample was complete (the
             start of the daemon's publish latency), shape (n,); None offline.
+        temperature_C: pack temperature in degC (mean of the sample's sensors), NaN where none,
+            shape (n,); None when the source has no temperature at all.
     """
 
     t_s: FloatArray
     current_A: FloatArray
     cell_voltages_V: FloatArray
     t_complete_mono: FloatArray | None = None
+    temperature_C: FloatArray | None = None
 
     def __post_init__(self) -> None:
         n = self.t_s.shape[0]
@@ -71,6 +75,8 @@ class SampleBlock:
             raise ValueError("t_s, current_A and cell_voltages_V need the same number of samples")
         if self.t_complete_mono is not None and self.t_complete_mono.shape != (n,):
             raise ValueError("t_complete_mono needs one value per sample")
+        if self.temperature_C is not None and self.temperature_C.shape != (n,):
+            raise ValueError("temperature_C needs one value per sample")
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -81,7 +87,11 @@ class SampleBlock:
 
     @classmethod
     def from_arrays(
-        cls, t_s: npt.ArrayLike, current_A: npt.ArrayLike, cell_voltages_V: npt.ArrayLike
+        cls,
+        t_s: npt.ArrayLike,
+        current_A: npt.ArrayLike,
+        cell_voltages_V: npt.ArrayLike,
+        temperature_C: npt.ArrayLike | None = None,
     ) -> SampleBlock:
         """A block from columns (voltages (n,) for one cell or (n, n_cells)), as float64."""
         v = np.asarray(cell_voltages_V, dtype=np.float64)
@@ -89,7 +99,11 @@ class SampleBlock:
             t_s=np.asarray(t_s, dtype=np.float64).reshape(-1),
             current_A=np.asarray(current_A, dtype=np.float64).reshape(-1),
             cell_voltages_V=v[:, None] if v.ndim == 1 else v,
-        )
+            temperature_C=(
+                None if temperature_C is None
+                else np.asarray(temperature_C, dtype=np.float64).reshape(-1)
+            ),
+        )  # fmt: skip
 
     @classmethod
     def from_samples(
@@ -106,6 +120,7 @@ class SampleBlock:
             t_complete_mono=(
                 None if t_complete_mono is None else np.asarray(t_complete_mono, dtype=np.float64)
             ),
+            temperature_C=_pack_temperatures(samples),
         )
 
     @classmethod
@@ -113,6 +128,7 @@ class SampleBlock:
         if len(blocks) == 1:
             return blocks[0]
         monos = [b.t_complete_mono for b in blocks]
+        temps = [b.temperature_C for b in blocks]
         return cls(
             t_s=np.concatenate([b.t_s for b in blocks]),
             current_A=np.concatenate([b.current_A for b in blocks]),
@@ -122,14 +138,39 @@ class SampleBlock:
                 if any(m is None for m in monos)
                 else np.concatenate([m for m in monos if m is not None])
             ),
+            temperature_C=(
+                None
+                if all(x is None for x in temps)
+                else np.concatenate(
+                    [
+                        np.full(len(b), np.nan) if x is None else x
+                        for b, x in zip(blocks, temps, strict=True)
+                    ]
+                )
+            ),
         )
 
     def slice(self, start: int, stop: int) -> SampleBlock:
         """Samples ``start:stop`` (views, no copy)."""
-        m = self.t_complete_mono
+        m, temp = self.t_complete_mono, self.temperature_C
         return SampleBlock(
             self.t_s[start:stop],
             self.current_A[start:stop],
             self.cell_voltages_V[start:stop],
             None if m is None else m[start:stop],
+            None if temp is None else temp[start:stop],
         )
+
+
+def _pack_temperatures(samples: Sequence[Sample]) -> FloatArray | None:
+    """Per sample the mean of its finite temperatures, degC (NaN: none); None if no sample
+    carries any."""
+    if all(s.temperatures_C is None for s in samples):
+        return None
+    out = np.full(len(samples), np.nan)
+    for k, s in enumerate(samples):
+        if s.temperatures_C is not None:
+            fin = s.temperatures_C[np.isfinite(s.temperatures_C)]
+            if fin.size:
+                out[k] = float(fin.mean())
+    return out

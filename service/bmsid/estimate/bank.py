@@ -22,6 +22,7 @@ engine's entry point; its per-sample loop is where a compiled kernel (issue 12) 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -139,8 +140,11 @@ class EstimatorBank:
         cols: dict[str, list[FloatArray]] = {k: [] for k in FIELD_NAMES}
         quality: list[npt.NDArray[np.int64]] = []
         v = block.cell_voltages_V
+        temps = (
+            [math.nan] * len(block) if block.temperature_C is None else block.temperature_C.tolist()
+        )
         for k, (t, i) in enumerate(zip(block.t_s.tolist(), block.current_A.tolist(), strict=True)):
-            tick = self.ticks.push(t, i, v[k])
+            tick = self.ticks.push(t, i, v[k], temps[k])
             if tick is None:
                 continue
             currents.append(tick.current_A)  # as measured: the observer corrects a copy
@@ -159,11 +163,18 @@ class EstimatorBank:
             quality=np.array(quality),
         )
 
-    def update(self, t_s: float, current_A: float, voltages_V: npt.ArrayLike) -> Estimates | None:
-        """Feed one raw sample (time s, pack current A, cell voltages V); returns the estimates
-        when an identification tick completes, else None. Never raises on bad numbers."""
+    def update(
+        self,
+        t_s: float,
+        current_A: float,
+        voltages_V: npt.ArrayLike,
+        temperature_C: float = math.nan,
+    ) -> Estimates | None:
+        """Feed one raw sample (time s, pack current A, cell voltages V, pack temperature degC
+        or NaN); returns the estimates when an identification tick completes, else None. Never
+        raises on bad numbers."""
         v = np.asarray(voltages_V, dtype=np.float64).reshape(self.n)
-        tick = self.ticks.push(t_s, current_A, v)
+        tick = self.ticks.push(t_s, current_A, v, temperature_C)
         if tick is None:
             return None
         i_meas = tick.current_A  # as measured: the observer removes its offset in the tick

@@ -14,6 +14,7 @@ LPSO owns the poles, where recursive ARX identification is ill-conditioned (it d
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ import numpy.typing as npt
 
 from bmsid.estimate import lpso
 from bmsid.estimate.affrls import reset_covariance, rls_update
+from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
 from bmsid.estimate.stage import (
     BoolArray,
@@ -94,6 +96,9 @@ class FusionStage:
         )
         self.fused = np.zeros(n, dtype=bool)
         self.clamped = np.zeros(n, dtype=bool)
+        self.arrhenius = ArrheniusCarry(n)
+        self.counters |= self.arrhenius.counters
+        self.arrhenius.counters = self.counters  # one dict: the bank reports and restores it
         self.lam_exp = 1.0
         self.v_model = np.zeros(n)
         self._m_table = np.zeros(n)
@@ -152,10 +157,28 @@ class FusionStage:
         phi_n = phi * (self.scale * np.array([1.0, 1.0, 1.0, use_h, 0.0]))
         theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, learn, tun.trace_max)
         self.theta = self._clamp_linear(self._project_linear(theta, self.P))
+        self._carry_temperature(tick.temperature_C, dt, learn)
         self.buffer.push(i, v - ocv_v, hm, learn)
         self._run_swarms(tick.t_s)
         self._publish_linear()
         self.v_model = np.asarray(v_model, dtype=np.float64)
+
+    def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
+        """Fused cells that learn refresh the Arrhenius reference; fused cells that do not (a
+        constant current) have R0 and R1 follow the pack temperature (``estimate/arrhenius.py``;
+        nothing happens without a temperature)."""
+        if math.isnan(temperature_C):  # the usual case: no temperature
+            return
+        sc = self.scale
+        carried = self.arrhenius.step(
+            temperature_C, dt_s, learn & self.fused, self.fused & ~learn,
+            self.theta[:, 0] * sc[:, 0], self.theta[:, 1] * sc[:, 1],
+        )  # fmt: skip
+        if carried is None:
+            return
+        for j, r in enumerate(carried):
+            lo, hi = self._lin_lo[:, j], self._lin_hi[:, j]
+            self.theta[:, j] = np.minimum(np.maximum(r, lo), hi) / sc[:, j]
 
     def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> FloatArray:
         """Project an estimate that left the bounds back onto them in the metric of P.
@@ -366,6 +389,7 @@ class FusionStage:
             new = getattr(self, k)
             setattr(self, k, np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, cur))
         self.fused &= ~mask
+        self.arrhenius.reset(mask)
         self.schedule.reset(mask)
         self._publish_linear()
 
@@ -373,11 +397,14 @@ class FusionStage:
         st: dict[str, Any] = {k: np.array(getattr(self, k)) for k in self._PER_CELL}
         st["fused"] = self.fused.copy()
         st["schedule"] = self.schedule.state_dict()
+        st["arrhenius"] = self.arrhenius.state_dict()
         st["buffer"] = self.buffer.state_dict()
         return st
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         load_arrays(self, st, (*self._PER_CELL, "fused"), self.name)
         self.schedule.load_state_dict(st["schedule"])
+        if "arrhenius" in st:  # checkpoints from before it start it fresh
+            self.arrhenius.load_state_dict(st["arrhenius"])
         self.buffer.load_state_dict(st["buffer"])
         self._publish_linear()

@@ -17,6 +17,7 @@ samples:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,6 +48,7 @@ class Tick:
             order (plain floats: usually one or a few, cheaper than arrays).
         current_std_A: running RMS variation of the current (time constant
             ``excitation_window_s``): the excitation measure.
+        temperature_C: mean pack temperature over the bin, degC (NaN: none measured).
         first: the first sample of the run (SOC starts here).
         new_segment: histories restart here (first sample, gap, time jump).
     """
@@ -60,6 +62,7 @@ class Tick:
     ok: BoolArray
     coulomb_steps: tuple[tuple[float, float], ...]
     current_std_A: float
+    temperature_C: float
     first: bool
     new_segment: bool
 
@@ -92,6 +95,8 @@ class TickAssembler:
         self.i_mean = 0.0
         self.i_var = 0.0
         self.dt_nom = 0.0
+        self.bin_T = 0.0
+        self.bin_Tn = 0
         self._steps_i: list[float] = []
         self._steps_dt: list[float] = []
 
@@ -100,8 +105,11 @@ class TickAssembler:
         """Nominal time between ticks, s (ticks are ``id_period_s`` apart or more)."""
         return max(self.dt_nom, self.tuning.id_period_s)
 
-    def push(self, t_s: float, current_A: float, v: FloatArray) -> Tick | None:
-        """One raw sample (s, A, V of shape (n,)); the tick it completes, else None."""
+    def push(
+        self, t_s: float, current_A: float, v: FloatArray, temperature_C: float = math.nan
+    ) -> Tick | None:
+        """One raw sample (s, A, V of shape (n,), pack temperature degC or NaN); the tick it
+        completes, else None."""
         tun = self.tuning
         self.counters["samples"] += 1
         if not np.isfinite(t_s):
@@ -121,22 +129,28 @@ class TickAssembler:
             self.i_raw = current_A
             self.t_tick = t_s
             self.i_tick = current_A
-            return self._tick(t_s, current_A, v_raw, ~bad_v, 0.0, first=True, new_segment=True)
+            return self._tick(
+                t_s, current_A, v_raw, ~bad_v, 0.0, first=True, new_segment=True,
+                temperature_C=temperature_C,
+            )  # fmt: skip
         dt = t_s - self.t_raw
         if dt < -tun.gap_s:
             self.counters["time_jumps_back"] += 1
-            return self._gap(t_s, current_A, v_raw, ~bad_v, elapsed_s=0.0)
+            return self._gap(t_s, current_A, v_raw, ~bad_v, 0.0, temperature_C)
         if dt <= 0:
             self.counters["non_increasing_time"] += 1
             return None
         if dt > tun.gap_s:
-            return self._gap(t_s, current_A, v_raw, ~bad_v, elapsed_s=t_s - self.t_tick)
+            return self._gap(t_s, current_A, v_raw, ~bad_v, t_s - self.t_tick, temperature_C)
         self._steps_i.append(self.i_raw)
         self._steps_dt.append(dt)
         self.t_raw = t_s
         self.i_raw = current_A
         self.bin_i += current_A
         self.bin_n += 1
+        if not math.isnan(temperature_C):
+            self.bin_T += temperature_C
+            self.bin_Tn += 1
         self.bin_v += v
         self.bin_vn += ~bad_v
         if t_s - self.t_tick < tun.id_period_s - 0.5 * dt:
@@ -145,17 +159,28 @@ class TickAssembler:
         has_v = self.bin_vn > 0
         v_avg = np.where(has_v, self.bin_v / np.maximum(self.bin_vn, 1), np.nan)
         dt_tick = t_s - self.t_tick
+        temp = self.bin_T / self.bin_Tn if self.bin_Tn else math.nan
         self._clear_bin()
-        return self._tick(t_s, i_avg, v_avg, has_v, dt_tick, first=False, new_segment=False)
+        return self._tick(
+            t_s, i_avg, v_avg, has_v, dt_tick, first=False, new_segment=False, temperature_C=temp
+        )
 
     def _clear_bin(self) -> None:
         self.bin_i = 0.0
         self.bin_n = 0
+        self.bin_T = 0.0
+        self.bin_Tn = 0
         self.bin_v[:] = 0.0
         self.bin_vn[:] = 0
 
     def _gap(
-        self, t_s: float, current_A: float, v: FloatArray, ok: BoolArray, elapsed_s: float
+        self,
+        t_s: float,
+        current_A: float,
+        v: FloatArray,
+        ok: BoolArray,
+        elapsed_s: float,
+        temperature_C: float,
     ) -> Tick:
         """A new segment after ``elapsed_s`` of unknown current (assumed rest)."""
         self.counters["gaps"] += 1
@@ -163,7 +188,10 @@ class TickAssembler:
         self.t_raw = t_s
         self.i_raw = current_A
         self.i_tick = 0.0  # unknown current during the gap: assume the pack rested
-        return self._tick(t_s, current_A, v, ok, elapsed_s, first=False, new_segment=True)
+        return self._tick(
+            t_s, current_A, v, ok, elapsed_s, first=False, new_segment=True,
+            temperature_C=temperature_C,
+        )  # fmt: skip
 
     def _tick(
         self,
@@ -175,6 +203,7 @@ class TickAssembler:
         *,
         first: bool,
         new_segment: bool,
+        temperature_C: float,
     ) -> Tick:
         tun = self.tuning
         self.counters["ticks"] += 1
@@ -197,6 +226,7 @@ class TickAssembler:
             ok=ok,
             coulomb_steps=steps,
             current_std_A=float(np.sqrt(self.i_var)),
+            temperature_C=temperature_C,
             first=first,
             new_segment=new_segment,
         )
@@ -208,6 +238,7 @@ class TickAssembler:
     _ARRAYS = ("bin_v", "bin_vn")
     _SCALARS = (
         "t_raw", "i_raw", "t_tick", "i_tick", "bin_i", "bin_n", "i_mean", "i_var", "dt_nom",
+        "bin_T", "bin_Tn",
     )  # fmt: skip
 
     def state_dict(self) -> dict[str, Any]:
@@ -220,9 +251,10 @@ class TickAssembler:
     def load_state_dict(self, st: dict[str, Any]) -> None:
         load_arrays(self, st, self._ARRAYS, self.name)
         for k in self._SCALARS:
-            if k != "t_raw":
-                setattr(self, k, float(st[k]))
+            if k != "t_raw":  # the temperature bin came later: 0 in older checkpoints
+                setattr(self, k, float(st.get(k, 0.0) if k in ("bin_T", "bin_Tn") else st[k]))
         self.t_raw = None if st["t_raw"] is None else float(st["t_raw"])
         self.bin_n = int(st["bin_n"])
+        self.bin_Tn = int(self.bin_Tn)
         self._steps_i = [float(x) for x in np.asarray(st.get("steps_i", []), dtype=float)]
         self._steps_dt = [float(x) for x in np.asarray(st.get("steps_dt", []), dtype=float)]

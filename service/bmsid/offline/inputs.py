@@ -163,7 +163,9 @@ class LoadedInput:
     def from_tester(cls, data: TesterData, source: str | None = None) -> LoadedInput:
         """A tester file's columns as a source (cells named by their voltage columns), with
         a note for merged repeats and a warning for a stitched clock restart."""
-        block = SampleBlock.from_arrays(data.t_s, data.current_A, data.cell_voltages_V)
+        block = SampleBlock.from_arrays(
+            data.t_s, data.current_A, data.cell_voltages_V, data.temperature_C
+        )
         notes: list[str] = []
         findings: list[Finding] = []
         if data.merged_repeats:
@@ -308,7 +310,9 @@ def read_log_input(
         )
     block = SampleBlock.from_samples(samples_from_log(path, bus, n_cells, channel=chosen))
     if charge_positive:
-        block = SampleBlock(block.t_s, -block.current_A, block.cell_voltages_V)
+        block = SampleBlock(
+            block.t_s, -block.current_A, block.cell_voltages_V, None, block.temperature_C
+        )
     names = [f"v_cell_{c + 1:02d}" for c in range(block.n_cells)]
     return LoadedInput(
         source=str(path),

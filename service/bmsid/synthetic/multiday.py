@@ -315,12 +315,13 @@ def options_document(options: MultidayOptions) -> dict[str, object]:
 
 
 def write_record(record: MultidayRecord, csv_path: str | Path, truth_path: str | Path) -> None:
-    """Write the measured record as a tester CSV (``t_s,current_A,voltage_V``; gzip when the name
-    ends in .gz) that ``bmsid identify`` reads, and the truth as an ``.npz`` (one array per
-    ``MultidayTruth`` field, plus ``options_json``: the scenario as JSON text)."""
+    """Write the measured record as a tester CSV (``t_s,current_A,voltage_V,temperature_C``;
+    gzip when the name ends in .gz) that ``bmsid identify`` reads, and the truth as an ``.npz``
+    (one array per ``MultidayTruth`` field, plus ``options_json``: the scenario as JSON text).
+    The temperature is the pack's, as a gateway's BMS reports it (0.1 degC resolution)."""
     data = TesterData(
         t_s=record.t_s, current_A=record.current_A, cell_voltages_V=record.voltage_V[:, None],
-        cell_names=["voltage_V"],
+        cell_names=["voltage_V"], temperature_C=np.round(record.truth.temperature_C, 1),
     )  # fmt: skip
     write_tester_csv(data, csv_path)
     arrays = {f.name: getattr(record.truth, f.name) for f in fields(MultidayTruth)}
