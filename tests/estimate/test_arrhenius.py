@@ -63,3 +63,30 @@ def test_the_activation_temperature_is_learnt_from_pairs_kelvins_apart(
         a.step(t_c, PAIR_S, np.ones(1, dtype=bool), np.zeros(1, dtype=bool),
                np.array([r0]), np.array([r0 / 2]))  # fmt: skip
     assert abs(a.b_K[0] / b_true - 1) < 0.15
+
+
+def test_the_pack_temperature_reaches_the_ticks_as_the_mean_of_its_sensors() -> None:
+    """Samples with two sensors (one NaN at times) -> SampleBlock column -> tick bin mean."""
+    from bmsid.estimate.ticks import TickAssembler
+    from bmsid.estimate.tuning import EstimatorTuning
+    from bmsid.samples import Sample, SampleBlock
+
+    samples = [
+        Sample(t_s=0.5 * k, current_A=1.0, cell_voltages_V=np.array([3.7]),
+               temperatures_C=np.array([20.0 + k, np.nan if k % 2 else 22.0 + k]))
+        for k in range(6)
+    ]  # fmt: skip
+    block = SampleBlock.concat(
+        [SampleBlock.from_samples(samples), SampleBlock.from_arrays([3.0], [1.0], [3.7])]
+    )
+    assert block.temperature_C is not None
+    np.testing.assert_allclose(block.temperature_C, [21, 21, 23, 23, 25, 25, np.nan])
+    ticks = TickAssembler(1, EstimatorTuning(id_period_s=1.0))
+    temps = [
+        tk.temperature_C
+        for k in range(len(block))
+        if (tk := ticks.push(block.t_s[k], block.current_A[k], block.cell_voltages_V[k],
+                             block.temperature_C[k])) is not None
+    ]  # fmt: skip
+    # first sample alone, then 1 s bins of two samples; the last bin's NaN is left out
+    np.testing.assert_allclose(temps, [21.0, 22.0, 24.0, 25.0])
