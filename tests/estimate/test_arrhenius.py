@@ -8,25 +8,36 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bmsid.estimate.arrhenius import B_PRIOR_K, FACTOR_RANGE, KELVIN, PAIR_S, ArrheniusCarry
+from bmsid.estimate.arrhenius import B_PRIOR_K, KELVIN, PAIR_S, ArrheniusCarry
 
 YES, NO = np.ones(2, dtype=bool), np.zeros(2, dtype=bool)
 R0, R1 = np.array([1e-3, 2e-3]), np.array([5e-4, 1e-3])
 
 
 @settings(max_examples=100, deadline=None)
-@given(t_ref=st.floats(-10.0, 45.0), t_now=st.floats(-10.0, 45.0))
+@given(temps=st.lists(st.floats(-10.0, 45.0), min_size=2, max_size=30))
 def test_carried_resistances_follow_the_law_from_the_last_learnt_values(
-    t_ref: float, t_now: float
+    temps: list[float],
 ) -> None:
+    """Learnt at the first temperature, carried through the others: at every tick R is the
+    law from the learnt values (the per-tick factors telescope), finite and > 0."""
     a = ArrheniusCarry(2)
-    assert a.step(t_ref, 1.0, YES, NO, R0, R1) is None  # learnt: nothing carried
-    out = a.step(t_now, 1.0, NO, YES, R0 * 9, R1 * 9)  # the stage's values are not used
-    assert out is not None
-    f = np.clip(np.exp(B_PRIOR_K * (1 / (t_now + KELVIN) - 1 / (t_ref + KELVIN))), *FACTOR_RANGE)
-    np.testing.assert_allclose(out[0], R0 * f, rtol=1e-12)
-    np.testing.assert_allclose(out[1], R1 * f, rtol=1e-12)
-    assert np.all(np.isfinite(out[0])) and np.all(out[0] > 0)
+    assert a.step(temps[0], 1.0, YES, NO, R0, R1) is None  # learnt: nothing carried
+    r0, r1 = R0.copy(), R1.copy()
+    for t_now in temps[1:]:
+        out = a.step(t_now, 1.0, NO, YES, r0, r1)
+        if out is not None:
+            r0, r1 = out
+        f = np.exp(B_PRIOR_K * (1 / (t_now + KELVIN) - 1 / (temps[0] + KELVIN)))
+        np.testing.assert_allclose(r0, R0 * f, rtol=1e-9)
+        np.testing.assert_allclose(r1, R1 * f, rtol=1e-9)
+        assert np.all(np.isfinite(r0)) and np.all(r0 > 0)
+
+
+def test_a_constant_temperature_changes_nothing() -> None:
+    a = ArrheniusCarry(2)
+    a.step(25.0, 1.0, YES, NO, R0, R1)
+    assert a.step(25.0, 1.0, NO, YES, R0 * 3, R1 * 3) is None  # e.g. a swarm's new values kept
 
 
 def test_no_temperature_changes_nothing() -> None:
@@ -38,10 +49,9 @@ def test_no_temperature_changes_nothing() -> None:
         np.testing.assert_array_equal(v, before[k], err_msg=k)
 
 
-def test_a_cell_never_learnt_is_not_carried() -> None:
+def test_the_first_temperature_carries_nothing() -> None:
     a = ArrheniusCarry(2)
-    out = a.step(25.0, 1.0, np.array([True, False]), np.array([False, True]), R0, R1)
-    assert out is None  # cell 1 has no reference yet
+    assert a.step(25.0, 1.0, NO, YES, R0, R1) is None  # no previous temperature yet
 
 
 @settings(max_examples=20, deadline=None)

@@ -8,16 +8,18 @@ temperature, the fast resistances follow it there:
 
     R(T) = R(T_ref) exp(B (1 / T - 1 / T_ref)),   T in kelvin, B = Ea / R_gas
 
-with (R(T_ref), T_ref) the last identified values (every learning tick refreshes them) and B
-the cell's activation temperature, identified from its own learnt (ln R0, 1 / T) pairs by a
-scalar Kalman filter on the differences of consecutive pairs (one per ``PAIR_S`` of learning,
-used when the temperature moved at least ``MIN_DT_K`` between them), starting from
-the prior ``b_prior_K`` (30 kJ/mol: ohmic and charge-transfer resistances of Li-ion cells near
-room temperature, 15-60 kJ/mol in the literature) with std ``b_prior_std_K``. A slow daily swing
-moves the temperature a fraction of a kelvin between pairs, so there B stays near its prior
-(measured: 6 pairs used in 2 days); with a true 50 kJ/mol the carry still cut the R0 error
-under load from 14.3 % to 4.6 % (day 2, median). Without a temperature (NaN) nothing changes:
-every record without one gives what it gave before.
+applied tick by tick (R x exp(B (1/T - 1/T_prev))): the factors telescope, so from the last
+identified values (every learning tick identifies them anew) R follows the law exactly, a
+temperature that comes back brings R back, and a constant temperature changes nothing (a
+swarm's result between learning ticks is kept). B is the cell's activation temperature,
+identified from its own learnt (ln R0, 1 / T) pairs by a scalar Kalman filter on the
+differences of consecutive pairs (one per ``PAIR_S`` of learning, used when the temperature
+moved at least ``MIN_DT_K`` between them), starting from the prior ``B_PRIOR_K`` (30 kJ/mol:
+ohmic and charge-transfer resistances of Li-ion cells near room temperature, 15-60 kJ/mol in
+the literature) with std ``B_PRIOR_STD_K``. A slow daily swing moves the temperature a fraction
+of a kelvin between pairs, so there B stays near its prior. Without a temperature (NaN) nothing
+changes, and a constant one changes nothing either: records without a varying temperature give
+what they gave before.
 """
 
 from __future__ import annotations
@@ -44,23 +46,19 @@ PAIR_S = 300.0
 MIN_DT_K = 1.0
 #: Relative std of one learnt R0 (its estimate's noise between two pairs).
 LN_R_STD = 0.01
-#: The factor is bounded: beyond it the temperature reading, not the cell, is wrong.
-FACTOR_RANGE = (0.25, 4.0)
 
 
 class ArrheniusCarry:
-    """Per-cell reference (R0, R1 at T_ref) and activation temperature B (module docstring)."""
+    """Per-cell activation temperature B and the last tick's temperature (module docstring)."""
 
     name = "arrhenius"
-    _ARRAYS = ("b_K", "b_var", "r0_ref", "r1_ref", "t_ref_K", "pair_ln_r0", "pair_inv_t", "pair_s")
+    _ARRAYS = ("b_K", "b_var", "t_prev_K", "pair_ln_r0", "pair_inv_t", "pair_s")
 
     def __init__(self, n_cells: int) -> None:
         self.n = n_cells
         self.b_K = np.full(n_cells, B_PRIOR_K)
         self.b_var = np.full(n_cells, B_PRIOR_STD_K**2)
-        self.r0_ref = np.full(n_cells, np.nan)
-        self.r1_ref = np.full(n_cells, np.nan)
-        self.t_ref_K = np.full(n_cells, np.nan)
+        self.t_prev_K = np.full(n_cells, np.nan)
         self.pair_ln_r0 = np.full(n_cells, np.nan)
         self.pair_inv_t = np.full(n_cells, np.nan)
         self.pair_s = np.zeros(n_cells)
@@ -75,10 +73,11 @@ class ArrheniusCarry:
         r0_ohm: FloatArray,
         r1_ohm: FloatArray,
     ) -> tuple[FloatArray, FloatArray] | None:
-        """One tick. ``learnt``: cells whose R0, R1 (ohm) were identified this tick (they become
-        the reference, and feed B); ``carry``: cells that learn nothing now (their R0, R1 follow
-        the temperature from the reference). Returns the carried (R0, R1), or None when nothing
-        is carried (no temperature, or no cell to carry)."""
+        """One tick. ``learnt``: cells whose R0, R1 (ohm) were identified this tick (they feed
+        B); ``carry``: cells that learn nothing now: their R0, R1 move by the law's factor from
+        the previous tick's temperature to this one's. Per-tick factors telescope, so a
+        temperature that comes back brings R back exactly, and a constant one changes nothing.
+        Returns the carried (R0, R1), or None when nothing is carried."""
         if not math.isfinite(temperature_C):
             return None
         t_k = temperature_C + KELVIN
@@ -86,20 +85,14 @@ class ArrheniusCarry:
         ok = learnt & (r0_ohm > 0) & (r1_ohm > 0)
         if ok.any():
             self._learn_b(ok, inv_t, r0_ohm, dt_s)
-            self.r0_ref = np.where(ok, r0_ohm, self.r0_ref)
-            self.r1_ref = np.where(ok, r1_ohm, self.r1_ref)
-            self.t_ref_K = np.where(ok, t_k, self.t_ref_K)
-        go = carry & np.isfinite(self.t_ref_K)
+        prev = self.t_prev_K
+        self.t_prev_K = np.full(self.n, t_k)
+        go = carry & np.isfinite(prev) & (prev != t_k)
         if not go.any():
             return None
-        with np.errstate(invalid="ignore"):
-            factor = np.exp(self.b_K * (inv_t - 1.0 / self.t_ref_K))
-        factor = np.clip(factor, *FACTOR_RANGE)
+        factor = np.exp(self.b_K * (inv_t - 1.0 / np.where(go, prev, t_k)))
         self.counters["arrhenius_carried"] += int(go.sum())
-        return (
-            np.where(go, self.r0_ref * factor, r0_ohm),
-            np.where(go, self.r1_ref * factor, r1_ohm),
-        )
+        return np.where(go, r0_ohm * factor, r0_ohm), np.where(go, r1_ohm * factor, r1_ohm)
 
     def _learn_b(self, ok: BoolArray, inv_t: float, r0_ohm: FloatArray, dt_s: float) -> None:
         """Every ``PAIR_S`` of learning, a scalar Kalman update of B from the change of ln R0
@@ -130,9 +123,9 @@ class ArrheniusCarry:
 
     # ------------------------------------------------------------------ protocol
     def reset(self, mask: BoolArray) -> None:
-        """The masked cells forget their reference (B, a property of the cell, is kept)."""
+        """The masked cells forget their pairs (B, a property of the cell, is kept)."""
         m = np.asarray(mask, dtype=bool)
-        for k in ("r0_ref", "r1_ref", "t_ref_K", "pair_ln_r0", "pair_inv_t"):
+        for k in ("pair_ln_r0", "pair_inv_t"):
             setattr(self, k, np.where(m, np.nan, getattr(self, k)))
         self.pair_s = np.where(m, 0.0, self.pair_s)
 
