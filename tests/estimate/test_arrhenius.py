@@ -1,4 +1,4 @@
-"""R0 and R1 carried along an Arrhenius law while the current holds nothing to learn them from
+"""R0 carried along an Arrhenius law while the current holds nothing to learn them from
 (``estimate/arrhenius.py``): exact for the activation temperature in force, B learnt from the
 cell's own pairs, nothing at all without a temperature."""
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from bmsid.estimate.arrhenius import B_PRIOR_K, KELVIN, PAIR_S, ArrheniusCarry
 
 YES, NO = np.ones(2, dtype=bool), np.zeros(2, dtype=bool)
-R0, R1 = np.array([1e-3, 2e-3]), np.array([5e-4, 1e-3])
+R0 = np.array([1e-3, 2e-3])
 
 
 @settings(max_examples=100, deadline=None)
@@ -20,38 +20,37 @@ def test_carried_resistances_follow_the_law_from_the_last_learnt_values(
     temps: list[float],
 ) -> None:
     """Learnt at the first temperature, carried through the others: at every tick R is the
-    law from the learnt values (the per-tick factors telescope), finite and > 0."""
+    law from the learnt value (the per-tick factors telescope), finite and > 0."""
     a = ArrheniusCarry(2)
-    assert a.step(temps[0], 1.0, YES, NO, R0, R1) is None  # learnt: nothing carried
-    r0, r1 = R0.copy(), R1.copy()
+    assert a.step(temps[0], 1.0, YES, NO, R0) is None  # learnt: nothing carried
+    r0 = R0.copy()
     for t_now in temps[1:]:
-        out = a.step(t_now, 1.0, NO, YES, r0, r1)
+        out = a.step(t_now, 1.0, NO, YES, r0)
         if out is not None:
-            r0, r1 = out
+            r0 = out
         f = np.exp(B_PRIOR_K * (1 / (t_now + KELVIN) - 1 / (temps[0] + KELVIN)))
         np.testing.assert_allclose(r0, R0 * f, rtol=1e-9)
-        np.testing.assert_allclose(r1, R1 * f, rtol=1e-9)
         assert np.all(np.isfinite(r0)) and np.all(r0 > 0)
 
 
 def test_a_constant_temperature_changes_nothing() -> None:
     a = ArrheniusCarry(2)
-    a.step(25.0, 1.0, YES, NO, R0, R1)
-    assert a.step(25.0, 1.0, NO, YES, R0 * 3, R1 * 3) is None  # e.g. a swarm's new values kept
+    a.step(25.0, 1.0, YES, NO, R0)
+    assert a.step(25.0, 1.0, NO, YES, R0 * 3) is None  # e.g. a swarm's new values kept
 
 
 def test_no_temperature_changes_nothing() -> None:
     a = ArrheniusCarry(2)
-    a.step(25.0, 1.0, YES, NO, R0, R1)
+    a.step(25.0, 1.0, YES, NO, R0)
     before = {k: v.copy() for k, v in a.state_dict().items()}
-    assert a.step(float("nan"), 1.0, NO, YES, R0, R1) is None
+    assert a.step(float("nan"), 1.0, NO, YES, R0) is None
     for k, v in a.state_dict().items():
         np.testing.assert_array_equal(v, before[k], err_msg=k)
 
 
 def test_the_first_temperature_carries_nothing() -> None:
     a = ArrheniusCarry(2)
-    assert a.step(25.0, 1.0, NO, YES, R0, R1) is None  # no previous temperature yet
+    assert a.step(25.0, 1.0, NO, YES, R0) is None  # no previous temperature yet
 
 
 @settings(max_examples=20, deadline=None)
@@ -70,8 +69,7 @@ def test_the_activation_temperature_is_learnt_from_pairs_kelvins_apart(
         t_c = 25.0 + (4.0 if k % 2 else -4.0) + rng.uniform(-1.0, 1.0)
         r0 = 1e-3 * np.exp(b_true * (1 / (t_c + KELVIN) - 1 / (25 + KELVIN)))
         r0 *= 1 + 0.01 * rng.standard_normal()
-        a.step(t_c, PAIR_S, np.ones(1, dtype=bool), np.zeros(1, dtype=bool),
-               np.array([r0]), np.array([r0 / 2]))  # fmt: skip
+        a.step(t_c, PAIR_S, np.ones(1, dtype=bool), np.zeros(1, dtype=bool), np.array([r0]))
     assert abs(a.b_K[0] / b_true - 1) < 0.15
 
 

@@ -164,21 +164,19 @@ class FusionStage:
         self.v_model = np.asarray(v_model, dtype=np.float64)
 
     def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
-        """Fused cells that learn refresh the Arrhenius reference; fused cells that do not (a
-        constant current) have R0 and R1 follow the pack temperature (``estimate/arrhenius.py``;
+        """Fused cells that learn feed the activation temperature; in fused cells that do not
+        (a constant current) R0 follows the pack temperature (``estimate/arrhenius.py``;
         nothing happens without a temperature)."""
         if math.isnan(temperature_C):  # the usual case: no temperature
             return
-        sc = self.scale
-        carried = self.arrhenius.step(
-            temperature_C, dt_s, learn & self.fused, self.fused & ~learn,
-            self.theta[:, 0] * sc[:, 0], self.theta[:, 1] * sc[:, 1],
-        )  # fmt: skip
-        if carried is None:
-            return
-        for j, r in enumerate(carried):
-            lo, hi = self._lin_lo[:, j], self._lin_hi[:, j]
-            self.theta[:, j] = np.minimum(np.maximum(r, lo), hi) / sc[:, j]
+        sc = self.scale[:, 0]
+        r0 = self.arrhenius.step(
+            temperature_C, dt_s, learn & self.fused, self.fused & ~learn, self.theta[:, 0] * sc
+        )
+        if r0 is not None:
+            self.theta[:, 0] = (
+                np.minimum(np.maximum(r0, self._lin_lo[:, 0]), self._lin_hi[:, 0]) / sc
+            )
 
     def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> FloatArray:
         """Project an estimate that left the bounds back onto them in the metric of P.
