@@ -164,19 +164,14 @@ class FusionStage:
         self.v_model = np.asarray(v_model, dtype=np.float64)
 
     def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
-        """Fused cells that learn feed the activation temperature; in fused cells that do not
-        (a constant current) R0 follows the pack temperature (``estimate/arrhenius.py``;
-        nothing happens without a temperature)."""
-        if math.isnan(temperature_C):  # the usual case: no temperature
+        """R0 follows the temperature where nothing is learnt now (``estimate/arrhenius.py``)."""
+        if math.isnan(temperature_C):
             return
-        sc = self.scale[:, 0]
-        r0 = self.arrhenius.step(
-            temperature_C, dt_s, learn & self.fused, self.fused & ~learn, self.theta[:, 0] * sc
-        )
+        sc, lo, hi = self.scale[:, 0], self._lin_lo[:, 0], self._lin_hi[:, 0]
+        th0 = self.theta[:, 0] * sc
+        r0 = self.arrhenius.step(temperature_C, dt_s, learn & self.fused, self.fused & ~learn, th0)
         if r0 is not None:
-            self.theta[:, 0] = (
-                np.minimum(np.maximum(r0, self._lin_lo[:, 0]), self._lin_hi[:, 0]) / sc
-            )
+            self.theta[:, 0] = np.clip(r0, lo, hi) / sc
 
     def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> FloatArray:
         """Project an estimate that left the bounds back onto them in the metric of P.
@@ -324,8 +319,7 @@ class FusionStage:
         fit = fit_linear(
             window, taus[:1], taus[1:], sc, weights, self._offset_prior(c), with_cov=True
         )
-        # A result far worse on the window than the parameters in force is a wrong optimum: the
-        # cell keeps what it has (judged as applied: linear part clipped to the bounds).
+        # A result far worse on the window (as applied, clipped) than what is in force: kept out.
         if self.fused[c]:
             cand = np.clip(fit.theta[0], self._lin_lo[c], self._lin_hi[c])
             new_rmse = fixed_rmse(window, float(taus[0]), float(taus[1]), cand, weights)
@@ -347,11 +341,9 @@ class FusionStage:
         elif tr > tun.trace_max:
             P = P * (tun.trace_max / tr)
         self.P[c] = fusion_covariance(P)
-        # The branch states are the fit's: x = x_unit - (c / R) a^k carries its start voltage
-        # c. Where the fit's R1 or R2 lies in (0, lower bound), x is that voltage over a tiny R
-        # and the clipped R would multiply it (measured, CALCE US06 45 C with 60 s observer
-        # updates: R2 clipped up ~100x, 284 mV of model error at once): there the branch
-        # voltage R x of the fit is kept instead.
+        # The fit's x = x_unit - (c / R) a^k: with R1 or R2 in (0, lower bound) the clipped R
+        # multiplies c / R (CALCE US06 45 C, 60 s observer updates: 284 mV at once), so there
+        # the fit's branch voltage R x is kept.
         r_fit, r_lo = fit.theta[0, 1:3], self._lin_lo[c, 1:3]
         amplified = (r_fit > 0) & (r_fit < r_lo)
         self.x1[c], self.x2[c] = np.where(amplified, fit.x_last[0] * r_fit / r_lo, fit.x_last[0])
