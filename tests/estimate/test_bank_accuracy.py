@@ -14,6 +14,7 @@ from bmsid.estimate.tuning import Variant
 from bmsid.metrics import voltage_metrics
 from bmsid.model.simulator import simulate
 from bmsid.profiles import dst_current
+from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
 
 Arr = npt.NDArray[np.float64]
@@ -69,6 +70,22 @@ def test_fusion_tracks_a_30_percent_r0_ramp() -> None:
     truth = _case(0.3).R0_true_ohm[:, 0]
     err = np.abs(_after_10pct(r["R0_ohm"]) / _after_10pct(truth) - 1)
     assert np.max(err) <= 0.05
+
+
+def test_a_start_just_after_a_full_charge_keeps_the_slow_branch() -> None:
+    """Issue 11 item 7: the true hysteresis state starts at +1 (a full charge, then rest), the
+    engine, told nothing (no soc0), starts it at 0; its swing to -1 in the first Ah of the drive
+    must not be learnt as the slow branch (DC resistance is what power limits use)."""
+    run = paper_dst_case(h0=1.0)
+    bank = build_bank(run.cell, 1, "hy-affrls-lpso")
+    est = bank.update_block(SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V))
+    t = run.truth
+    r0 = _after_10pct(est["R0_ohm"][:, 0])
+    rsum = _after_10pct(est["R0_ohm"][:, 0] + est["R1_ohm"][:, 0] + est["R2_ohm"][:, 0])
+    assert np.median(np.abs(r0 / t["R0_ohm"] - 1)) <= 0.03
+    assert np.median(np.abs(rsum / (t["R0_ohm"] + t["R1_ohm"] + t["R2_ohm"]) - 1)) <= 0.10
+    m = voltage_metrics(_after_10pct(est["v_meas_V"][:, 0]), _after_10pct(est["v_model_V"][:, 0]))
+    assert m.rmse_V <= 3e-3
 
 
 def test_forgetting_factor_stays_in_its_interval() -> None:

@@ -50,9 +50,12 @@ def paper_dst_case(
     v_noise_V: float = 1e-3,
     i_noise_A: float = 0.05,
     soc0: float = 0.98,
+    h0: float = 0.0,
 ) -> SyntheticRun:
     """The reference DST case; ``r0_ramp`` = relative R0 rise over the run (0.3 = +30 %);
-    ``r0_spread`` = per-cell R0 multipliers for a pack (one cell per entry)."""
+    ``r0_spread`` = per-cell R0 multipliers for a pack (one cell per entry); ``h0`` = the true
+    hysteresis state at the start (+1 just after a full charge, which the engine cannot know
+    from a rested voltage: it starts from 0)."""
     cell = paper_cell(M_V=0.015, gamma=30.0)
     n = n_samples or dst_run_length_s(cell, 140.0, soc0, 0.10)
     t = np.arange(n, dtype=np.float64)
@@ -62,7 +65,8 @@ def paper_dst_case(
     sim = simulate(
         t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah, R0_ohm=r0,
         R1_ohm=TRUTH["R1_ohm"], tau1_s=TRUTH["tau1_s"], R2_ohm=TRUTH["R2_ohm"],
-        tau2_s=TRUTH["tau2_s"], gamma=cell.hysteresis.gamma, soc0=soc0, n_sets=mult.shape[0],
+        tau2_s=TRUTH["tau2_s"], gamma=cell.hysteresis.gamma, soc0=soc0, h0=h0,
+        n_sets=mult.shape[0],
     )  # fmt: skip
     rng = np.random.default_rng(seed)
     v = sim.v_V.T + rng.normal(0.0, v_noise_V, (n, mult.shape[0]))
