@@ -402,15 +402,17 @@ class Daemon:
             await self._checkpoint()
 
     # ------------------------------------------------------------------ CAN input
-    def _set_can_state(self, state: str) -> None:
+    def _set_can_state(self, state: str, detail: str = "") -> None:
+        """Log and publish a change of the CAN state: one line per change (``detail`` ends it)."""
         if state != self.can_state:
             cs = self.settings.can
             log.log(
                 logging.INFO if state == "up" else logging.WARNING,
-                "CAN %s/%s %s",
+                "CAN %s/%s %s%s",
                 cs.interface,
                 cs.channel,
                 state,
+                detail,
             )
             self.can_state = state
             if self.mqtt is not None:
@@ -496,8 +498,14 @@ class Daemon:
                     await asyncio.sleep(0)
                 if msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF:
                     self.counters["bus_off"] += 1
-                    self._set_can_state("bus_off")
-                elif self.can_state == "bus_off" and not msg.is_error_frame:
+                    self.f2s.count_error_frame()  # still in decode_errors; the line is below
+                    self._set_can_state(
+                        "bus_off",
+                        f" (bus-off error frame, {self.counters['bus_off']} so far; up again "
+                        "with the next data frame)",
+                    )
+                    continue
+                if self.can_state == "bus_off" and not msg.is_error_frame:
                     self._set_can_state("up")
                 samples = self.f2s.feed(msg)
                 if samples:
