@@ -4,8 +4,9 @@ stage of the pipeline is stuck with work waiting, fed again once it moves.
 systemd's side is a datagram socket of the test (``NOTIFY_SOCKET``), the daemon runs in-process
 on python-can's ``virtual`` bus with the bank in a thread, so a stage can be stuck on purpose:
 the bank's ``update`` or ``ping`` waits on an event, or the reader's sample hand-over does.
-``WatchdogSec`` is 1 s (2 s for the healthy run); no assertion depends on a duration: "withheld" is checked over watchdog
-periods the daemon counts (``watchdog_withheld``), not over a time. About 21 s in all.
+``WatchdogSec`` is 1 s (2 s for the healthy run); no assertion depends on a duration:
+"withheld" is checked over watchdog periods the daemon counts (``watchdog_withheld``), not over
+a time. About 21 s in all.
 """
 
 from __future__ import annotations
