@@ -566,7 +566,8 @@ class _PipeQueue:
 
     def __init__(self, conn: Connection) -> None:
         self.conn = conn
-        self._lock = threading.Lock()  # the heartbeat's sends do not take the handler's
+        # serialises the handler's sends with the heartbeat's, which bypass the handler
+        self._lock = threading.Lock()
 
     def put_nowait(self, record: logging.LogRecord | str) -> None:
         with self._lock, contextlib.suppress(OSError):  # the daemon is gone: nobody to tell

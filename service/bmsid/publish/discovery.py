@@ -14,10 +14,10 @@ expects of them:
 - ``quality`` as an enum sensor whose options are the codes of ``estimate.types.Quality``.
 
 A configured cell that has not been on the bus in this run (``missing_cells`` in the status:
-``n_cells`` larger than the pack, a cell tap gone) is never published, so its sensors would show
-``unknown`` for ever, or the last value of an earlier run: their availability template reads the
-status's ``inputs.missing_cells`` too and makes them ``unavailable``, which says the truth (no
-such cell on the bus now). The configs themselves are published at connect for every configured
+``n_cells`` larger than the pack, or a cell whose frames have not come yet) is never published,
+so its sensors would show ``unknown`` for ever, or the last value of an earlier run: their
+availability template reads the status's ``inputs.missing_cells`` too and makes them
+``unavailable``, which says the truth (no such cell on the bus now). The configs themselves are published at connect for every configured
 cell, before any frame tells which are there: withholding them would remove the entities (and
 their history) of a pack that is merely asleep at a restart.
 
