@@ -17,9 +17,10 @@ A configured cell that has not been on the bus in this run (``missing_cells`` in
 ``n_cells`` larger than the pack, or a cell whose frames have not come yet) is never published,
 so its sensors would show ``unknown`` for ever, or the last value of an earlier run: their
 availability template reads the status's ``inputs.missing_cells`` too and makes them
-``unavailable``, which says the truth (no such cell on the bus now). The configs themselves are published at connect for every configured
-cell, before any frame tells which are there: withholding them would remove the entities (and
-their history) of a pack that is merely asleep at a restart.
+``unavailable``, which says the truth (no such cell on the bus now). The configs themselves are
+published at connect for every configured cell, before any frame tells which are there:
+withholding them would remove the entities (and their history) of a pack that is merely asleep
+at a restart.
 
 Estimator internals (the table's ``diagnostic`` fields: forgetting factor, hysteresis state,
 model error, the uncertainties, the pack's current offset repeated per cell) are
