@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import logging
+import multiprocessing
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +17,9 @@ from daemon_helpers import drive_samples
 
 from bmsid.config.cell import paper_cell
 from bmsid.config.engine import build_bank
+from bmsid.daemon import bank_worker
 from bmsid.daemon.bank_worker import (
+    HEARTBEAT,
     SEQ_BLOCK,
     BankHost,
     BankSpec,
@@ -133,6 +137,61 @@ def test_only_the_newest_estimate_returns_unless_all_are_kept(tmp_path: Path) ->
     result = host.update(_samples(0.0, 20))
     assert [e.t_s for e in result.estimates] == [19.0]
     assert len(result.messages) == 20 * (N_CELLS + 1)
+
+
+@pytest.mark.parametrize(("period_s", "beats"), [(0.0, 20), (float("inf"), 0)])
+def test_a_long_update_beats_between_ticks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, period_s: float, beats: int
+) -> None:
+    """The heartbeat that tells the daemon's watchdog a long call from a stuck one: between the
+    ticks of an update, at most every HEARTBEAT_S (0: after each of the 20 one-sample ticks)."""
+    monkeypatch.setattr(bank_worker, "HEARTBEAT_S", period_s)
+    host = BankHost(_spec(tmp_path, restore=False))
+    got: list[int] = []
+    host.beat = lambda: got.append(1)
+    host.start()
+    host.update(_samples(0.0, 20))
+    assert len(got) == beats
+
+
+def test_heartbeats_cross_the_log_pipe_beside_the_records(caplog: pytest.LogCaptureFixture) -> None:
+    """The worker process's heartbeat travels on its log pipe: the daemon's side calls
+    ``on_beat`` for it and re-emits the log records around it."""
+    recv, send = multiprocessing.Pipe(duplex=False)
+    pipe = bank_worker._PipeQueue(send)
+    record = logging.LogRecord(
+        "bmsid.test", logging.WARNING, __file__, 1, "from the worker", (), None
+    )
+    pipe.put_nowait(record)
+    pipe.put_nowait(HEARTBEAT)
+    pipe.put_nowait(HEARTBEAT)
+    send.close()
+    beats: list[int] = []
+    with caplog.at_level(logging.WARNING):
+        bank_worker._forward_logs(recv, lambda: beats.append(1))  # returns at EOF
+    assert beats == [1, 1]
+    assert [r.getMessage() for r in caplog.records] == ["from the worker"]
+
+
+@pytest.mark.parametrize("isolation", ["process", "thread"])
+def test_ping_is_answered_and_counted_as_progress(tmp_path: Path, isolation: Isolation) -> None:
+    """The watchdog's probe on a silent bus: an idle worker answers it; while it is out it is a
+    call owed (``calls``), and its answer moves ``progress_mono``."""
+
+    async def main() -> None:
+        worker = BankWorker(_spec(tmp_path), isolation)
+        try:
+            await worker.start()
+            before = worker.progress_mono
+            probe = asyncio.create_task(worker.ping())
+            await asyncio.sleep(0)
+            assert worker.calls == 1
+            await probe
+            assert worker.calls == 0 and worker.progress_mono > before
+        finally:
+            worker.close()
+
+    asyncio.run(main())
 
 
 def test_tick_samples_walks_forward_over_repeated_times() -> None:

@@ -192,6 +192,13 @@ class FrameToSamples:
 
     # --- public API ---------------------------------------------------------------------------
 
+    def count_error_frame(self) -> None:
+        """Count an error frame whose caller says it itself (the daemon's bus-off state line):
+        in ``frames`` and ``error_frames`` as :meth:`feed` would, without a line of its own, so
+        that a bus-off is one line in the log."""
+        self.counters["frames"] += 1
+        self.counters["error_frames"] += 1
+
     def feed(self, msg: can.Message) -> list[Sample]:
         """Take one frame; return the samples it completes (usually none or one). Never raises."""
         self.counters["frames"] += 1

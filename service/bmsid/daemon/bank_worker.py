@@ -52,6 +52,7 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -99,6 +100,12 @@ PARENT_POLL_S = 0.5
 PR_SET_PDEATHSIG = 1
 #: Longest wait for the worker process to end after ``close()`` asked it to, s.
 CLOSE_TIMEOUT_S = 10.0
+#: A call taking longer sends a heartbeat between ticks at most this often, s: the daemon's
+#: watchdog tells a long call (a start-up probe releasing its samples) from a stuck one by it.
+#: Far below any ``WatchdogSec`` that makes sense, and one small pickle a second at most.
+HEARTBEAT_S = 1.0
+#: What the worker process sends on its log pipe as a heartbeat (a log record otherwise).
+HEARTBEAT = "heartbeat"
 
 
 def _log_now(n: int) -> bool:
@@ -217,6 +224,9 @@ class BankHost:
     start_values: StartValues | None = None
     _probe: list[SampleBlock] = field(default_factory=list)
     _probing: bool = False
+    #: called between ticks of a long call, at most every HEARTBEAT_S (set by the worker)
+    beat: Callable[[], None] = field(default=lambda: None, repr=False)
+    _beat_t: float = 0.0
 
     def __post_init__(self) -> None:
         self.bank = self._fresh_bank()
@@ -372,8 +382,12 @@ class BankHost:
         return first
 
     # ------------------------------------------------------------------ samples
+    def ping(self) -> None:
+        """Nothing: the daemon's watchdog asks it on a silent bus to see that the worker answers."""
+
     def update(self, block: SampleBlock) -> BatchResult:
         """Feed a block of samples to the bank, in order, in chunks of about one tick."""
+        self._beat_t = time.monotonic()
         estimates: list[Estimates] = []
         messages: list[OutMessage] = []
         block = self.gate.apply(block)
@@ -399,6 +413,9 @@ class BankHost:
             # In thread isolation, hand the GIL to the event loop between chunks: otherwise the
             # loop waits a whole switch interval for every GIL release it makes (convoy effect).
             time.sleep(0)
+            if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
+                self._beat_t = now
+                self.beat()
         return BatchResult(
             estimates, messages, self._counters(), self.seq, self.gate.state.report()
         )
@@ -549,9 +566,11 @@ class _PipeQueue:
 
     def __init__(self, conn: Connection) -> None:
         self.conn = conn
+        # serialises the handler's sends with the heartbeat's, which bypass the handler
+        self._lock = threading.Lock()
 
-    def put_nowait(self, record: logging.LogRecord) -> None:
-        with contextlib.suppress(OSError):  # the daemon is gone: nobody to tell
+    def put_nowait(self, record: logging.LogRecord | str) -> None:
+        with self._lock, contextlib.suppress(OSError):  # the daemon is gone: nobody to tell
             self.conn.send(record)
 
 
@@ -564,7 +583,8 @@ def _child_main(
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
     root = logging.getLogger()
-    root.handlers[:] = [logging.handlers.QueueHandler(_PipeQueue(log_conn))]  # type: ignore[arg-type]
+    pipe = _PipeQueue(log_conn)
+    root.handlers[:] = [logging.handlers.QueueHandler(pipe)]  # type: ignore[arg-type]
     root.setLevel(level)
     if not _die_with_parent():
         threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
@@ -574,6 +594,7 @@ def _child_main(
     init_error: BaseException | None = None
     try:
         host = BankHost(spec)
+        host.beat = lambda: pipe.put_nowait(HEARTBEAT)
     except Exception as exc:  # answered to every call: the daemon reports it as its own
         init_error = exc
     gc.collect()
@@ -598,14 +619,18 @@ def _child_main(
             conn.send(("error", RuntimeError(f"{type(reply[1]).__name__}: {reply[1]}"), str(exc)))
 
 
-def _forward_logs(conn: Connection) -> None:
-    """Daemon side of the worker's log pipe: re-emit each record under its own logger."""
+def _forward_logs(conn: Connection, on_beat: Callable[[], None]) -> None:
+    """Daemon side of the worker's log pipe: re-emit each record under its own logger; a
+    heartbeat calls ``on_beat``."""
     while True:
         try:
-            record: logging.LogRecord = conn.recv()
+            record: logging.LogRecord | str = conn.recv()
         except (EOFError, OSError):
             return
-        logging.getLogger(record.name).handle(record)
+        if isinstance(record, str):
+            on_beat()
+        else:
+            logging.getLogger(record.name).handle(record)
 
 
 class BankWorker:
@@ -613,11 +638,17 @@ class BankWorker:
 
     Calls are serialised (one at a time, in order); a dead worker process raises
     :class:`BankWorkerError` from the call, an exception in the worker is re-raised with
-    the worker's traceback as its cause.
+    the worker's traceback as its cause. ``calls`` and ``progress_mono`` are what the daemon's
+    watchdog reads (:mod:`bmsid.daemon.watchdog`).
     """
 
     def __init__(self, spec: BankSpec, isolation: Isolation = "process") -> None:
         self.isolation = isolation
+        #: calls made and not answered yet (queued or running)
+        self.calls = 0
+        #: ``time.monotonic()`` of the worker's last answer or heartbeat, or of a call made
+        #: while none was outstanding (an idle worker owes nothing)
+        self.progress_mono = time.monotonic()
         self._host: BankHost | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
         self._log_thread: threading.Thread | None = None
@@ -637,11 +668,19 @@ class BankWorker:
             child_conn.close()  # the child's ends: EOF on our side once it exits
             log_send.close()
             self._log_thread = threading.Thread(
-                target=_forward_logs, args=(log_recv,), name="bmsid-bank-log", daemon=True
+                target=_forward_logs,
+                args=(log_recv, self._on_beat),
+                name="bmsid-bank-log",
+                daemon=True,
             )
             self._log_thread.start()
         else:
             self._host = BankHost(spec)
+            self._host.beat = self._on_beat
+
+    def _on_beat(self) -> None:
+        # from the log thread or the worker thread: one float store, atomic under the GIL
+        self.progress_mono = time.monotonic()
 
     def _roundtrip(self, method: str, args: tuple[Any, ...]) -> Any:
         assert self._process is not None
@@ -660,9 +699,18 @@ class BankWorker:
 
     async def _call(self, method: str, *args: Any) -> Any:
         loop = asyncio.get_running_loop()
-        if self._host is not None:
-            return await loop.run_in_executor(self._executor, getattr(self._host, method), *args)
-        return await loop.run_in_executor(self._executor, self._roundtrip, method, args)
+        if self.calls == 0:
+            self.progress_mono = time.monotonic()
+        self.calls += 1
+        try:
+            if self._host is not None:
+                return await loop.run_in_executor(
+                    self._executor, getattr(self._host, method), *args
+                )
+            return await loop.run_in_executor(self._executor, self._roundtrip, method, args)
+        finally:
+            self.calls -= 1
+            self.progress_mono = time.monotonic()
 
     async def start(self) -> StartInfo:
         t0 = time.monotonic()
@@ -673,6 +721,10 @@ class BankWorker:
     async def update(self, block: SampleBlock) -> BatchResult:
         result: BatchResult = await self._call("update", block)
         return result
+
+    async def ping(self) -> None:
+        """A no-op call: answered when the worker is alive and done with the calls before it."""
+        await self._call("ping")
 
     async def checkpoint(self, clean: bool = False) -> dict[str, int]:
         counters: dict[str, int] = await self._call("checkpoint", clean)

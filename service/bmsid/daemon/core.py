@@ -49,6 +49,7 @@ from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
 from bmsid.daemon.statedir import StateLock, check_writable, remove_stale_temps
+from bmsid.daemon.watchdog import Pipeline, stall
 from bmsid.errors import UserError
 from bmsid.estimate.types import Estimates
 from bmsid.gates import GATE_COUNTERS
@@ -165,6 +166,10 @@ class Daemon:
         self._pending_mono: list[float] = []
         self._stop: asyncio.Event | None = None
         self._last_sample_mono = 0.0
+        #: when the CAN reader last took frames or queued samples (the watchdog's view)
+        self._reader_progress_mono = time.monotonic()
+        #: frames of the batch the reader is working through (0 while it awaits the next)
+        self._reader_holding = 0
         self._had_data = False
         self._t_start = time.monotonic()
         self._ready_sent = False
@@ -402,15 +407,17 @@ class Daemon:
             await self._checkpoint()
 
     # ------------------------------------------------------------------ CAN input
-    def _set_can_state(self, state: str) -> None:
+    def _set_can_state(self, state: str, detail: str = "") -> None:
+        """Log and publish a change of the CAN state: one line per change (``detail`` ends it)."""
         if state != self.can_state:
             cs = self.settings.can
             log.log(
                 logging.INFO if state == "up" else logging.WARNING,
-                "CAN %s/%s %s",
+                "CAN %s/%s %s%s",
                 cs.interface,
                 cs.channel,
                 state,
+                detail,
             )
             self.can_state = state
             if self.mqtt is not None:
@@ -443,6 +450,7 @@ class Daemon:
                 continue
             failed_opens = 0
             self._source = src
+            self._reader_progress_mono = time.monotonic()
             backoff = cs.reopen_min_s
             self._set_can_state("up")
             self._on_bus_open()
@@ -454,6 +462,7 @@ class Daemon:
                 log.warning("CAN %s failed: %s (reopen in %.1f s)", cs.channel, exc, backoff)
             finally:
                 self._source = None
+                self._reader_holding = 0  # the rest of a batch cut by a bus error is gone
                 self.counters["reader_dropped"] += src.dropped
                 await src.aclose()
             await asyncio.sleep(backoff)
@@ -482,6 +491,7 @@ class Daemon:
                 try:
                     batch = await asyncio.wait_for(src.get_batch(), self.settings.can.staleness_s)
                 except TimeoutError:
+                    self._reader_progress_mono = time.monotonic()
                     self._pend(self.f2s.expire(time.time()))
                     if self._pending:
                         with contextlib.suppress(asyncio.QueueFull):
@@ -489,6 +499,8 @@ class Daemon:
                     continue
             else:
                 batch = await src.get_batch()
+            self._reader_progress_mono = time.monotonic()
+            self._reader_holding = len(batch)
             for n, msg in enumerate(batch, 1):
                 if n % FRAMES_PER_YIELD == 0:
                     # ~10 us a frame: yield now and then so a flood cannot starve timers
@@ -496,8 +508,14 @@ class Daemon:
                     await asyncio.sleep(0)
                 if msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF:
                     self.counters["bus_off"] += 1
-                    self._set_can_state("bus_off")
-                elif self.can_state == "bus_off" and not msg.is_error_frame:
+                    self.f2s.count_error_frame()  # still in decode_errors; the line is below
+                    self._set_can_state(
+                        "bus_off",
+                        f" (bus-off error frame, {self.counters['bus_off']} so far; up again "
+                        "with the next data frame)",
+                    )
+                    continue
+                if self.can_state == "bus_off" and not msg.is_error_frame:
                     self._set_can_state("up")
                 samples = self.f2s.feed(msg)
                 if samples:
@@ -505,6 +523,7 @@ class Daemon:
                     if len(self._pending) >= SAMPLE_BATCH:
                         await self._flush_samples()
             await self._flush_samples()
+            self._reader_holding = 0
 
     def _pend(self, samples: list[Sample]) -> None:
         now = time.monotonic()
@@ -521,6 +540,7 @@ class Daemon:
         if self._pending:
             assert self._samples is not None
             await self._samples.put(self._take_block())
+            self._reader_progress_mono = time.monotonic()
 
     # ------------------------------------------------------------------ estimator
     async def _estimate(self) -> None:
@@ -547,7 +567,11 @@ class Daemon:
                     )
                 self._last_sample_mono = time.monotonic()
                 self.seq = result.seq
+                missing = (self.inputs or {}).get("missing_cells")
                 self.inputs = result.inputs
+                if result.inputs.get("missing_cells") != missing and self.mqtt is not None:
+                    # Home Assistant's cell availability reads it (publish/discovery.py)
+                    self.mqtt.publish_status()
                 jumps = self.bank_counters.get("time_jumps_back", 0)
                 self._merge_bank_counters(result.counters)
                 if self.bank_counters.get("time_jumps_back", 0) > jumps:
@@ -678,6 +702,7 @@ class Daemon:
             "can_reopens": self.counters["can_reopens"],
             "can_open_failures": self.counters["can_open_failures"],
             "can_bus_off": self.counters["bus_off"],
+            "watchdog_withheld": self.counters["watchdog_withheld"],
             "reader_drops": self.counters["reader_dropped"]
             + (self._source.dropped if self._source is not None else 0),
             "checkpoints": self.bank_counters.get("checkpoints", 0),
@@ -754,15 +779,57 @@ class Daemon:
             self.loop_lag_max_s = max(self.loop_lag_max_s, lag)
             self._lag_window_max_s = max(self._lag_window_max_s, lag)
 
+    def pipeline(self) -> Pipeline:
+        """The pipeline as the watchdog sees it (:mod:`bmsid.daemon.watchdog`)."""
+        src, worker, q = self._source, self.worker, self._samples
+        return Pipeline(
+            now_s=time.monotonic(),
+            frames_waiting=self._reader_holding + (src.waiting if src is not None else 0),
+            reader_progress_s=self._reader_progress_mono,
+            samples_waiting=q.qsize() if q is not None else 0,
+            bank_calls=worker.calls if worker is not None else 0,
+            bank_progress_s=worker.progress_mono if worker is not None else time.monotonic(),
+        )
+
     async def _watchdog(self) -> None:
-        assert self.sd.watchdog_s is not None
-        while True:
-            await asyncio.sleep(self.sd.watchdog_s / 2.0)
-            # Alive = the loop runs (we are here) and the bank worker is not stuck.
-            if self.counters["batches_in_flight"] == 0 or (
-                time.monotonic() - self._last_sample_mono < self.sd.watchdog_s
-            ):
-                self.sd.notify("WATCHDOG=1")
+        """``WATCHDOG=1`` every ``WatchdogSec``/2 while the pipeline moves or idles, none
+        while it is stuck (:func:`~bmsid.daemon.watchdog.stall`): systemd then restarts it."""
+        assert self.sd.watchdog_s is not None and self.worker is not None
+        limit = self.sd.watchdog_s
+        probe: asyncio.Task[None] | None = None
+        stuck_since: float | None = None
+        try:
+            while True:
+                await asyncio.sleep(limit / 2.0)
+                if probe is not None and probe.done():
+                    probe.result()  # a dead worker raises: the daemon stops, as on a batch
+                    probe = None
+                worker = self.worker
+                if probe is None and worker.calls == 0:
+                    # a silent bus gives the worker no call: ask it one, so a hung worker
+                    # shows as a call unanswered
+                    probe = asyncio.create_task(worker.ping(), name="bank-probe")
+                why = stall(self.pipeline(), limit)
+                if why is None:
+                    self.sd.notify("WATCHDOG=1")
+                    if stuck_since is not None:
+                        log.warning(
+                            "watchdog: the pipeline moves again after %.1f s: WATCHDOG=1 resumed",
+                            time.monotonic() - stuck_since,
+                        )
+                        stuck_since = None
+                    continue
+                self.counters["watchdog_withheld"] += 1
+                if stuck_since is None:
+                    stuck_since = time.monotonic()
+                    log.error(
+                        "watchdog: %s: WATCHDOG=1 withheld, systemd restarts bmsid once "
+                        "WatchdogSec has passed since the last one",
+                        why,
+                    )
+        finally:
+            if probe is not None:
+                probe.cancel()
 
 
 def run_daemon(settings: Settings) -> int:

@@ -29,6 +29,9 @@ class SdNotifier:
             return False
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+                # never wait on the event loop: a reader that lags (a full queue) costs this
+                # message (one warning), not the daemon's progress
+                sock.setblocking(False)
                 sock.connect(self._addr)
                 sock.sendall("\n".join(fields).encode())
         except OSError as exc:

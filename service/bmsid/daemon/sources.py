@@ -35,6 +35,11 @@ class FrameSource(Protocol):
         """Frames lost because the queue was full."""
         ...
 
+    @property
+    def waiting(self) -> int:
+        """Frames (or batches of frames) received and not yet taken: 0 when the reader is idle."""
+        ...
+
     async def get_batch(self) -> list[can.Message]:
         """Frames received since the last call (at least one); raises on a bus error."""
         ...
@@ -73,6 +78,10 @@ class SocketCanSource:
     @property
     def dropped(self) -> int:
         return self._reader.dropped
+
+    @property
+    def waiting(self) -> int:
+        return self._reader._queue.qsize()
 
     async def get_batch(self) -> list[can.Message]:
         batch = [await self._reader.get()]
@@ -121,6 +130,10 @@ class VirtualSource:
                     continue
             else:
                 fut.cancel()
+
+    @property
+    def waiting(self) -> int:
+        return self._queue.qsize()
 
     async def get_batch(self) -> list[can.Message]:
         return await self._queue.get()
