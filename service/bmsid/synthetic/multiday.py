@@ -114,6 +114,9 @@ class MultidayOptions:
     """Current-sensor offset, A: measured = true + offset (+ = reads more discharge)."""
     soc0: float = 0.93
     """True SOC at t = 0 (fraction; the evening charge's target, as after a night's rest)."""
+    h0: float = 0.0
+    """True hysteresis state at t = 0, in [-1, 1] (+1: the night after the evening charge;
+    0, the default, is what the engine assumes at a start)."""
     start_load_A: float = 0.0
     """Auxiliary load on the first day until the first drive, A (0: rest). 0.17 A is a typical
     BMS + contactor + telematics draw; it is below the engine's rest threshold (0.01 C)."""
@@ -145,6 +148,8 @@ class MultidayOptions:
             raise ValueError("duration_s must lie in (0, n_days days]")
         if not self.plan.soc_floor < self.soc0 < 0.97:
             raise ValueError(f"soc0 must lie in ({self.plan.soc_floor:g}, 0.97)")
+        if not -1.0 <= self.h0 <= 1.0:
+            raise ValueError("h0 must lie in [-1, 1]")
         if self.capacity_fade_per_day * self.n_days >= 0.5:
             raise ValueError("capacity fade above 50 % over the record")
         if min(self.v_noise_V, self.i_noise_A, self.start_load_A, self.temp_swing_C) < 0:
@@ -290,7 +295,7 @@ def generate(options: MultidayOptions | None = None) -> MultidayRecord:
     sim = simulate(
         t, i_true, ocv_model(cell), capacity_Ah=q, R0_ohm=r0[None, :], R1_ohm=r1[None, :],
         tau1_s=TRUTH["tau1_s"], R2_ohm=TRUTH["R2_ohm"], tau2_s=TRUTH["tau2_s"],
-        gamma=cell.hysteresis.gamma, eta=cell.coulombic_efficiency, soc0=opt.soc0,
+        gamma=cell.hysteresis.gamma, eta=cell.coulombic_efficiency, soc0=opt.soc0, h0=opt.h0,
     )  # fmt: skip
     if sim.soc_clamped.any():
         raise ValueError("the true SOC left the OCV curve's range: check soc0 and the plan")
