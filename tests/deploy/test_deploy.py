@@ -234,7 +234,10 @@ def test_unit_environment_names_are_real_settings(
         for name, value in env.items()
         if name.startswith("BMSID_")
     }
-    assert expanded == {"BMSID_STATE__DIRECTORY": f"{state_root}/bmsid"}
+    assert expanded == {
+        "BMSID_STATE__DIRECTORY": f"{state_root}/bmsid",
+        "BMSID_ESTIMATOR__KERNELS": "numpy",  # no JIT under MemoryDenyWriteExecute
+    }
     # what ExecStart exports when the credential is not empty
     script = exec_start_script(entries)
     exported = re.findall(r'export (BMSID_\w+)="([^"]*)"', script)
@@ -251,6 +254,7 @@ def test_unit_environment_names_are_real_settings(
         monkeypatch.setenv(name, value)
     settings: Settings = load_settings(config)
     assert settings.state.directory == state_root / "bmsid"
+    assert settings.estimator.kernels == "numpy"
     assert settings.mqtt.password_file == cred_dir / "mqtt-password"
     assert settings.mqtt.password_value() == "s3cret"
     assert settings.systemd_notify is True  # READY/WATCHDOG reach Type=notify

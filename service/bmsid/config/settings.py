@@ -122,6 +122,10 @@ class EstimatorSettings(_Strict):
     isolation: Literal["process", "thread"] = "process"
     """Run the bank in a child process (the event loop keeps its 5 ms budget under load) or in
     a thread of the daemon (platforms that cannot spawn processes)."""
+    kernels: Literal["compiled", "numpy"] = "compiled"
+    """Swarm window fits by numba's compiled kernel (where it compiles; else numpy) or by the
+    numpy reference: results equal to rounding. ``numpy`` where a sandbox forbids writable
+    executable memory (systemd's MemoryDenyWriteExecute, as the shipped unit sets)."""
 
     def load_cell(self) -> CellConfig:
         if self.cell is None:

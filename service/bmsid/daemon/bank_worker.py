@@ -182,6 +182,8 @@ class BankSpec:
     keep_all_estimates: bool = False
     #: plausibility gates before the bank (``bmsid.gates``)
     gates: GateConfig = field(default_factory=GateConfig)
+    #: ``compiled`` (numba, where it compiles) or ``numpy`` window fits (``estimator.kernels``)
+    kernels: str = "compiled"
 
     @property
     def seq_path(self) -> Path:
@@ -229,6 +231,11 @@ class BankHost:
     _beat_t: float = 0.0
 
     def __post_init__(self) -> None:
+        # The window-fit kernel, chosen (and compiled or loaded) before any bank exists here,
+        # fresh or restored: ``numpy`` where the sandbox forbids a JIT.
+        from bmsid.estimate import varpro_kernel  # noqa: PLC0415 (numba only where it runs)
+
+        varpro_kernel.select("numpy" if self.spec.kernels == "numpy" else None)
         self.bank = self._fresh_bank()
         #: a fresh state: what a restored or saved one must look like (state_problem)
         self._reference = self.bank.state_dict()

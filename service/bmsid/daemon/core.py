@@ -135,6 +135,7 @@ class Daemon:
             qos=m.qos,
             publish_period_s=m.publish_period_s,
             keep_all_estimates=on_estimates is not None,
+            kernels=est.kernels,
             gates=settings.gates,
         )
         #: the bank's counters (samples, ticks, swarms, ...) as of its latest batch

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import lpso
+from bmsid.estimate import lpso, varpro_kernel
 from bmsid.estimate.affrls import reset_covariance, rls_update
 from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
@@ -79,6 +79,7 @@ class FusionStage:
         self.model = model
         self.tuning = tuning
         self.n = n = model.n_cells
+        varpro_kernel.ensure()  # compile (or load) the window fits now, not in the first swarm
         self.cell_ids = cell_ids
         self.counters: dict[str, int] = {"swarms": 0, "clamped": 0, "swarms_rejected": 0}
         cols = [BOUNDED.index(name) for name in _LINEAR_BOUNDS]
@@ -342,8 +343,7 @@ class FusionStage:
             P = P * (tun.trace_max / tr)
         self.P[c] = fusion_covariance(P)
         # The fit's x = x_unit - (c / R) a^k: with R1 or R2 in (0, lower bound) the clipped R
-        # multiplies c / R (CALCE US06 45 C, 60 s observer updates: 284 mV at once), so there
-        # the fit's branch voltage R x is kept.
+        # multiplies c / R (CALCE US06 45 C, 60 s observer updates: 284 mV), so R x is kept.
         r_fit, r_lo = fit.theta[0, 1:3], self._lin_lo[c, 1:3]
         amplified = (r_fit > 0) & (r_fit < r_lo)
         self.x1[c], self.x2[c] = np.where(amplified, fit.x_last[0] * r_fit / r_lo, fit.x_last[0])

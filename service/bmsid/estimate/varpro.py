@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.estimate import varpro_kernel
 from bmsid.model.ecm import rc_decay, rc_filter
 
 FloatArray = npt.NDArray[np.float64]
@@ -66,32 +67,16 @@ def fit_linear(
     offset to 0 along the direction the data cannot resolve (offset vs R2 x2 under a steady mean
     current). The covariance is only computed when ``with_cov``.
     """
-    n_w = w.current_A.shape[0]
-    p = tau1_s.shape[0]
-    k = np.arange(n_w, dtype=np.float64)
     a1 = rc_decay(w.dt_s, tau1_s)
     a2 = rc_decay(w.dt_s, tau2_s)
     active = np.array([True, True, True, w.use_hysteresis, w.use_offset, True, True])
     s_full = np.concatenate([scale, [1.0, 1.0]])[active]
     n_a = int(active.sum())
-    A = np.empty((p, n_w, n_a))
-    A[:, :, 0] = -w.current_A * s_full[0]
-    for j in range(p):
-        A[j, :, 1] = rc_filter(w.current_A, float(a1[j])) * -s_full[1]
-        A[j, :, 2] = rc_filter(w.current_A, float(a2[j])) * -s_full[2]
-    col = 3
-    if w.use_hysteresis:
-        A[:, :, col] = w.hm_V * s_full[col]
-        col += 1
-    if w.use_offset:
-        A[:, :, col] = s_full[col]
-        col += 1
-    A[:, :, col] = np.exp(np.log(a1)[:, None] * k)
-    A[:, :, col + 1] = np.exp(np.log(a2)[:, None] * k)
-    wts = np.ones(n_w) if weights is None else weights
-    Aw = A * wts[None, :, None]
-    G = np.swapaxes(Aw, 1, 2) @ A
-    b = np.swapaxes(Aw, 1, 2) @ w.y_V
+    p = tau1_s.shape[0]
+    wts = np.ones(w.current_A.shape[0]) if weights is None else weights
+    G, b, x_last = varpro_kernel.normal_equations(
+        w.current_A, w.y_V, w.hm_V, wts, a1, a2, s_full, w.use_hysteresis, w.use_offset
+    )
     if w.use_offset and offset_prior > 0:
         j_off = 3 + int(w.use_hysteresis)
         G[:, j_off, j_off] += offset_prior
@@ -114,8 +99,7 @@ def fit_linear(
         cov_full[:, idx[:, None], idx[None, :]] = cov_n
         cov5 = cov_full[:, :5, :5]
     # Branch states at the last tick, with the window-start voltages U_j0 = -c_j folded in.
-    x_last = np.stack([A[:, -1, 1] / -s_full[1], A[:, -1, 2] / -s_full[2]], axis=1)
-    decay_last = np.stack([a1, a2], axis=1) ** (n_w - 1)
+    decay_last = np.stack([a1, a2], axis=1) ** (w.current_A.shape[0] - 1)
     r = theta[:, 1:3]
     ic = np.where(r > 0, -theta_full[:, 5:7] / np.where(r > 0, r, 1.0), 0.0)
     x_last = x_last + ic * decay_last

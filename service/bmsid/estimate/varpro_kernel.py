@@ -1,0 +1,176 @@
+"""The normal equations of the swarm's window fit (``varpro.fit_linear``), for many pole pairs.
+
+For each candidate (a1, a2) = ZOH poles of the two branches (Eq. 7) the window's regressor rows
+are ``[-i_k, -x1_k, -x2_k, (h M)_k, 1, a1^k, a2^k]`` (scaled, inactive columns left out), with
+x_j the unit-gain branch states of Eq. 8 (``model.ecm.rc_filter``); the fit needs only
+``G = A' W A``, ``b = A' W y`` and the branch states at the last tick. This is where the fused
+estimator spends most of its time (two thirds of a 96-cell bank's with swarms running), so it
+comes twice:
+
+* ``normal_equations_numpy``: the reference, whole-window numpy (scipy's ``lfilter`` for the
+  recursions, batched matrix products);
+* a compiled kernel (numba, ``cache=True``; ``fastmath`` lets the window sums vectorise, which
+  reorders their additions): per candidate the two recursions, then each entry of G as one dot
+  product over the window, no (candidates x window x columns) array. It agrees with the
+  reference to rounding (``tests/estimate/test_varpro_kernel.py``).
+
+``normal_equations`` runs the compiled one where numba imports and compiles (the first use
+compiles it, or loads it from numba's cache: seconds once, then ~0.1 s per process), else the
+reference; ``select("numpy")`` forces the reference (to compare, or in a sandbox without
+writable executable memory, which a JIT needs: the daemon's ``estimator.kernels``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+import numpy as np
+import numpy.typing as npt
+
+from bmsid.model.ecm import rc_filter
+
+FloatArray = npt.NDArray[np.float64]
+
+#: (current A, y V, h M V, weights, a1, a2, column scales, use h M, use offset) ->
+#: (G (P, n, n), b (P, n), branch states at the last tick (P, 2))
+NormalEquations = Callable[
+    [FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, bool,
+     bool],
+    tuple[FloatArray, FloatArray, FloatArray],
+]  # fmt: skip
+
+
+def normal_equations_numpy(
+    current_A: FloatArray, y_V: FloatArray, hm_V: FloatArray, weights: FloatArray,
+    a1: FloatArray, a2: FloatArray, s_cols: FloatArray, use_hysteresis: bool, use_offset: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
+    """The reference: ``s_cols`` scales the active columns in order (R0, R1, R2, [M scale],
+    [offset], c1, c2); returns G, b and the unit-gain branch states x1, x2 at the last tick."""
+    n_w, p, n_a = current_A.shape[0], a1.shape[0], s_cols.shape[0]
+    k = np.arange(n_w, dtype=np.float64)
+    A = np.empty((p, n_w, n_a))
+    A[:, :, 0] = -current_A * s_cols[0]
+    last = np.empty((p, 2))
+    for j in range(p):
+        x1 = rc_filter(current_A, float(a1[j]))
+        x2 = rc_filter(current_A, float(a2[j]))
+        A[j, :, 1] = x1 * -s_cols[1]
+        A[j, :, 2] = x2 * -s_cols[2]
+        last[j] = x1[-1], x2[-1]
+    col = 3
+    if use_hysteresis:
+        A[:, :, col] = hm_V * s_cols[col]
+        col += 1
+    if use_offset:
+        A[:, :, col] = s_cols[col]
+        col += 1
+    A[:, :, col] = np.exp(np.log(a1)[:, None] * k)
+    A[:, :, col + 1] = np.exp(np.log(a2)[:, None] * k)
+    Aw = A * weights[None, :, None]
+    G = np.swapaxes(Aw, 1, 2) @ A
+    b = np.swapaxes(Aw, 1, 2) @ y_V
+    return G, b, last
+
+
+def _kernel_source(
+    current_A: FloatArray, y_V: FloatArray, hm_V: FloatArray, weights: FloatArray,
+    a1: FloatArray, a2: FloatArray, s_cols: FloatArray, use_hysteresis: bool, use_offset: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
+    """The same sums, columns held as rows of one (columns x window) array so that each entry
+    of G is one contiguous dot product over the window (compiled by numba)."""
+    n_w, p, n_a = current_A.shape[0], a1.shape[0], s_cols.shape[0]
+    G = np.zeros((p, n_a, n_a))
+    b = np.zeros((p, n_a))
+    last = np.zeros((p, 2))
+    rows = np.empty((n_a, n_w))
+    wy = weights * y_V
+    rows[0] = -current_A * s_cols[0]  # the candidates share every column but x1, x2, decays
+    col = 3
+    if use_hysteresis:
+        rows[col] = hm_V * s_cols[col]
+        col += 1
+    if use_offset:
+        rows[col] = s_cols[col]
+    j_dec = n_a - 2
+    for j in range(p):
+        p1, p2 = a1[j], a2[j]
+        x1 = 0.0
+        x2 = 0.0
+        d1 = 1.0
+        d2 = 1.0
+        for k in range(n_w):
+            rows[1, k] = -x1 * s_cols[1]
+            rows[2, k] = -x2 * s_cols[2]
+            rows[j_dec, k] = d1
+            rows[j_dec + 1, k] = d2
+            if k == n_w - 1:
+                last[j, 0] = x1
+                last[j, 1] = x2
+            # the state before the next sample: x_(k+1) = a x_k + (1 - a) i_k (Eq. 8)
+            x1 = p1 * x1 + (1.0 - p1) * current_A[k]
+            x2 = p2 * x2 + (1.0 - p2) * current_A[k]
+            d1 *= p1
+            d2 *= p2
+        for r in range(n_a):
+            acc_b = 0.0
+            for k in range(n_w):
+                acc_b += rows[r, k] * wy[k]
+            b[j, r] = acc_b
+            for q in range(r, n_a):
+                acc = 0.0
+                for k in range(n_w):
+                    acc += rows[r, k] * weights[k] * rows[q, k]
+                G[j, r, q] = acc
+                G[j, q, r] = acc
+    return G, b, last
+
+
+def _compile() -> NormalEquations | None:
+    """The compiled kernel, compiled (or loaded from numba's cache) now; None where numba is
+    missing or cannot compile here (a sandbox that forbids writable executable memory: the
+    shipped systemd unit sets ``estimator.kernels = "numpy"`` for that)."""
+    try:
+        import numba  # noqa: PLC0415 (optional: the reference runs without it)
+
+        kernel: NormalEquations = numba.njit(cache=True, nogil=True, fastmath=True)(_kernel_source)
+        one = np.ones(3)
+        kernel(one, one, one, one, one[:1] * 0.5, one[:1] * 0.9, one[:2].repeat(2), False, False)
+    except Exception as exc:  # any failure leaves the reference, which always works
+        warnings.warn(f"compiled window-fit kernel unavailable ({exc!r}): numpy used", stacklevel=2)
+        return None
+    return kernel
+
+
+_impl: NormalEquations | None = None
+#: Which implementation runs: ``compiled`` or ``numpy`` (set at the first use).
+KERNEL = "unset"
+
+
+def select(name: str | None = None) -> str:
+    """Choose the implementation (``compiled``, ``numpy``; None: compiled where it works) and
+    compile it now; returns the one in use."""
+    global _impl, KERNEL  # noqa: PLW0603 (one process-wide choice, made once)
+    compiled = None if name == "numpy" else _compile()
+    if name == "compiled" and compiled is None:
+        raise RuntimeError("the compiled kernel is not available here (numba missing or off)")
+    _impl = compiled or normal_equations_numpy
+    KERNEL = "compiled" if compiled is not None else "numpy"
+    return KERNEL
+
+
+def ensure() -> str:
+    """Select the implementation now if none is yet (compile or load at start-up, not in the
+    middle of a run); returns the one in use."""
+    return KERNEL if _impl is not None else select()
+
+
+def normal_equations(
+    current_A: FloatArray, y_V: FloatArray, hm_V: FloatArray, weights: FloatArray,
+    a1: FloatArray, a2: FloatArray, s_cols: FloatArray, use_hysteresis: bool, use_offset: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
+    """G, b and the last branch states (see ``normal_equations_numpy``) by the implementation
+    in use (the compiled one where it works: ``select``)."""
+    ensure()
+    assert _impl is not None
+    return _impl(current_A, y_V, hm_V, weights, a1, a2, s_cols, use_hysteresis, use_offset)
