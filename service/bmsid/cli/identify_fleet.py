@@ -88,6 +88,12 @@ def _ok_line(s: fleet.InputSummary) -> str:
     )
 
 
+def _error(s: fleet.InputSummary) -> str:
+    """The failure, led by the input unless its message already names it first."""
+    text = s.error or ""
+    return text if text.startswith(f"{s.input.given}:") else f"{s.input.given}: {text}"
+
+
 def run_fleet(
     args: argparse.Namespace, arguments: Sequence[str], ocv_coeffs: Sequence[float] | None
 ) -> int:
@@ -121,7 +127,7 @@ def run_fleet(
             if s.ok:
                 bar.write(_ok_line(s), file=sys.stdout)
             else:
-                bar.write(f"bmsid identify: error: {s.input.given}: {s.error}", file=sys.stderr)
+                bar.write(f"bmsid identify: error: {_error(s)}", file=sys.stderr)
             bar.update(1)
     summaries = [done[i.path] for i in inputs]
     fleet.write_summary(root / "summary.csv", summaries, args.worst)

@@ -24,6 +24,7 @@ import re
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -187,12 +188,21 @@ def error_text(exc: BaseException) -> str:
     """One line for a failed input: a UserError's message, an OSError's reason and file, or
     the type and message of anything else (a bug: ``bmsid identify INPUT`` alone shows where)."""
     if isinstance(exc, UserError):
-        return str(exc)
-    if isinstance(exc, OSError):
+        text = str(exc)
+    elif isinstance(exc, BrokenProcessPool):
+        text = f"a worker process died ({exc})"
+    elif isinstance(exc, OSError):
         files = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
         reason = exc.strerror or str(exc) or type(exc).__name__
-        return f"{reason}: {' -> '.join(files)}" if files else reason
-    return f"internal error: {type(exc).__name__}: {exc}"
+        text = f"{reason}: {' -> '.join(files)}" if files else reason
+    else:
+        text = f"internal error: {type(exc).__name__}: {exc}"
+    return re.sub(r"\s*\n\s*", " ", text.strip())  # one line, whatever the message holds
+
+
+def failed(item: FleetInput, exc: BaseException) -> InputSummary:
+    """The summary of an input that failed with ``exc``, its path named as the user gave it."""
+    return InputSummary(item, error_text(exc).replace(item.path, item.given))
 
 
 # pyplot (the plots) is not thread-safe and the per-tick loop holds the GIL: a Dask worker
@@ -210,7 +220,7 @@ def identify_task(task: FleetTask) -> InputSummary:
             raise UserError("no identification tick (too short or no valid time)")
         cells = cell_summaries(result, task.spec)
     except Exception as exc:  # any failure is this input's, reported in one line
-        return InputSummary(task.input, error_text(exc))
+        return failed(task.input, exc)
     return InputSummary(task.input, None, result.n_samples, cells)
 
 
@@ -246,7 +256,7 @@ def _gather(
         if exc is None:
             yield fut.result()
         else:  # raised past the task's own handler, or the worker process died
-            yield InputSummary(futures[fut].input, error_text(exc))
+            yield failed(futures[fut].input, exc)
 
 
 def run_dask(
@@ -271,13 +281,14 @@ def run_dask(
             client.submit(fn, t, key=f"bmsid-identify-{t.input.name}", pure=False, retries=0): t
             for t in tasks
         }
-        for fut in dask_completed(futures):  # type: ignore[no-untyped-call]
+        done = dask_completed(futures, loop=client.loop)  # type: ignore[no-untyped-call]
+        for fut in done:
             task = futures.pop(fut)
             if fut.status == "finished":
                 summary: InputSummary = fut.result()
                 yield summary
             else:  # the task raised, or its worker died more often than the scheduler allows
-                yield InputSummary(task.input, error_text(fut.exception()))
+                yield failed(task.input, fut.exception())
             fut.release()
 
 
@@ -316,7 +327,7 @@ def summary_rows(summaries: Sequence[InputSummary], worst: int) -> list[dict[str
                 **head, "status": "ok", "error": "", "cell": c.cell, "t_s": _num(c.t_s, ".3f"),
                 **{f: _num(c.value(f)) for f in SUMMARY_FIELDS},
                 "quality": str(c.quality), "quality_name": Quality(c.quality).name.lower(),
-                "rmse_mV": _num(c.rmse_mV, ".4f"), "input_r0_rank": str(rank.get(k, "")),
+                "rmse_mV": _num(c.rmse_mV), "input_r0_rank": str(rank.get(k, "")),
                 "fleet_r0_rank": str(fleet_rank.get((s.input.path, c.cell), "")),
             })  # fmt: skip
     return rows
