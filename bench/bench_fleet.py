@@ -1,0 +1,183 @@
+"""Many logs on 1 and 2 workers, local process pool and Dask, side by side in one run.
+
+Input: ``--inputs`` synthetic single-cell DST records of ``--hours`` each (the paper's 70 Ah
+cell, 1 s, 1 mV noise, R0 a few % apart), written to a temporary directory with the project's
+CSV writer. Each configuration identifies all of them with the default variant into a fresh
+output root through :mod:`bmsid.offline.fleet` (``run_local`` / ``run_dask``: what ``bmsid
+identify`` runs, without its interpreter start and imports, which are the same for every
+configuration). The process pool's time includes starting its processes; a Dask cluster is
+started beforehand (``dask scheduler`` and N ``dask worker --nthreads 1`` on loopback, the
+venv's CLI), as an existing cluster would be. Configurations alternate within each round.
+Prints the machine's load and the busiest other processes, since this 2-core machine is shared.
+
+    PYTHONPATH=service python bench/bench_fleet.py [--inputs 16 --hours 1.5 --rounds 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+import bmsid
+from bmsid.config.cell import save_cell_config
+from bmsid.config.engine import ocv_model
+from bmsid.offline import fleet
+from bmsid.offline.csvio import TesterData, write_tester_csv
+from bmsid.offline.identify import IdentifySpec
+from bmsid.offline.inputs import load_config
+from bmsid.synthetic import paper_dst_case
+
+MODES = ("pool", "dask")
+WORKERS = (1, 2)
+
+
+def make_inputs(d: Path, n_inputs: int, hours: float) -> tuple[list[Path], Path]:
+    """``n_inputs`` single-cell records and the cell config that made them."""
+    n = int(hours * 3600)
+    paths = []
+    for k in range(n_inputs):
+        run = paper_dst_case(n, seed=k + 1, r0_spread=np.array([1.0 + 0.02 * k]))
+        path = d / f"pack_{k:02d}.csv"
+        write_tester_csv(TesterData(run.t_s, run.current_A, run.voltages_V, ["voltage_V"]), path)
+        paths.append(path)
+    cfg = d / "cell.toml"
+    save_cell_config(run.cell, cfg)
+    ocv_model(run.cell)  # the config is complete (fails here, not in a worker)
+    return paths, cfg
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextmanager
+def dask_cluster(n_workers: int, scratch: Path) -> Iterator[str]:
+    """A scheduler and ``n_workers`` single-thread workers on loopback: its address."""
+    cli = str(Path(sys.executable).with_name("dask"))
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    service = str(Path(bmsid.__file__).parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([service, os.environ.get("PYTHONPATH", "")])}
+    log = (scratch / f"dask-{n_workers}.log").open("wb")
+    cmds = [[cli, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]]
+    cmds += [
+        [cli, "worker", address, "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1",
+         "--local-directory", str(scratch / f"w{n_workers}-{k}")]
+        for k in range(n_workers)
+    ]  # fmt: skip
+    procs = [subprocess.Popen(c, env=env, stdout=log, stderr=subprocess.STDOUT) for c in cmds]
+    try:
+        from distributed import Client  # noqa: PLC0415 - only this benchmark's Dask part
+
+        with Client(address, timeout="60s", set_as_default=False) as client:  # type: ignore[no-untyped-call]
+            client.wait_for_workers(n_workers, timeout=120)
+        yield address
+    finally:
+        for group in (procs[1:], procs[:1]):
+            for p in group:
+                p.terminate()
+            for p in group:
+                try:
+                    p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+        log.close()
+
+
+def run_once(
+    mode: str, workers: int, tasks: Sequence[fleet.FleetTask], scheduler: str | None
+) -> tuple[float, list[fleet.InputSummary]]:
+    t0 = time.perf_counter()
+    if mode == "pool":
+        got = list(fleet.run_local(tasks, workers))
+    else:
+        assert scheduler is not None
+        got = list(fleet.run_dask(tasks, scheduler))
+    return time.perf_counter() - t0, got
+
+
+def busiest_others(n: int = 6) -> list[str]:
+    """The other processes using the most CPU now (``ps``), as text."""
+    out = subprocess.run(
+        ["ps", "-eo", "pcpu,pid,args", "--sort=-pcpu", "--no-headers"],
+        capture_output=True, text=True, check=False,
+    ).stdout.splitlines()  # fmt: skip
+    mine = {str(os.getpid())}
+    return [line[:140] for line in out if line.split()[1] not in mine][:n]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--inputs", type=int, default=16)
+    ap.add_argument("--hours", type=float, default=1.5, help="length of each record")
+    ap.add_argument("--rounds", type=int, default=1, help="alternating rounds of all runs")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="bmsid-bench-fleet-") as tmp_name:
+        tmp = Path(tmp_name)
+        (tmp / "in").mkdir()
+        paths, cfg = make_inputs(tmp / "in", args.inputs, args.hours)
+        spec = IdentifySpec(cell=load_config(cfg))
+        items = fleet.fleet_inputs([str(p) for p in paths])
+        samples = args.inputs * int(args.hours * 3600)
+        print(f"{args.inputs} inputs x {args.hours:g} h (1 cell, 1 s) = {samples} samples, "
+              f"variant {spec.variant}, {os.cpu_count()} CPUs; load average before: "
+              f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")  # fmt: skip
+        print("busiest processes before:")
+        for line in busiest_others():
+            print(f"  {line}")
+        times: dict[tuple[str, int], list[float]] = {}
+        reference: dict[str, tuple[float, ...]] = {}
+        worst_diff = 0.0
+        for r in range(args.rounds):
+            for mode in MODES:
+                for workers in WORKERS:
+                    out = tmp / f"out-{mode}-{workers}-{r}"
+                    tasks = [fleet.FleetTask(i, str(out / i.name), spec) for i in items]
+                    if mode == "dask":
+                        with dask_cluster(workers, tmp) as address:
+                            wall, got = run_once(mode, workers, tasks, address)
+                    else:
+                        wall, got = run_once(mode, workers, tasks, None)
+                    failed = [s.error for s in got if not s.ok]
+                    if failed:
+                        print(f"{mode} x{workers}: {len(failed)} failed: {failed[0]}")
+                        return 1
+                    for s in got:
+                        vals = s.cells[0].params
+                        ref = reference.setdefault(s.input.path, vals)
+                        worst_diff = max(
+                            worst_diff,
+                            float(np.nanmax(np.abs(np.subtract(vals, ref)) / np.abs(ref))),
+                        )
+                    times.setdefault((mode, workers), []).append(wall)
+                    rate = f"{args.inputs / wall:.3f} inputs/s, {samples / wall:,.0f} samples/s"
+                    print(f"round {r + 1}: {mode:4s} {workers} worker(s): {wall:6.1f} s, {rate}")
+                    shutil.rmtree(out)
+        print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        print("busiest processes after:")
+        for line in busiest_others():
+            print(f"  {line}")
+        print(f"largest relative difference of a latest parameter between runs: {worst_diff:.1e}")
+        for mode in MODES:
+            one, two = min(times[mode, 1]), min(times[mode, 2])
+            print(f"{mode}: 1 worker {one:.1f} s, 2 workers {two:.1f} s (best of "
+                  f"{args.rounds}): throughput ratio {one / two:.2f}x")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
