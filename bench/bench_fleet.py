@@ -110,14 +110,18 @@ def run_once(
     return time.perf_counter() - t0, got
 
 
-def busiest_others(n: int = 6) -> list[str]:
-    """The other processes using the most CPU now (``ps``), as text."""
+def busiest_others(n: int = 8) -> list[str]:
+    """The processes using the most CPU over one second now (``top``), as text: this
+    benchmark's own processes and the other jobs on the machine."""
     out = subprocess.run(
-        ["ps", "-eo", "pcpu,pid,args", "--sort=-pcpu", "--no-headers"],
+        ["top", "-b", "-n", "2", "-d", "1", "-o", "%CPU", "-c", "-w", "220"],
         capture_output=True, text=True, check=False,
     ).stdout.splitlines()  # fmt: skip
-    mine = {str(os.getpid())}
-    return [line[:140] for line in out if line.split()[1] not in mine][:n]
+    headers = [k for k, line in enumerate(out) if line.lstrip().startswith("PID")]
+    if not headers:
+        return ["(top not available)"]
+    rows = [line for line in out[headers[-1] + 1 :] if line.strip()]
+    return [" ".join(r.split()[8:9] + r.split()[11:])[:150] for r in rows[:n]]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -165,7 +169,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                         )
                     times.setdefault((mode, workers), []).append(wall)
                     rate = f"{args.inputs / wall:.3f} inputs/s, {samples / wall:,.0f} samples/s"
-                    print(f"round {r + 1}: {mode:4s} {workers} worker(s): {wall:6.1f} s, {rate}")
+                    load = os.getloadavg()[0]
+                    cpu = sum(s.cpu_s for s in got)
+                    print(f"round {r + 1}: {mode:4s} {workers} worker(s): {wall:6.1f} s, {rate}; "
+                          f"tasks' CPU {cpu:.1f} s = {cpu / wall:.2f} cores on average; "
+                          f"1-min load average at the end {load:.1f}")  # fmt: skip
                     shutil.rmtree(out)
         print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         print("busiest processes after:")

@@ -22,6 +22,7 @@ import multiprocessing
 import os
 import re
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -151,6 +152,9 @@ class InputSummary:
     error: str | None = None
     n_samples: int = 0
     cells: tuple[CellSummary, ...] = ()
+    #: Wall and CPU time of the task in its worker, s (their ratio shows what CPU it got).
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -215,13 +219,15 @@ def identify_task(task: FleetTask) -> InputSummary:
     raises for a bad input."""
     try:
         with _ONE_AT_A_TIME:
+            wall, cpu = time.perf_counter(), time.process_time()
             result = identify_file(task.input.path, task.spec, Path(task.out_dir))
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         if result.trace.n_ticks == 0:
             raise UserError("no identification tick (too short or no valid time)")
         cells = cell_summaries(result, task.spec)
     except Exception as exc:  # any failure is this input's, reported in one line
         return failed(task.input, exc)
-    return InputSummary(task.input, None, result.n_samples, cells)
+    return InputSummary(task.input, None, result.n_samples, cells, wall, cpu)
 
 
 TaskFn = Callable[[FleetTask], InputSummary]
@@ -245,7 +251,10 @@ def run_local(
     ctx.set_forkserver_preload(["bmsid.offline.fleet"])
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         futures = {pool.submit(fn, t): t for t in tasks}
-        yield from _gather(as_completed(futures), futures)
+        try:
+            yield from _gather(as_completed(futures), futures)
+        finally:  # on Ctrl-C or an abandoned run, start nothing more; running inputs end
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _gather(
