@@ -171,9 +171,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                     rate = f"{args.inputs / wall:.3f} inputs/s, {samples / wall:,.0f} samples/s"
                     load = os.getloadavg()[0]
                     cpu = sum(s.cpu_s for s in got)
-                    print(f"round {r + 1}: {mode:4s} {workers} worker(s): {wall:6.1f} s, {rate}; "
-                          f"tasks' CPU {cpu:.1f} s = {cpu / wall:.2f} cores on average; "
-                          f"1-min load average at the end {load:.1f}")  # fmt: skip
+                    busy = sum(s.wall_s for s in got) / (workers * wall)
+                    print(
+                        f"round {r + 1}: {mode:4s} {workers} worker(s): {wall:6.1f} s, {rate}; "
+                        f"tasks' CPU {cpu:.1f} s = {cpu / wall:.2f} cores on average; workers "
+                        f"busy {100 * busy:.0f} %; 1-min load average at the end {load:.1f}"
+                    )
                     shutil.rmtree(out)
         print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         print("busiest processes after:")
