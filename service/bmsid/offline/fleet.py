@@ -23,6 +23,7 @@ import os
 import re
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -285,9 +286,10 @@ def run_dask(
         client = Client(scheduler, timeout="10s", set_as_default=False)  # type: ignore[no-untyped-call]
     except (OSError, TimeoutError, ValueError) as exc:
         raise UserError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+    run = uuid.uuid4().hex[:8]  # keys unique per run: the same input of another run is new work
     with client:
         futures = {
-            client.submit(fn, t, key=f"bmsid-identify-{t.input.name}", pure=False, retries=0): t
+            client.submit(fn, t, key=f"bmsid-identify-{t.input.name}-{run}", retries=0): t
             for t in tasks
         }
         done = dask_completed(futures, loop=client.loop)  # type: ignore[no-untyped-call]
