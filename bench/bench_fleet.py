@@ -9,8 +9,12 @@ configuration). The process pool's time includes starting its processes; a Dask 
 started beforehand (``dask scheduler`` and N ``dask worker --nthreads 1`` on loopback, the
 venv's CLI), as an existing cluster would be. Configurations alternate within each round.
 Prints the machine's load and the busiest other processes, since this 2-core machine is shared.
+The kernel's autogroup scheduler shares the CPUs between sessions: by default every worker is in
+this benchmark's session and they share its part; ``--own-sessions`` gives each worker a session
+of its own, as separately started jobs would have.
 
     PYTHONPATH=service python bench/bench_fleet.py [--inputs 16 --hours 1.5 --rounds 1]
+        [--own-sessions]
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
@@ -64,8 +68,9 @@ def _free_port() -> int:
 
 
 @contextmanager
-def dask_cluster(n_workers: int, scratch: Path) -> Iterator[str]:
-    """A scheduler and ``n_workers`` single-thread workers on loopback: its address."""
+def dask_cluster(n_workers: int, scratch: Path, own_sessions: bool) -> Iterator[str]:
+    """A scheduler and ``n_workers`` single-thread workers on loopback (with ``own_sessions``
+    each worker in a session of its own): its address."""
     cli = str(Path(sys.executable).with_name("dask"))
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
@@ -78,7 +83,12 @@ def dask_cluster(n_workers: int, scratch: Path) -> Iterator[str]:
          "--local-directory", str(scratch / f"w{n_workers}-{k}")]
         for k in range(n_workers)
     ]  # fmt: skip
-    procs = [subprocess.Popen(c, env=env, stdout=log, stderr=subprocess.STDOUT) for c in cmds]
+    procs = [
+        subprocess.Popen(
+            c, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=own_sessions
+        )
+        for c in cmds
+    ]
     try:
         from distributed import Client  # noqa: PLC0415 - only this benchmark's Dask part
 
@@ -98,12 +108,25 @@ def dask_cluster(n_workers: int, scratch: Path) -> Iterator[str]:
         log.close()
 
 
+def own_session_task(task: fleet.FleetTask) -> fleet.InputSummary:
+    """``identify_task`` in a session of its own (``--own-sessions``): the kernel's autogroup
+    scheduler then shares the CPUs between the pool's workers as between separate jobs."""
+    with suppress(OSError):  # already a session leader: from this worker's first task on
+        os.setsid()
+    return fleet.identify_task(task)
+
+
 def run_once(
-    mode: str, workers: int, tasks: Sequence[fleet.FleetTask], scheduler: str | None
+    mode: str,
+    workers: int,
+    tasks: Sequence[fleet.FleetTask],
+    scheduler: str | None,
+    own_sessions: bool,
 ) -> tuple[float, list[fleet.InputSummary]]:
     t0 = time.perf_counter()
     if mode == "pool":
-        got = list(fleet.run_local(tasks, workers))
+        fn = own_session_task if own_sessions else fleet.identify_task
+        got = list(fleet.run_local(tasks, workers, fn))
     else:
         assert scheduler is not None
         got = list(fleet.run_dask(tasks, scheduler))
@@ -129,6 +152,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--inputs", type=int, default=16)
     ap.add_argument("--hours", type=float, default=1.5, help="length of each record")
     ap.add_argument("--rounds", type=int, default=1, help="alternating rounds of all runs")
+    ap.add_argument(
+        "--own-sessions", action="store_true",
+        help="each worker process in a session of its own (the kernel's autogroup scheduler "
+        "shares the CPUs between sessions: without it, all workers share this session's part)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bmsid-bench-fleet-") as tmp_name:
         tmp = Path(tmp_name)
@@ -139,7 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         samples = args.inputs * int(args.hours * 3600)
         print(f"{args.inputs} inputs x {args.hours:g} h (1 cell, 1 s) = {samples} samples, "
               f"variant {spec.variant}, {os.cpu_count()} CPUs; load average before: "
-              f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")  # fmt: skip
+              f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; workers in "
+              f"{'sessions of their own' if args.own_sessions else 'this session'}")  # fmt: skip
         print("busiest processes before:")
         for line in busiest_others():
             print(f"  {line}")
@@ -152,10 +181,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                     out = tmp / f"out-{mode}-{workers}-{r}"
                     tasks = [fleet.FleetTask(i, str(out / i.name), spec) for i in items]
                     if mode == "dask":
-                        with dask_cluster(workers, tmp) as address:
-                            wall, got = run_once(mode, workers, tasks, address)
+                        with dask_cluster(workers, tmp, args.own_sessions) as address:
+                            wall, got = run_once(mode, workers, tasks, address, args.own_sessions)
                     else:
-                        wall, got = run_once(mode, workers, tasks, None)
+                        wall, got = run_once(mode, workers, tasks, None, args.own_sessions)
                     failed = [s.error for s in got if not s.ok]
                     if failed:
                         print(f"{mode} x{workers}: {len(failed)} failed: {failed[0]}")
