@@ -17,6 +17,12 @@ beyond the gap threshold and a flipped current sign stop it (exit 2); a capacity
 fit the record, too little excitation for the capacity and a missing cell config are WARNING
 lines. Exports with other column names load with ``--columns t_s=Time,current_A=Current,...``
 (``NAME=COLUMN*SCALE`` converts units, e.g. ``t_s=Time_ms*0.001``).
+
+Several inputs, a directory (searched for .csv, .csv.gz, .log) or a glob: each input into its own
+subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality, RMSE
+and R0 ranks), on --workers local processes or the Dask cluster at --scheduler; a failed input is
+one line and the others go on (exit 1 when any failed). The per-input pre-checks above and the
+capacity read off a record apply to single runs only: give --cell-config.
 """
 
 from __future__ import annotations
@@ -31,12 +37,13 @@ from typing import Literal
 
 from tqdm import tqdm
 
+from bmsid.cli.identify_fleet import add_fleet_options, run_fleet
 from bmsid.cli.outputs import output_dir
 from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
-from bmsid.offline import plausibility
+from bmsid.offline import fleet, plausibility
 from bmsid.offline.identify import IdentifySpec, Progress, identify_source
 from bmsid.offline.inputs import (
     LoadedInput,
@@ -109,7 +116,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("input", metavar="INPUT", help="tester CSV (.csv/.csv.gz) or candump .log")
+    p.add_argument(
+        "input", metavar="INPUT", nargs="+",
+        help="tester CSV (.csv/.csv.gz) or candump .log; several, a directory or a glob: one "
+        "subdirectory of --out each and OUT/summary.csv",
+    )  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--algorithm", choices=VARIANTS, default="hy-affrls-lpso")
     p.add_argument("--cell-config", default=None, metavar="FILE", help="cell config .toml/.json")
@@ -145,6 +156,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "*SCALE converts the unit)",
     )
     add_model_options(p)
+    add_fleet_options(p)
     p.set_defaults(func=run)
 
 
@@ -203,6 +215,9 @@ def _check_input(
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scheduler is not None or fleet.is_fleet(args.input):
+        return run_fleet(args, args.input, _ocv_coeffs(args.ocv_coeffs))
+    args = argparse.Namespace(**{**vars(args), "input": args.input[0]})  # one file, as always
     tuning = parse_tuning(args.tuning)
     # The default window is the whole record (as compare and the library): the start-up is part
     # of what a user gets.
