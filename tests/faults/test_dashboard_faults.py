@@ -16,15 +16,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import jinja2
-import jinja2.sandbox
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "daemon"))
 from daemon_helpers import make_settings, wait_for
 
 from bmsid.daemon.core import Daemon
-from bmsid.publish import payloads
 from bmsid.publish.discovery import (
     RECORD_FILE,
     PublishedConfigs,
@@ -177,39 +174,3 @@ def test_estimator_internals_are_diagnostic_and_disabled_by_default() -> None:
     assert all(c["entity_category"] == "diagnostic" for c in configs if c["unique_id"] in disabled)
     enabled = {c["unique_id"] for c in configs} - disabled
     assert {f"bmsid_p1_cell0_{k}" for k in ("soc", "r0_ohm", "tau1_s", "quality")} <= enabled
-
-
-def _render(template: str, payload: bytes) -> str:
-    """A config's template as Home Assistant renders it for an MQTT payload (Jinja, sandboxed,
-    ``value_json`` the parsed payload); an undefined name raises instead of rendering empty."""
-    env = jinja2.sandbox.ImmutableSandboxedEnvironment(undefined=jinja2.StrictUndefined)
-    return env.from_string(template).render(value_json=json.loads(payload)).strip()
-
-
-def test_cells_never_on_the_bus_are_unavailable_not_unknown() -> None:
-    """README row "cells 8, 9 (0-based) configured but never on the bus": their entities show
-    ``unavailable`` (not ``unknown``, nor a stale value of an earlier run) while the status lists
-    them in ``missing_cells``; every other cell stays available; all cells are available before
-    the first data (no ``inputs`` yet) and none once the will says ``offline``."""
-    configs = {c["unique_id"]: c for c in _configs(10)}
-
-    def status(**kw: Any) -> bytes:
-        return payloads.encode(payloads.status_payload("online", "p1", **kw))
-
-    inputs = {"refused_per_cell": {}, "current_refused": 0, "missing_cells": [8, 9],
-              "no_data_cells": [8, 9]}  # fmt: skip
-    cases = {
-        "before the first data": (status(), set()),
-        "cells 8 and 9 missing": (status(inputs=inputs), {8, 9}),
-        "every cell there": (status(inputs={**inputs, "missing_cells": []}), set()),
-        "the will": (payloads.encode(payloads.status_payload("offline", "p1")), set(range(10))),
-    }
-    for case, (payload, off) in cases.items():
-        for uid, cfg in configs.items():
-            got = _render(cfg["availability_template"], payload)
-            if not uid.startswith("bmsid_p1_cell"):  # the pack's sensors: the status alone
-                assert got == ("offline" if case == "the will" else "online"), (case, uid)
-                continue
-            cell = int(uid.removeprefix("bmsid_p1_cell").partition("_")[0])
-            assert got == ("offline" if cell in off else "online"), (case, uid)
-            assert cfg["payload_available"] == "online"

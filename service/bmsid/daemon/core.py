@@ -568,11 +568,7 @@ class Daemon:
                     )
                 self._last_sample_mono = time.monotonic()
                 self.seq = result.seq
-                missing = (self.inputs or {}).get("missing_cells")
                 self.inputs = result.inputs
-                if result.inputs.get("missing_cells") != missing and self.mqtt is not None:
-                    # Home Assistant's cell availability reads it (publish/discovery.py)
-                    self.mqtt.publish_status()
                 jumps = self.bank_counters.get("time_jumps_back", 0)
                 self._merge_bank_counters(result.counters)
                 if self.bank_counters.get("time_jumps_back", 0) > jumps:

@@ -14,13 +14,11 @@ expects of them:
 - ``quality`` as an enum sensor whose options are the codes of ``estimate.types.Quality``.
 
 A configured cell that has not been on the bus in this run (``missing_cells`` in the status:
-``n_cells`` larger than the pack, or a cell whose frames have not come yet) is never published,
-so its sensors would show ``unknown`` for ever, or the last value of an earlier run: their
-availability template reads the status's ``inputs.missing_cells`` too and makes them
-``unavailable``, which says the truth (no such cell on the bus now). The configs themselves are
-published at connect for every configured cell, before any frame tells which are there:
-withholding them would remove the entities (and their history) of a pack that is merely asleep
-at a restart.
+``n_cells`` larger than the pack, or a cell whose first frames were lost) is not published, so
+its sensors show ``unknown``, as every value bmsid does not have (the status's
+``missing_cells`` says why). The configs are published at connect for every configured cell,
+before any frame tells which are there: withholding them would remove the entities (and their
+history) of a pack that is merely asleep at a restart.
 
 Estimator internals (the table's ``diagnostic`` fields: forgetting factor, hysteresis state,
 model error, the uncertainties, the pack's current offset repeated per cell) are
@@ -111,16 +109,6 @@ def quality_template() -> str:
     return f"{{{{ {ref} if {ref} in {quality_options()!r} else none }}}}"
 
 
-def cell_availability_template(cell: int) -> str:
-    """``online`` while the status says ``online`` and does not list ``cell`` (0-based) among
-    the ``missing_cells`` (a status without ``inputs``, before the first data, lists none)."""
-    missing = "value_json.inputs.missing_cells"
-    return (
-        f"{{{{ 'online' if value_json.state == 'online' and not (value_json.inputs is defined "
-        f"and {cell} in {missing}) else 'offline' }}}}"
-    )
-
-
 def node_id(pack_id: str) -> str:
     """Discovery node id (and entity id prefix) of a pack."""
     return f"bmsid_{pack_id}".replace(".", "_").replace("-", "_")
@@ -184,10 +172,8 @@ def discovery_messages(
     sensors = ha_fields()
     for c in range(n_cells):
         state = f"{topic_prefix}/{pack_id}/cell/{c}"
-        available = cell_availability_template(c)
         for spec, ha in sensors:
             extra: dict[str, Any] = {"state_class": "measurement"}
-            extra["availability_template"] = available
             if ha.unit is not None:
                 extra["unit_of_measurement"] = ha.unit
             if ha.device_class is not None:
@@ -207,7 +193,6 @@ def discovery_messages(
                 device_class="enum",
                 options=quality_options(),
                 entity_category="diagnostic",
-                availability_template=available,
             )
         )
     pack = f"{topic_prefix}/{pack_id}/pack"
