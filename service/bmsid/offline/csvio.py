@@ -136,10 +136,9 @@ def _read_lines(path: Path) -> Iterator[str]:
         raise UserError(f"{path}: no such file")
     blanks = 0
     try:
-        fh = (gzip.open(path, "rt", encoding="utf-8-sig", newline="")
-              if path.name.lower().endswith(".gz") else
-              path.open(encoding="utf-8-sig", newline=""))  # fmt: skip
-        with fh:
+        gz = path.name.lower().endswith(".gz")
+        with (gzip.open(path, "rt", encoding="utf-8-sig", newline="") if gz else
+              path.open(encoding="utf-8-sig", newline="")) as fh:  # fmt: skip
             for raw in fh:
                 line = raw.rstrip("\r\n")
                 if not line.strip():
