@@ -33,7 +33,7 @@ import numpy.typing as npt
 from bmsid.estimate.guard import ON_BOUND_REL, WATCHED
 from bmsid.estimate.types import EstimateBlock
 from bmsid.metrics import VoltageMetrics
-from bmsid.model.simulator import coulomb_count
+from bmsid.model.ecm import soc_delta
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -91,29 +91,30 @@ class ErrorSums:
 class CoulombCarry:
     """A coulomb count of the tick currents carried across blocks (``scoring.reference_soc``
     cut into pieces): SOC (fraction) from ``soc0`` at the first tick, capacity Ah, efficiency on
-    charge, steps longer than ``gap_s`` (s) or back in time count nothing."""
+    charge, steps longer than ``gap_s`` (s) or back in time count nothing. The running sum of
+    the SOC steps is carried as the whole record's cumulative sum builds it (sequentially), so
+    the pieces give the same numbers bit for bit."""
 
     soc0: float
     capacity_Ah: float
     coulombic_efficiency: float
     gap_s: float
-    _t: float = math.nan
+    _t: float = math.nan  # the last tick counted so far; its own step waits for the next tick
     _i: float = 0.0
-    _z: float = math.nan
+    _sum: float = 0.0  # SOC steps up to that tick
 
     def soc(self, t_s: FloatArray, current_A: FloatArray) -> FloatArray:
         """The counted SOC at each of these ticks (the ones after those already counted)."""
         if t_s.size == 0:
             return np.zeros(0)
-        first = math.isnan(self._z)
-        t = t_s if first else np.concatenate(([self._t], t_s))
-        i = current_A if first else np.concatenate(([self._i], current_A))
-        dt = np.diff(t, append=t[-1])
-        dt = np.where((dt > 0) & (dt <= self.gap_s), dt, 0.0)
-        z0 = self.soc0 if first else self._z
-        z = coulomb_count(i, dt, z0, self.capacity_Ah, self.coulombic_efficiency)
-        self._t, self._i, self._z = float(t[-1]), float(i[-1]), float(z[-1])
-        return z if first else z[1:]
+        t = np.concatenate(([self._t], t_s))
+        i = np.concatenate(([self._i], current_A))
+        dt = np.diff(t)
+        dt = np.where((dt > 0) & (dt <= self.gap_s), dt, 0.0)  # the first tick's NaN step too
+        dz = soc_delta(i[:-1], dt, self.capacity_Ah * 3600.0, self.coulombic_efficiency)
+        sums = np.cumsum(np.concatenate(([self._sum], dz)))[1:]
+        self._t, self._i, self._sum = float(t[-1]), float(i[-1]), float(sums[-1])
+        return np.asarray(self.soc0 + sums, dtype=np.float64)
 
 
 # ----------------------------------------------------------------------------- plots
