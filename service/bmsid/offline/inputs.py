@@ -267,6 +267,17 @@ class StreamedInput:
         return SamplePeriod(scanned[1].median_dt_s, scanned[1].n_gaps, gap_s)
 
     @property
+    def merged_repeats(self) -> int:
+        """Rows merged into a row with the same time stamp (reads the file if not read yet)."""
+        return self._complete()[2]
+
+    @property
+    def time_restarts(self) -> tuple[int, ...]:
+        """File lines where the clock restarted and was stitched on (reads the file if not
+        read yet)."""
+        return self._complete()[3]
+
+    @property
     def notes(self) -> tuple[str, ...]:
         merged = 0 if self._scanned is None else self._scanned[2]
         return self._notes + ((_merged_note(merged),) if merged else ())

@@ -16,12 +16,10 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Literal, Protocol, TextIO
+from typing import Any, Literal, Protocol, TextIO
 
 import numpy as np
 import numpy.typing as npt
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 from bmsid.estimate import fields
 from bmsid.estimate.fields import QUALITY_KEY
@@ -106,16 +104,21 @@ class ParamsParquetWriter:
     ``quality``, text ``cell``), appended in row groups of up to ``ROW_GROUP_ROWS`` rows."""
 
     def __init__(self, path: Path, cell_names: Sequence[str]) -> None:
+        # imported here: pyarrow adds ~50 MB of resident memory to a run that writes CSV
+        import pyarrow as pa  # noqa: PLC0415
+        import pyarrow.parquet as pq  # noqa: PLC0415
+
+        self._pa = pa
         self.path = path
         self._fields = tuple(fields.CELL_FIELDS)
         self._cells = list(cell_names)
-        cols: list[pa.Field] = [pa.field("t_s", pa.float64()), pa.field("cell", pa.string())]
+        cols = [pa.field("t_s", pa.float64()), pa.field("cell", pa.string())]
         cols += [pa.field(s.out_key, pa.int64() if s.fmt == "%d" else pa.float64())
                  for s in self._fields]  # fmt: skip
         cols.append(pa.field(QUALITY_KEY, pa.int64()))
         self._schema = pa.schema(cols)
-        self._writer: pq.ParquetWriter | None = pq.ParquetWriter(path, self._schema)
-        self._pending: list[pa.Table] = []
+        self._writer: Any = pq.ParquetWriter(path, self._schema)
+        self._pending: list[Any] = []
         self._rows = 0
 
     def append(self, block: EstimateBlock) -> None:
@@ -127,7 +130,8 @@ class ParamsParquetWriter:
         nc = len(self._cells)
         if block.n_cells != nc:
             raise ValueError(f"{self.path}: block has {block.n_cells} cells, the file {nc}")
-        arrays: list[pa.Array] = [
+        pa = self._pa
+        arrays = [
             pa.array(np.repeat(block.t_s, nc)),
             pa.array(self._cells * block.n_ticks, type=pa.string()),
         ]
@@ -142,7 +146,7 @@ class ParamsParquetWriter:
 
     def _flush(self) -> None:
         if self._writer is not None and self._pending:
-            self._writer.write_table(pa.concat_tables(self._pending), ROW_GROUP_ROWS)
+            self._writer.write_table(self._pa.concat_tables(self._pending), ROW_GROUP_ROWS)
         self._pending = []
         self._rows = 0
 
