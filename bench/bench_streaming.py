@@ -14,8 +14,12 @@ RECORD --out DIR`` (``hy-affrls-lpso``, defaults otherwise), in a child process 
 ``/usr/bin/time -v``: wall time and maximum resident set size side by side in one run, and the
 resident set sampled every 2 s from ``/proc/PID/status`` (``--trace``) to show that it is flat.
 
+``--baseline-tree DIR`` also runs the records of ``--baseline-only`` (default ``n250k``) with
+another checkout's ``service/`` (e.g. ``git archive a7347e9 service | tar -x -C DIR``: the
+whole-file ``identify`` before issue 12), one after the other in the same invocation.
+
     PYTHONPATH=service python bench/bench_streaming.py --data /tmp/bmsid-long [--pack-days 3]
-        [--only n250k n1m c16] [--json PATH]
+        [--only n250k n1m c16] [--baseline-tree DIR [--baseline-only n250k]] [--json PATH]
 """
 
 from __future__ import annotations
@@ -98,9 +102,10 @@ def _rss_sampler(pid_file: Path, samples: list[tuple[float, float]], stop: threa
             samples.append((time.monotonic() - t0, int(m.group(1)) / 1024))
 
 
-def run_identify(record: Path, out: Path) -> dict[str, object]:
+def run_identify(record: Path, out: Path, tree: Path | None = None) -> dict[str, object]:
     """``bmsid identify RECORD --out OUT`` under ``/usr/bin/time -v``: wall s, max RSS MB, the
-    RSS trace, and the run's own figures from metrics.json."""
+    RSS trace, and the run's own figures from metrics.json; with ``tree``, that checkout's
+    ``service/`` is imported instead of this one's."""
     pid_file = out.with_suffix(".pid")
     code = (
         "import os, sys; open(sys.argv[1], 'w').write(str(os.getpid())); "
@@ -113,7 +118,10 @@ def run_identify(record: Path, out: Path) -> dict[str, object]:
     sampler = threading.Thread(target=_rss_sampler, args=(pid_file, samples, stop), daemon=True)
     sampler.start()
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=os.environ)
+    env = dict(os.environ)
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree / "service")
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     wall = time.perf_counter() - t0
     stop.set()
     sampler.join()
@@ -125,7 +133,7 @@ def run_identify(record: Path, out: Path) -> dict[str, object]:
     rss = [mb for _, mb in samples]
     half = len(rss) // 2
     return {
-        "record": record.name,
+        "record": record.name + ("" if tree is None else f" ({tree.name})"),
         "wall_s": wall,
         "max_rss_MB": max_rss_MB,
         "rss_first_half_max_MB": max(rss[:half]) if half else float("nan"),
@@ -145,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pack-days", type=int, default=3)
     ap.add_argument("--only", nargs="*", choices=("n250k", "n1m", "c16"), default=None)
     ap.add_argument("--make-only", action="store_true", help="write the records and stop")
+    ap.add_argument("--baseline-tree", type=Path, default=None)
+    ap.add_argument("--baseline-only", nargs="*", choices=("n250k", "n1m", "c16"),
+                    default=["n250k"])  # fmt: skip
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     recs = records(args.data, args.pack_days)
@@ -155,6 +166,11 @@ def main(argv: list[str] | None = None) -> int:
         for key in args.only or list(recs):
             print(f"identify {recs[key]} ...", flush=True)
             row = run_identify(recs[key], Path(tmp) / key)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+        for key in args.baseline_only if args.baseline_tree else []:
+            print(f"identify {recs[key]} with {args.baseline_tree} ...", flush=True)
+            row = run_identify(recs[key], Path(tmp) / f"base-{key}", args.baseline_tree)
             rows.append(row)
             print(json.dumps(row), flush=True)
     print()
