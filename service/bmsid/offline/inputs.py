@@ -5,7 +5,8 @@ columns in time order, whatever the file format: tester CSV (``.csv``, ``.csv.gz
 :func:`~bmsid.offline.csvio.iter_tester_csv`) or candump log (``.log``, decoded by
 :func:`~bmsid.canbus.logs.iter_samples_from_log` exactly as the daemon decodes the bus). Both
 are :class:`StreamedInput`: every ``blocks()`` call reads the file again, piece by piece
-(``CHUNK_ROWS`` samples), so memory does not grow with the record; what needs the whole record
+(``csvio.CHUNK_VALUES`` values: 65,536 samples of one cell), so memory does not grow with the
+record; what needs the whole record
 (sample count, gaps, merged rows, restarts) is known after one complete pass. In-memory columns
 are a :class:`LoadedInput`.
 
@@ -40,10 +41,10 @@ from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.offline.csvio import (
     CANONICAL_COLUMNS,
-    CHUNK_ROWS,
     RESTART_GAP_S,
     ColumnMap,
     TesterData,
+    chunk_rows_for,
     iter_tester_csv,
     tester_csv_columns,
 )
@@ -230,7 +231,7 @@ class StreamedInput:
     :meth:`blocks` (:func:`bmsid.offline.identify.scan_record` makes one); ``notes`` and
     ``findings`` start with what opening the file found (a log's contents). ``findings`` may
     be extended by the caller (plausibility checks) and go into ``input_report``.
-    The median step is that of the first piece (``CHUNK_ROWS`` samples); gaps are counted over
+    The median step is that of the first piece (``chunk_rows_for``); gaps are counted over
     the whole record.
     """
 
@@ -290,7 +291,7 @@ class StreamedInput:
 
     def _complete(self) -> tuple[int, SamplePeriod, int, tuple[int, ...]]:
         if self._scanned is None:
-            for _ in self.blocks(CHUNK_ROWS):
+            for _ in self.blocks():
                 pass
         assert self._scanned is not None
         return self._scanned
@@ -355,7 +356,7 @@ class StreamedInput:
     def head(self, n: int) -> SampleBlock:
         got: list[SampleBlock] = []
         have = 0
-        for block in self.blocks(min(n, CHUNK_ROWS) if n > 0 else 1):
+        for block in self.blocks(max(1, min(n, DEFAULT_BLOCK_SIZE))):
             got.append(block.slice(0, n - have))
             have += len(got[-1])
             if have >= n:
@@ -370,10 +371,10 @@ def read_csv_input(
     *,
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
-    chunk_rows: int = CHUNK_ROWS,
+    chunk_rows: int | None = None,
 ) -> StreamedInput:
     """A tester CSV as a streamed source (format in :mod:`bmsid.offline.csvio`), read in pieces
-    of ``chunk_rows`` rows.
+    of ``chunk_rows`` rows (None: ``csvio.chunk_rows_for`` the file's width).
 
     Parameters
     ----------
@@ -412,10 +413,10 @@ def read_log_input(
     mapping: str | Path | None = None,
     charge_positive: bool = False,
     channel: str | None = None,
-    chunk_rows: int = CHUNK_ROWS,
+    chunk_rows: int | None = None,
 ) -> StreamedInput:
     """A candump log decoded as the daemon decodes the bus, as a streamed source (samples
-    grouped in pieces of ``chunk_rows``).
+    grouped in pieces of ``chunk_rows``; None: ``csvio.chunk_rows_for`` the cells and 2).
 
     The log is first summarised (:func:`~bmsid.canbus.logs.summarize_log`): its channels,
     frame counts and ids go into ``notes``, and the cells whose voltages it carries give the
@@ -489,10 +490,11 @@ def read_log_input(
             )
         )
     cells = n_cells
+    rows = chunk_rows or chunk_rows_for(n_cells + 2)
 
     def pieces() -> Iterator[SampleBlock]:
         samples = iter_samples_from_log(path, bus, cells, channel=chosen)
-        while chunk := list(itertools.islice(samples, chunk_rows)):
+        while chunk := list(itertools.islice(samples, rows)):
             block = SampleBlock.from_samples(chunk)
             if charge_positive:
                 block = SampleBlock(
@@ -512,7 +514,7 @@ def open_input(
     n_cells: int | None = None,
     channel: str | None = None,
     columns: Mapping[str, ColumnMap] | None = None,
-    chunk_rows: int = CHUNK_ROWS,
+    chunk_rows: int | None = None,
 ) -> StreamedInput:
     """The recording at ``path``: a candump log when it ends in ``.log``, else a tester CSV.
 
