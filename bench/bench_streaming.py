@@ -12,7 +12,8 @@ written once into ``--data DIR`` and reused):
 Each record is identified by the command a user types, ``python -m bmsid.cli.main identify
 RECORD --out DIR`` (``hy-affrls-lpso``, defaults otherwise), in a child process timed by
 ``/usr/bin/time -v``: wall time and maximum resident set size side by side in one run, and the
-resident set sampled every 2 s from ``/proc/PID/status`` (``--trace``) to show that it is flat.
+resident set sampled every 2 s from ``/proc/PID/status`` (in ``--json``; the table shows it at
+25, 50, 75 and 100 % of the run's wall time) to show whether it is flat.
 
 ``--baseline-tree DIR`` also runs the records of ``--baseline-only`` (default ``n250k``) with
 another checkout's ``service/`` (e.g. ``git archive a7347e9 service | tar -x -C DIR``: the
@@ -131,13 +132,14 @@ def run_identify(record: Path, out: Path, tree: Path | None = None) -> dict[str,
     max_rss_MB = int(m.group(1)) / 1024 if m else float("nan")
     metrics = json.loads((out / "metrics.json").read_text())
     rss = [mb for _, mb in samples]
-    half = len(rss) // 2
+    quarters = [rss[min(len(rss) - 1, (k * len(rss)) // 4)] if rss else float("nan")
+                for k in (1, 2, 3, 4)]  # fmt: skip
     return {
         "record": record.name + ("" if tree is None else f" ({tree.name})"),
         "wall_s": wall,
         "max_rss_MB": max_rss_MB,
-        "rss_first_half_max_MB": max(rss[:half]) if half else float("nan"),
-        "rss_second_half_max_MB": max(rss[half:]) if rss else float("nan"),
+        "rss_quarters_MB": quarters,
+        "rss_trace": [[round(t, 1), round(mb, 1)] for t, mb in samples],
         "n_samples": metrics["n_input_samples"],
         "n_cells": len(metrics["cells"]),
         "loop_s": metrics["runtime_s"],
@@ -175,15 +177,17 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(row), flush=True)
     print()
     print("| record | samples | cells | wall s | loop s | cell-samples/s | max RSS MB | "
-          "RSS max 1st / 2nd half MB |")  # fmt: skip
+          "RSS at 25 / 50 / 75 / 100 % of the run MB |")  # fmt: skip
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         n, nc, wall = int(str(r["n_samples"])), int(str(r["n_cells"])), float(str(r["wall_s"]))
+        quarters = r["rss_quarters_MB"]
+        assert isinstance(quarters, list)
         print(
             f"| {r['record']} | {n:,} | {nc} | {wall:.1f} | {float(str(r['loop_s'])):.1f} | "
             f"{n * nc / wall:,.0f} | {float(str(r['max_rss_MB'])):.0f} | "
-            f"{float(str(r['rss_first_half_max_MB'])):.0f} / "
-            f"{float(str(r['rss_second_half_max_MB'])):.0f} |"
+            + " / ".join(f"{q:.0f}" for q in quarters)
+            + " |"
         )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")
