@@ -87,8 +87,8 @@ def run(case: Case, tuning: EstimatorTuning) -> Row:
     spec = IdentifySpec(cell=cell, variant=case.variant, tuning=tuning, soc0=case.soc0,
                         window=window)  # fmt: skip
     res = identify_file(case.path, spec)
-    s = score(res.trace, window).pooled
-    found = bound_findings(res.trace, cell, res.start_values, tuning, res.cell_names)
+    s = score(res.kept_trace(), window).pooled
+    found = bound_findings(res.kept_trace(), cell, res.start_values, tuning, res.cell_names)
     ends, published = found["ends_on_a_bound"], found["published_on_a_bound"]
     assert isinstance(ends, dict) and isinstance(published, dict)
     return Row(case, s.window.rmse_V, s.overall.rmse_V, s.startup.rmse_V,

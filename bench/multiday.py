@@ -209,9 +209,9 @@ def run(job: Job) -> Result:
         spec = IdentifySpec(cell=load_config(d / "cell.toml"), variant=job.variant,
                             tuning=job.tuning)  # fmt: skip
         res = identify_file(d / "record.csv.gz", spec)
-    days = score_days(res.trace, rec.truth, opt.n_days)
+    days = score_days(res.kept_trace(), rec.truth, opt.n_days)
     wanted = ("soc", "soc_std", "capacity_Ah", "capacity_std_Ah", "current_offset_A")
-    published = tuple(n for n in wanted if n in res.trace.cells)
+    published = tuple(n for n in wanted if n in res.kept_trace().cells)
     return Result(sc.name, res.soc_init_method, published, days, res.runtime_s)
 
 

@@ -488,6 +488,18 @@ def samples_from_log(
     *,
     channel: str | None = None,
 ) -> list[Sample]:
+    """Every sample of a candump log in a list (:func:`iter_samples_from_log`)."""
+    return list(iter_samples_from_log(path, mapping, n_cells, staleness_s, channel=channel))
+
+
+def iter_samples_from_log(
+    path: str | Path,
+    mapping: BusMapping,
+    n_cells: int,
+    staleness_s: float = 2.0,
+    *,
+    channel: str | None = None,
+) -> Iterator[Sample]:
     """Samples of a candump log, through :class:`FrameToSamples` exactly as the daemon does.
 
     Parameters
@@ -513,7 +525,7 @@ def samples_from_log(
     """
     f2s = FrameToSamples(mapping, n_cells, staleness_s=staleness_s)
     known = mapped_ids(mapping)
-    out: list[Sample] = []
+    n_out = 0
     any_time = False
     seen: dict[str, int] = {}  # frames of the mapping per channel
     for msg in read_log(path):
@@ -523,8 +535,12 @@ def samples_from_log(
         if channel is not None and name != channel:
             continue
         any_time = any_time or msg.timestamp != 0.0
-        out.extend(f2s.feed(msg))
-    out.extend(f2s.flush())
+        for sample in f2s.feed(msg):
+            n_out += 1
+            yield sample
+    for sample in f2s.flush():
+        n_out += 1
+        yield sample
     if channel is None and len(seen) > 1:
         raise UserError(
             f"{path}: frames of mapping {mapping.name!r} on {len(seen)} CAN channels "
@@ -537,7 +553,7 @@ def samples_from_log(
             f"{path}: no frames of mapping {mapping.name!r} on channel {channel!r} "
             f"(channels with such frames: {held})"
         )
-    if not out:
+    if not n_out:
         raise UserError(
             f"{path}: no samples decoded with mapping {mapping.name!r} "
             f"(counters: {_nonzero(f2s.counters)})"
@@ -545,7 +561,6 @@ def samples_from_log(
     if not any_time:
         raise UserError(f"{path}: the log has no timestamps; record with candump -l or -ta")
     log.info("%s: %s", path, _nonzero(f2s.counters))
-    return out
 
 
 def _nonzero(counters: dict[str, int]) -> str:

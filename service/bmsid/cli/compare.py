@@ -40,13 +40,13 @@ from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import Variant
 from bmsid.estimate.types import VARIANTS
+from bmsid.offline.csvio import read_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_source
 from bmsid.offline.inputs import (
     LoadedInput,
     load_config,
     parse_tuning,
     parse_window,
-    read_csv_input,
     tuning_overrides,
 )
 from bmsid.offline.outputs import SCORE_SOC0_HELP, OutputSpec, ocv_range_warning, soc_init_text
@@ -188,7 +188,8 @@ def run(args: argparse.Namespace) -> int:
     out = output_dir(Path(args.out))  # before hours of identification, not after
     # Read everything first: a bad file fails before hours of identification.
     data: list[LoadedInput] = [
-        read_csv_input(p, charge_positive=args.charge_positive) for p in args.datasets
+        LoadedInput.from_tester(read_tester_csv(p, charge_positive=args.charge_positive))
+        for p in args.datasets
     ]
     labels = [
         label_dataset(p, float(np.median(d.temperature_C)) if d.temperature_C is not None else None)
@@ -245,14 +246,14 @@ def run(args: argparse.Namespace) -> int:
             band_rows += soc_band_rows(
                 shown, lb.profile, lb.temperature_C, variant, doc["soc_bands"]
             )
-            med = parameter_medians(res.trace, win)
+            med = parameter_medians(res.kept_trace(), win)
             group = _group_name(lb, cell)
             # Consistency looks at the first cell (a pack's cells differ by design).
             medians.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: float(v[0]) for k, v in med.items()
             }
-            z0 = float(res.trace["soc"][0, 0]) if res.trace.n_ticks else math.nan
-            traj = parameter_trajectories(res.trace, win, 0)
+            z0 = float(res.kept_trace()["soc"][0, 0]) if res.n_ticks else math.nan
+            traj = parameter_trajectories(res.kept_trace(), win, 0)
             trajectories.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: v.tolist() for k, v in traj.items()
             }

@@ -18,6 +18,14 @@ fit the record, too little excitation for the capacity and a missing cell config
 lines. Exports with other column names load with ``--columns t_s=Time,current_A=Current,...``
 (``NAME=COLUMN*SCALE`` converts units, e.g. ``t_s=Time_ms*0.001``).
 
+Long records: the input is read in pieces and the run is streamed (a first pass counts the
+ticks, then metrics and plots are accumulated block by block), so memory does not grow with the
+record. The checks before the run look at its first two days of 1 s samples. ``--every 10``
+writes one row per 10 s and cell (the last tick of each interval; ``--every-mode mean`` the
+mean); a record of more than 86,400 ticks gets a decimation by default, announced on stdout and
+in metrics.json (``output``); ``--every 0`` keeps every tick. ``--format parquet`` writes
+``params.parquet`` (the same columns and units) instead of ``params.csv``.
+
 Several inputs, a directory (searched for .csv, .csv.gz, .log) or a glob: each input into its own
 subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality, RMSE
 and R0 ranks), on --workers local processes or the Dask cluster at --scheduler; a failed input is
@@ -28,6 +36,7 @@ capacity read off a record apply to single runs only: give --cell-config.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -44,9 +53,14 @@ from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
 from bmsid.offline import fleet, plausibility
-from bmsid.offline.identify import IdentifySpec, Progress, identify_source
+from bmsid.offline.identify import (
+    IdentifySpec,
+    Progress,
+    identify_source,
+    params_interval,
+    scan_record,
+)
 from bmsid.offline.inputs import (
-    LoadedInput,
     cell_config,
     check_soc0,
     open_input,
@@ -65,6 +79,7 @@ from bmsid.offline.outputs import (
 )
 from bmsid.offline.plausibility import Finding
 from bmsid.offline.scoring import SocReference, metrics_document
+from bmsid.samples import SampleBlock
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -155,6 +170,26 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "voltage_V=Voltage (NAME: t_s, current_A, voltage_V, temperature_C, v_cell_NN; "
         "*SCALE converts the unit)",
     )
+    p.add_argument(
+        "--every",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="one params row per interval of SECONDS and cell (0: every tick; default: every "
+        "tick up to 86,400 ticks, a longer record gets an announced 2-3600 s interval)",
+    )
+    p.add_argument(
+        "--every-mode",
+        choices=("last", "mean"),
+        default="last",
+        help="per --every interval: the last tick's values (default) or the mean of its ticks",
+    )
+    p.add_argument(
+        "--format",
+        choices=("csv", "parquet"),
+        default="csv",
+        help="params.csv (default) or params.parquet: the same columns and units",
+    )
     add_model_options(p)
     add_fleet_options(p)
     p.set_defaults(func=run)
@@ -177,12 +212,12 @@ def _time_fix(args: argparse.Namespace) -> str:
 
 
 def _check_input(
-    args: argparse.Namespace, source: LoadedInput, cell: CellConfig, tuning: EstimatorTuning
+    args: argparse.Namespace, head: SampleBlock, cell: CellConfig, tuning: EstimatorTuning
 ) -> tuple[CellConfig, str | None, list[Finding]]:
-    """Plausibility of the input for this cell: the cell to use (a capacity read off the record
-    when nothing else gives one), a replacement note, and the findings (errors first raised)."""
-    b = source.samples
-    t, i, v = b.t_s, b.current_A, b.cell_voltages_V
+    """Plausibility of the input's ``head`` (its first samples, ``check_head_samples``) for this
+    cell: the cell to use (a capacity read off the record when nothing else gives one), a
+    replacement note, and the findings (errors first raised)."""
+    t, i, v = head.t_s, head.current_A, head.cell_voltages_V
     findings = plausibility.check_time_unit(t, i, cell.capacity_Ah, _time_fix(args), tuning.gap_s)
     note = None
     record_chemistry = None
@@ -223,6 +258,8 @@ def run(args: argparse.Namespace) -> int:
     # of what a user gets.
     window = parse_window(args.soc_window, args.skip_fraction)
     check_soc0(args.soc0)
+    if args.every is not None and not (math.isfinite(args.every) and args.every >= 0):
+        raise UserError(f"--every is a number of seconds >= 0, got {args.every:g}")
     columns = parse_columns(args.columns)
     cell, note = cell_config(args.cell_config, args.capacity_ah, _ocv_coeffs(args.ocv_coeffs))
     out = output_dir(Path(args.out))  # before reading and identifying, not after
@@ -230,7 +267,10 @@ def run(args: argparse.Namespace) -> int:
         args.input, charge_positive=args.charge_positive, mapping=args.mapping,
         n_cells=args.n_cells, channel=args.channel, columns=columns,
     )  # fmt: skip
-    cell, derived_note, checks = _check_input(args, source, cell, tuning)
+    # the record's head, for the checks only: not held through the run
+    head = source.head(plausibility.check_head_samples(source.n_cells))
+    cell, derived_note, checks = _check_input(args, head, cell, tuning)
+    del head
     note = derived_note or note
     if args.score_soc0 is not None:
         try:
@@ -238,14 +278,30 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(f"--score-soc0: {exc}") from None
         window = replace(window, soc_reference=ref)
-    period = plausibility.sample_period(source.samples.t_s, tuning.gap_s)
+    meta = {
+        "input": str(args.input),
+        "cell_config": note,
+        "tuning_overrides": tuning_overrides(args.tuning),
+    }
+    output = OutputSpec(
+        title=f"{Path(args.input).name} - {args.algorithm}", metadata=meta,
+        params_format=args.format, every_s=args.every, every_mode=args.every_mode,
+    )  # fmt: skip
+    spec = IdentifySpec(
+        cell=cell, variant=args.algorithm, tuning=tuning, soc0=args.soc0, window=window,
+        charge_positive=args.charge_positive, mapping=args.mapping, n_cells=source.n_cells,
+        output=output, keep_trace=False,
+    )  # fmt: skip
+    with progress_bar(None, "reading") as bar:
+        scan = scan_record(source, spec)  # a bad row anywhere stops the run here
+        bar(scan.n_samples)
     print(
-        f"{args.input}: {source.n_samples} samples, {source.n_cells} cell(s), "
-        f"{period.text()}; {note}"
+        f"{args.input}: {scan.n_samples} samples, {source.n_cells} cell(s), "
+        f"{source.period(tuning.gap_s).text()}; {note}"
     )
     for line in source.notes:
         print(line)
-    findings = [*source.findings, *checks]
+    findings = [*source.all_findings, *checks]
     for f in findings:
         if f.level != "error":
             print(f.line())
@@ -253,38 +309,28 @@ def run(args: argparse.Namespace) -> int:
     if error is not None:
         raise UserError(f"{args.input}: {error.message}")
     # The checks travel with the source (``input_report``), for metrics.json.
-    source = replace(source, findings=tuple(findings))
-    meta = {
-        "input": str(args.input),
-        "cell_config": note,
-        "tuning_overrides": tuning_overrides(args.tuning),
-    }
-    spec = IdentifySpec(
-        cell=cell,
-        variant=args.algorithm,
-        tuning=tuning,
-        soc0=args.soc0,
-        window=window,
-        charge_positive=args.charge_positive,
-        mapping=args.mapping,
-        n_cells=source.n_cells,
-        output=OutputSpec(title=f"{Path(args.input).name} - {args.algorithm}", metadata=meta),
-    )
-    with progress_bar(source.n_samples, args.algorithm) as bar:
-        result = identify_source(source, spec, out, bar)
+    source.findings = (*source.findings, *checks)
+    every, announced = params_interval(output, scan)
+    if announced:
+        print(
+            f"{scan.n_ticks} ticks: params.{args.format} gets one row per {every:g} s and cell "
+            f"({args.every_mode} value of each interval; --every 0 for every tick)"
+        )
+    with progress_bar(scan.n_samples, args.algorithm) as bar:
+        result = identify_source(source, spec, out, bar, scan)
     print(soc_init_text(result))
     warning = ocv_range_warning(result, cell)
     if warning:
         print(warning)
-    if result.trace.n_ticks == 0:
+    if result.n_ticks == 0:
         raise UserError(f"{args.input}: no identification tick (too short or no valid time)")
     if result.soc_init_method != "given":  # with --soc0 the coulomb count was checked before
         start = {"ocv_at_rest": "the OCV at rest"}.get(result.soc_init_method, "its start")
-        soc_findings = plausibility.check_soc_range(result.trace["soc"], cell.capacity_Ah, start)
+        soc_findings = plausibility.check_soc_range(result.soc_extremes(), cell.capacity_Ah, start)
         for f in soc_findings:
             print(f.line())
     print(summary_line({**metrics_document(result, window), **meta}))
     if (obs := observer_text(result)) is not None:
         print(obs)
-    print(f"wrote {out}/params.csv, metrics.json and plots")
+    print(f"wrote {out}/params.{args.format}, metrics.json and plots")
     return 0

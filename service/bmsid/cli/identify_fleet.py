@@ -67,7 +67,10 @@ def fleet_spec(args: argparse.Namespace, ocv_coeffs: Sequence[float] | None) -> 
         charge_positive=args.charge_positive,
         mapping=str(Path(args.mapping).resolve()) if args.mapping else None,
         n_cells=args.n_cells, channel=args.channel, columns=parse_columns(args.columns),
-        output=OutputSpec(metadata=meta),
+        output=OutputSpec(
+            metadata=meta, params_format=args.format, every_s=args.every,
+            every_mode=args.every_mode,
+        ),
     )  # fmt: skip
 
 

@@ -37,9 +37,11 @@ from __future__ import annotations
 
 import gzip
 import io
+import itertools
 import logging
 import re
-from collections.abc import Mapping, Sequence
+import zlib
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -127,6 +129,29 @@ def _read_text(path: Path) -> str:
         raise UserError(f"{path}: cannot read: {exc}") from exc
 
 
+def _read_lines(path: Path) -> Iterator[str]:
+    """The file's lines without their ends, read as they are needed; blank lines at the end of
+    the file are dropped (blank lines before a data line are kept: they are bad rows)."""
+    if not path.is_file():
+        raise UserError(f"{path}: no such file")
+    blanks = 0
+    try:
+        gz = path.name.lower().endswith(".gz")
+        with (gzip.open(path, "rt", encoding="utf-8-sig", newline="") if gz else
+              path.open(encoding="utf-8-sig", newline="")) as fh:  # fmt: skip
+            for raw in fh:
+                line = raw.rstrip("\r\n")
+                if not line.strip():
+                    blanks += 1
+                    continue
+                for _ in range(blanks):
+                    yield ""
+                blanks = 0
+                yield line
+    except (OSError, EOFError, UnicodeDecodeError, zlib.error) as exc:
+        raise UserError(f"{path}: cannot read: {exc}".splitlines()[0]) from exc
+
+
 def _parse_column(
     values: list[str], name: str, path: Path, first_line: int, required: bool
 ) -> FloatArray | None:
@@ -193,47 +218,263 @@ def _apply_column_map(
     return out, scales
 
 
-def _clean_time(t: FloatArray, path: Path) -> tuple[FloatArray, BoolArray, tuple[int, ...]]:
-    """Stitched time, the rows to keep (the last of equal times) and the restart lines.
+#: Values (rows x columns) parsed at a time by :func:`iter_tester_csv`: 65,536 rows of a one-cell
+#: file (``t_s,current_A,voltage_V``), 10,922 of a 16-cell one. Parsed as Python text a piece
+#: holds about 0.3 kB per value at its peak (~60 MB here), whatever the file's width.
+CHUNK_VALUES = 196_608
+#: The fewest rows of a piece, however wide the file.
+MIN_CHUNK_ROWS = 1024
 
-    Lines are 1-based file lines (the header is line 1, row k is line k + 2). Raises
-    ``UserError`` for a step back that is not a restart of the clock (see the module doc).
+
+def chunk_rows_for(n_columns: int) -> int:
+    """Rows per piece of a file of ``n_columns`` columns (``CHUNK_VALUES`` values)."""
+    return max(MIN_CHUNK_ROWS, CHUNK_VALUES // max(n_columns, 1))
+
+
+class _TimeCleaner:
+    """Stitches restarted clocks on, chunk after chunk (see the module doc).
+
+    The record's first time ``t[0]`` and the median forward step (from the first chunk that has
+    one: a restart is told from rows out of order by going back to near ``t[0]``, the stitch gap
+    is ``max(RESTART_GAP_S, median step)``) are fixed once seen; each restart adds its offset to
+    every later row.
     """
-    steps = np.diff(t)
-    back = np.flatnonzero(steps < 0)
-    restarts: list[int] = []
-    if back.size:
-        forward = steps[steps > 0]
-        dt_med = float(np.median(forward)) if forward.size else 1.0
-        # A restart goes back to where the record started (t[0], usually 0) from far beyond
-        # it; anything else (rows out of order, a clock stepping back a little) is refused.
-        near_start = t[back + 1] <= t[0] + max(dt_med, 1.0)
-        far = t[back] - t[back + 1] > RESTART_GAP_S
-        bad = back[~(near_start & far)]
-        if bad.size:
-            k = int(bad[0])
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.t_first: float | None = None
+        self.dt_med: float | None = None
+        self.prev: float | None = None  # the previous chunk's last time as read
+        self.offset = 0.0
+        self.restarts: list[int] = []
+
+    def clean(self, t_raw: FloatArray, row0: int) -> tuple[FloatArray, list[int]]:
+        """Stitched times of the chunk whose first row is data row ``row0`` (0-based), and the
+        file lines (1-based) where the clock restarted in it."""
+        if self.t_first is None:
+            self.t_first = float(t_raw[0])
+        ext = t_raw if self.prev is None else np.concatenate(([self.prev], t_raw))
+        lead = ext.shape[0] - t_raw.shape[0]  # 1 when the previous time is prepended
+        steps = np.diff(ext)
+        if self.dt_med is None:
+            forward = steps[steps > 0]
+            if forward.size:
+                self.dt_med = float(np.median(forward))
+        back = np.flatnonzero(steps < 0)
+        offsets = np.zeros(t_raw.shape[0])
+        found: list[int] = []
+        dt_med = 1.0 if self.dt_med is None else self.dt_med
+        for b in back.tolist():
+            line = row0 - lead + b + 3  # the line of the row after the step
+            near_start = ext[b + 1] <= self.t_first + max(dt_med, 1.0)
+            if not (near_start and ext[b] - ext[b + 1] > RESTART_GAP_S):
+                raise UserError(
+                    f"{self.path}: time t_s is not increasing at line {line} "
+                    f"({ext[b + 1]:g} s after {ext[b]:g} s): rows "
+                    "out of order? (equal times are merged and a clock that restarts at the "
+                    f"record's start, {self.t_first:g} s, is stitched on)"
+                )
+            found.append(line)
+            offsets[b + 1 - lead :] += ext[b] + max(RESTART_GAP_S, dt_med) - ext[b + 1]
+        self.restarts += found
+        if len(self.restarts) > MAX_TIME_RESTARTS:  # counted up to this chunk's end
             raise UserError(
-                f"{path}: time t_s is not increasing at line {k + 3} ({t[k + 1]:g} s after "
-                f"{t[k]:g} s): rows out of order? (equal times are merged and a clock that "
-                f"restarts at the record's start, {t[0]:g} s, is stitched on)"
+                f"{self.path}: time t_s restarts {len(self.restarts)} times (line(s) "
+                f"{_lines_text(self.restarts)}): a per-step time column? Map the test's "
+                "total time to t_s (e.g. --columns t_s=Test_Time(s))"
             )
-        restarts = [int(k) + 3 for k in back]
-        if len(restarts) > MAX_TIME_RESTARTS:
+        self.prev = float(t_raw[-1])
+        t = t_raw + self.offset + offsets
+        self.offset += float(offsets[-1])
+        return t, found
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where a file's columns are: the header as mapped, the separator, the scales."""
+
+    header: list[str]
+    keys: list[str]
+    sep: str
+    scales: dict[int, float]
+    cell_cols: list[int]
+
+
+def _layout(path: Path, first: str, columns: Mapping[str, ColumnMap] | None) -> _Layout:
+    sep = _separator(first)
+    header = [h.strip().strip('"').strip() for h in first.split(sep)]
+    scales: dict[int, float] = {}
+    if columns:
+        header, scales = _apply_column_map(header, columns, path)
+    keys = [h.lower() for h in header]
+    cells = sorted(
+        ((int(m.group(1)), j) for j, k in enumerate(keys) if (m := _CELL_RE.match(k))),
+        key=lambda nj: nj[0],
+    )
+    missing = [c for c in ("t_s", "current_a") if c not in keys]
+    if not cells and "voltage_v" not in keys:
+        missing.append("voltage_V (or v_cell_01, v_cell_02, ...)")
+    if missing:
+        names = ", ".join(m.replace("current_a", "current_A") for m in missing)
+        raise UserError(
+            f"{path}: missing column(s) {names}; found: {', '.join(header)} "
+            "(other names: --columns t_s=NAME,current_A=NAME,voltage_V=NAME)"
+        )
+    cell_cols = [j for _, j in cells] if cells else [keys.index("voltage_v")]
+    return _Layout(header, keys, sep, scales, cell_cols)
+
+
+def tester_csv_columns(
+    path: str | Path, columns: Mapping[str, ColumnMap] | None = None
+) -> list[str]:
+    """The cell voltage column names of a tester CSV, from its header alone."""
+    p = Path(path)
+    first = next(_read_lines(p), None)
+    if first is None:
+        raise UserError(f"{p}: empty file")
+    lay = _layout(p, first, columns)
+    return [lay.header[j] for j in lay.cell_cols]
+
+
+def _take(d: TesterData, idx: slice | npt.NDArray[np.bool_]) -> TesterData:
+    return TesterData(
+        t_s=d.t_s[idx], current_A=d.current_A[idx], cell_voltages_V=d.cell_voltages_V[idx],
+        cell_names=d.cell_names,
+        temperature_C=None if d.temperature_C is None else d.temperature_C[idx],
+        extra={k: v[idx] for k, v in d.extra.items()}, source=d.source,
+    )  # fmt: skip
+
+
+def _join(a: TesterData, b: TesterData) -> TesterData:
+    """``a``'s rows then ``b``'s (extras both have)."""
+    return TesterData(
+        t_s=np.concatenate([a.t_s, b.t_s]),
+        current_A=np.concatenate([a.current_A, b.current_A]),
+        cell_voltages_V=np.concatenate([a.cell_voltages_V, b.cell_voltages_V]),
+        cell_names=a.cell_names,
+        temperature_C=None if a.temperature_C is None or b.temperature_C is None
+        else np.concatenate([a.temperature_C, b.temperature_C]),
+        extra={k: np.concatenate([v, b.extra[k]]) for k, v in a.extra.items() if k in b.extra},
+        source=a.source,
+    )  # fmt: skip
+
+
+def iter_tester_csv(
+    path: str | Path,
+    *,
+    charge_positive: bool = False,
+    columns: Mapping[str, ColumnMap] | None = None,
+    chunk_rows: int | None = None,
+) -> Iterator[TesterData]:
+    """A tester CSV (see the module docstring) as consecutive pieces of at most about
+    ``chunk_rows`` rows (None: :func:`chunk_rows_for` its columns), read as they are needed:
+    memory does not grow with the file.
+
+    Each piece carries its own ``merged_repeats`` and ``time_restarts`` (file lines); the row
+    before a piece's end is held back until the next piece shows whether it repeats a time.
+    What needs the whole column in :func:`read_tester_csv`'s checks is decided on the first
+    piece here: the median voltage (millivolts?) and the median step (restarts); a bad row
+    or a current that looks like milliamperes is an error in whichever piece it lies.
+    Errors as :func:`read_tester_csv`.
+    """
+    if chunk_rows is not None and chunk_rows < 1:
+        raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
+    p = Path(path)
+    lines = _read_lines(p)
+    first = next(lines, None)
+    if first is None:
+        raise UserError(f"{p}: empty file")
+    lay = _layout(p, first, columns)
+    header, keys = lay.header, lay.keys
+    has_temp = "temperature_c" in keys
+    used = {keys.index("t_s"), keys.index("current_a"), *lay.cell_cols}
+    if has_temp:
+        used.add(keys.index("temperature_c"))
+    cleaner = _TimeCleaner(p)
+    held: TesterData | None = None
+    row0 = 0
+    checked_mv = False
+    n_fields = len(header)
+    rows_per_piece = chunk_rows or chunk_rows_for(n_fields)
+    while True:
+        body = list(itertools.islice(lines, rows_per_piece))
+        if not body:
+            break
+        rows: list[list[str]] = []
+        bad_rows: list[int] = []
+        for k, line in enumerate(body):
+            parts = line.split(lay.sep)
+            if len(parts) != n_fields:
+                bad_rows.append(row0 + k + 2)
+            else:
+                rows.append(parts)
+        if bad_rows:
             raise UserError(
-                f"{path}: time t_s restarts {len(restarts)} times (line(s) "
-                f"{_lines_text(restarts)}): a per-step time column? Map the test's total time "
-                "to t_s (e.g. --columns t_s=Test_Time(s))"
+                f"{p}: line(s) {_lines_text(bad_rows)} are empty or do not have the "
+                f"{n_fields} fields of the header"
             )
-        t = t.copy()
-        gap = max(RESTART_GAP_S, dt_med)
-        for b in back.tolist():  # in file order: each offset carries over to all after it
-            t[b + 1 :] += t[b] + gap - t[b + 1]
-    # Equal times: keep the LAST row of each run. A tester logs the end of the old step and the
-    # start of the new one at the same instant; the new step's current is what flows until the
-    # next row (the engine holds a sample's current over the following interval), and its
-    # voltage is the response to it. An average would invent a current that never flowed.
-    keep = np.append(np.diff(t) != 0.0, True)
-    return t, keep, tuple(restarts)
+        columns_text = list(zip(*rows, strict=True))
+
+        def cells_of(j: int, text: list[tuple[str, ...]] = columns_text) -> list[str]:
+            return [s.strip().strip('"') for s in text[j]]
+
+        def required(name: str, text: list[tuple[str, ...]] = columns_text,
+                     first_line: int = row0 + 2) -> FloatArray:  # fmt: skip
+            j = keys.index(name.lower())
+            arr = _parse_column(cells_of(j, text), header[j], p, first_line, True)
+            assert arr is not None
+            return arr * lay.scales[j] if j in lay.scales else arr
+
+        t, restarts = cleaner.clean(required("t_s"), row0)
+        current = required("current_A")
+        if charge_positive:
+            current = -current
+        if float(np.max(np.abs(current))) > MAX_PLAUSIBLE_CURRENT_A:
+            raise UserError(
+                f"{p}: |current_A| reaches {np.max(np.abs(current)):g} > "
+                f"{MAX_PLAUSIBLE_CURRENT_A:g}: looks like milliamperes; give the current in A"
+            )
+        volts = np.column_stack([required(header[j]) for j in lay.cell_cols])
+        if not checked_mv:
+            checked_mv = True
+            for c, j in enumerate(lay.cell_cols):
+                med = float(np.median(volts[:, c]))
+                if med > MAX_PLAUSIBLE_CELL_VOLTAGE_V:
+                    raise UserError(
+                        f"{p}: column {header[j]!r} has median {med:g}: looks like "
+                        "millivolts; give cell voltages in V"
+                    )
+        extra: dict[str, FloatArray] = {}
+        for j, name in enumerate(header):
+            if j in used or not name:
+                continue
+            arr = _parse_column(cells_of(j), name, p, row0 + 2, False)
+            if arr is not None:
+                extra[name] = arr
+        piece = TesterData(
+            t_s=t, current_A=current, cell_voltages_V=volts,
+            cell_names=[header[j] for j in lay.cell_cols],
+            temperature_C=required("temperature_C") if has_temp else None,
+            extra=extra, source=str(p),
+        )  # fmt: skip
+        row0 += len(body)
+        if held is not None:
+            piece = _join(held, piece)
+        # Equal times: keep the LAST row of each run. A tester logs the end of the old step and
+        # the start of the new one at the same instant; the new step's current is what flows
+        # until the next row (the engine holds a sample's current over the following interval),
+        # and its voltage is the response to it. An average would invent a current that never
+        # flowed.
+        keep = np.diff(piece.t_s) != 0.0
+        held = _take(piece, slice(piece.n_samples - 1, None))
+        out = _take(_take(piece, slice(0, piece.n_samples - 1)), keep)
+        out = TesterData(**{**out.__dict__, "merged_repeats": int(keep.size - keep.sum()),
+                            "time_restarts": tuple(restarts)})  # fmt: skip
+        if out.n_samples or out.merged_repeats or out.time_restarts:
+            yield out
+    if held is None:
+        raise UserError(f"{p}: header only, no data rows")
+    yield held
 
 
 def read_tester_csv(
@@ -242,7 +483,8 @@ def read_tester_csv(
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
 ) -> TesterData:
-    """Load a tester CSV (see the module docstring).
+    """Load a tester CSV (see the module docstring) into memory: the pieces of
+    :func:`iter_tester_csv` joined (an extra column is kept when numeric in every row).
 
     Parameters
     ----------
@@ -260,107 +502,15 @@ def read_tester_csv(
         A missing/empty file, missing columns, bad rows, time that goes back (other than a
         restart of the clock), and values that look like mV or mA.
     """
-    p = Path(path)
-    text = _read_text(p)
-    lines = text.splitlines()
-    while lines and not lines[-1].strip():
-        lines.pop()
-    if not lines:
-        raise UserError(f"{p}: empty file")
-    sep = _separator(lines[0])
-    header = [h.strip().strip('"').strip() for h in lines[0].split(sep)]
-    scales: dict[int, float] = {}
-    if columns:
-        header, scales = _apply_column_map(header, columns, p)
-    keys = [h.lower() for h in header]
-    body = lines[1:]
-    if not body:
-        raise UserError(f"{p}: header only, no data rows")
-
-    cells = sorted(
-        ((int(m.group(1)), j) for j, k in enumerate(keys) if (m := _CELL_RE.match(k))),
-        key=lambda nj: nj[0],
-    )
-    missing = [c for c in ("t_s", "current_a") if c not in keys]
-    if not cells and "voltage_v" not in keys:
-        missing.append("voltage_V (or v_cell_01, v_cell_02, ...)")
-    if missing:
-        names = ", ".join(m.replace("current_a", "current_A") for m in missing)
-        raise UserError(
-            f"{p}: missing column(s) {names}; found: {', '.join(header)} "
-            "(other names: --columns t_s=NAME,current_A=NAME,voltage_V=NAME)"
-        )
-
-    n_fields = len(header)
-    rows: list[list[str]] = []
-    bad_rows: list[int] = []
-    for k, line in enumerate(body):
-        parts = line.split(sep)
-        if len(parts) != n_fields:
-            bad_rows.append(k + 2)
-        else:
-            rows.append(parts)
-    if bad_rows:
-        raise UserError(
-            f"{p}: line(s) {_lines_text(bad_rows)} are empty or do not have the "
-            f"{n_fields} fields of the header"
-        )
-    columns_text = list(zip(*rows, strict=True))
-
-    def cells_of(j: int) -> list[str]:
-        return [s.strip().strip('"') for s in columns_text[j]]
-
-    def required(name: str) -> FloatArray:
-        j = keys.index(name.lower())
-        arr = _parse_column(cells_of(j), header[j], p, 2, True)
-        assert arr is not None
-        return arr * scales[j] if j in scales else arr
-
-    t, keep, restarts = _clean_time(required("t_s"), p)
-    merged = int(keep.size - np.count_nonzero(keep))
-    current = required("current_A")
-    if charge_positive:
-        current = -current
-    if float(np.max(np.abs(current))) > MAX_PLAUSIBLE_CURRENT_A:
-        raise UserError(
-            f"{p}: |current_A| reaches {np.max(np.abs(current)):g} > {MAX_PLAUSIBLE_CURRENT_A:g}: "
-            "looks like milliamperes; give the current in A"
-        )
-
-    cell_cols = [j for _, j in cells] if cells else [keys.index("voltage_v")]
-    volts = np.column_stack([required(header[j]) for j in cell_cols])
-    for c, j in enumerate(cell_cols):
-        med = float(np.median(volts[:, c]))
-        if med > MAX_PLAUSIBLE_CELL_VOLTAGE_V:
-            raise UserError(
-                f"{p}: column {header[j]!r} has median {med:g}: looks like millivolts; "
-                "give cell voltages in V"
-            )
-
-    temperature = required("temperature_C") if "temperature_c" in keys else None
-    used = {keys.index("t_s"), keys.index("current_a"), *cell_cols}
-    if "temperature_c" in keys:
-        used.add(keys.index("temperature_c"))
-    extra: dict[str, FloatArray] = {}
-    for j, name in enumerate(header):
-        if j in used or not name:
-            continue
-        arr = _parse_column(cells_of(j), name, p, 2, False)
-        if arr is not None:
-            extra[name] = arr[keep]
+    pieces = list(iter_tester_csv(path, charge_positive=charge_positive, columns=columns))
+    data = pieces[0]
+    for piece in pieces[1:]:
+        data = _join(data, piece)
+    merged = sum(piece.merged_repeats for piece in pieces)
+    restarts = tuple(n for piece in pieces for n in piece.time_restarts)
     if merged:
-        log.info("%s: merged %d rows with repeated timestamps", p, merged)
-    return TesterData(
-        t_s=t[keep],
-        current_A=current[keep],
-        cell_voltages_V=volts[keep],
-        cell_names=[header[j] for j in cell_cols],
-        temperature_C=None if temperature is None else temperature[keep],
-        extra=extra,
-        source=str(p),
-        merged_repeats=merged,
-        time_restarts=restarts,
-    )
+        log.info("%s: merged %d rows with repeated timestamps", path, merged)
+    return TesterData(**{**data.__dict__, "merged_repeats": merged, "time_restarts": restarts})
 
 
 def write_tester_csv(data: TesterData, path: str | Path) -> None:

@@ -172,8 +172,9 @@ class FleetTask:
 
 
 def cell_summaries(result: IdentifyResult, spec: IdentifySpec) -> tuple[CellSummary, ...]:
-    """Each cell's values at the last tick and its RMSE over ``spec.window``."""
-    trace = result.trace
+    """Each cell's values at the last tick and its RMSE over ``spec.window`` (the run keeps its
+    trace: ``IdentifySpec.keep_trace``, the library's default)."""
+    trace = result.kept_trace()
     if trace.n_ticks == 0:
         return ()
     per_cell = score(trace, spec.window).per_cell_window
@@ -223,7 +224,7 @@ def identify_task(task: FleetTask) -> InputSummary:
             wall, cpu = time.perf_counter(), time.process_time()
             result = identify_file(task.input.path, task.spec, Path(task.out_dir))
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        if result.trace.n_ticks == 0:
+        if result.kept_trace().n_ticks == 0:
             raise UserError("no identification tick (too short or no valid time)")
         cells = cell_summaries(result, task.spec)
     except Exception as exc:  # any failure is this input's, reported in one line

@@ -7,19 +7,33 @@ CLI (``bmsid identify``, ``bmsid compare``), the benches and a distributed task 
 function. The data flow is blocks all the way: the input yields
 :class:`~bmsid.samples.SampleBlock` columns, the bank eats each block
 (:meth:`~bmsid.estimate.bank.EstimatorBank.update_block`) and returns the
-:class:`~bmsid.estimate.types.EstimateBlock` of the ticks it completed, and ``params.csv`` is
-appended per block. The blocks are also kept, concatenated, for the metrics and the plots.
+:class:`~bmsid.estimate.types.EstimateBlock` of the ticks it completed, and ``params.csv`` (or
+``params.parquet``, every tick or one row per ``--every`` interval) is appended per block.
+
+Two ways to keep what the metrics and plots need (``IdentifySpec.keep_trace``):
+
+- kept (the library's default: ``compare``, the benches): the blocks are concatenated into the
+  whole trace, scored at the end;
+- streamed (``bmsid identify``): a first pass over the input counts the ticks the bank will make
+  (:func:`scan_record`: the plausibility gates and the tick assembler alone, no estimator),
+  then each block of estimates goes to a :class:`~bmsid.offline.scoring.RunScorer` (running
+  sums, min-max plot decimation) and is dropped: memory is bounded by the estimator's windows
+  and the input's pieces, not by the record's length.
+
+Both score with the same accumulators, so their metrics.json agree to float rounding.
 
 Pure apart from reading the input, writing into ``out`` and the clock read for the run time.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -27,16 +41,23 @@ import numpy.typing as npt
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank, cell_model
 from bmsid.estimate.cellmodel import BOUNDED, INITIAL
-from bmsid.estimate.guard import ON_BOUND_REL, WATCHED
+from bmsid.estimate.guard import WATCHED
 from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_record
+from bmsid.estimate.ticks import TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.gates import GateConfig, InputGate
 from bmsid.offline.csvio import ColumnMap, TesterData
 from bmsid.offline.inputs import DEFAULT_BLOCK_SIZE, InputSource, LoadedInput, open_input
-from bmsid.offline.outputs import OutputSpec, prepare_out_dir, write_metrics_json, write_plots
-from bmsid.offline.scoring import EvalWindow, IdentifyResult, metrics_document
-from bmsid.offline.writers import ParamsCsvWriter
+from bmsid.offline.outputs import (
+    OutputSpec,
+    auto_every_s,
+    prepare_out_dir,
+    write_metrics_json,
+    write_plots,
+)
+from bmsid.offline.scoring import EvalWindow, IdentifyResult, RunScorer, metrics_document
+from bmsid.offline.writers import ParamsSink, open_params_writer
 from bmsid.samples import Sample, SampleBlock
 
 FloatArray = npt.NDArray[np.float64]
@@ -80,6 +101,10 @@ class IdentifySpec:
         What is written when the run is given an output directory.
     gates : GateConfig
         The plausibility gates before the estimators (``bmsid.gates``), as the daemon's.
+    keep_trace : bool
+        Keep every tick's estimates in the result (``IdentifyResult.trace``); False streams:
+        a first pass counts the ticks, the metrics and plots are accumulated block by block
+        and memory does not grow with the record (``bmsid identify``).
     """
 
     cell: CellConfig
@@ -95,6 +120,7 @@ class IdentifySpec:
     block_size: int = DEFAULT_BLOCK_SIZE
     output: OutputSpec = field(default_factory=OutputSpec)
     gates: GateConfig = field(default_factory=GateConfig)
+    keep_trace: bool = True
 
 
 def input_gate(
@@ -118,6 +144,7 @@ def run_blocks(
     sink: EstimateSink | None = None,
     start: StartValues | None = None,
     gates: GateConfig | None = None,
+    scorer: RunScorer | None = None,
 ) -> IdentifyResult:
     """Feed sample blocks in order, through the plausibility gates, to a new bank of
     ``n_cells`` cells.
@@ -136,12 +163,15 @@ def run_blocks(
         Cell names; None: ``cell_01``, ``cell_02``, ...
     sink : callable or None
         Called with each non-empty block of estimates as it is produced (before the next input
-        block is read), e.g. ``ParamsCsvWriter.append``.
+        block is read), e.g. a params writer's ``append``.
     start : StartValues or None
         Start values measured on the record (:func:`probe_start_values`) for what ``cell``
         leaves out.
     gates : GateConfig or None
         The plausibility gates; None: the defaults.
+    scorer : RunScorer or None
+        Streams: each block of estimates is added to it and dropped (the result's ``trace``
+        is None, its ``summary`` the scorer). None: the blocks are kept as the ``trace``.
 
     Returns
     -------
@@ -160,7 +190,10 @@ def run_blocks(
         runtime += time.perf_counter() - t0
         n += len(block)
         if est.n_ticks:
-            parts.append(est)
+            if scorer is None:
+                parts.append(est)
+            else:
+                scorer.add(est)
             if sink is not None:
                 sink(est)
         if progress is not None:
@@ -168,7 +201,7 @@ def run_blocks(
     names = list(cell_names) if cell_names else [f"cell_{c + 1:02d}" for c in range(n_cells)]
     return IdentifyResult(
         variant=variant,
-        trace=EstimateBlock.concat(parts, n_cells),
+        trace=EstimateBlock.concat(parts, n_cells) if scorer is None else None,
         soc_init_method=bank.soc_init_method,
         counters={**bank.counters, **gate.state.counters()},
         runtime_s=runtime,
@@ -176,7 +209,58 @@ def run_blocks(
         cell_names=names,
         start_values=start,
         input_gates=gate.state.report(),
+        summary=scorer,
     )
+
+
+@dataclass(frozen=True)
+class RecordScan:
+    """What one pass over a recording found before the run: input samples, the ticks the bank
+    will make of them (after the plausibility gates) and the first and last tick's time (s;
+    NaN without ticks)."""
+
+    n_samples: int
+    n_ticks: int
+    t_first_s: float
+    t_last_s: float
+
+    @property
+    def duration_s(self) -> float:
+        """Time from the first to the last tick, s (0 with fewer than two)."""
+        return self.t_last_s - self.t_first_s if self.n_ticks > 1 else 0.0
+
+
+def count_ticks(
+    blocks: Iterable[SampleBlock], n_cells: int, gate: InputGate, tuning: EstimatorTuning | None
+) -> RecordScan:
+    """The ticks a bank would make of ``blocks`` (through fresh gates ``gate``): the bank's own
+    tick assembler run alone, so the count is exact (gaps, bins, dropped times)."""
+    ticks = TickAssembler(n_cells, tuning or EstimatorTuning())
+    n = k = 0
+    t_first = t_last = math.nan
+    for raw in blocks:
+        block = gate.apply(raw)
+        n += len(block)
+        v = block.cell_voltages_V
+        temps = (
+            [math.nan] * len(block) if block.temperature_C is None else block.temperature_C.tolist()
+        )
+        for j, (t, i) in enumerate(zip(block.t_s.tolist(), block.current_A.tolist(), strict=True)):
+            tick = ticks.push(t, i, v[j], temps[j])
+            if tick is not None:
+                if k == 0:
+                    t_first = tick.t_s
+                t_last = tick.t_s
+                k += 1
+    return RecordScan(n, k, t_first, t_last)
+
+
+def scan_record(source: InputSource, spec: IdentifySpec) -> RecordScan:
+    """One pass over ``source`` (:func:`count_ticks` with the spec's cell, tuning and gates);
+    a streamed source knows its sample count, gaps and merges afterwards. Raises the reader's
+    ``UserError`` for a bad row anywhere in the file, before any estimation."""
+    gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
+    return count_ticks(source.blocks(spec.block_size), source.n_cells, gate, spec.tuning)
 
 
 def probe_start_values(
@@ -216,6 +300,14 @@ def start_values_document(
     }  # fmt: skip
 
 
+def watched_bounds(
+    cell: CellConfig, start: StartValues | None, tuning: EstimatorTuning | None, n_cells: int
+) -> dict[str, tuple[FloatArray, FloatArray]]:
+    """(lo, hi) per cell of each parameter the guard watches (``guard.WATCHED``)."""
+    model = cell_model(cell, n_cells, start, tuning)
+    return {name: model.bound(name) for name in WATCHED}
+
+
 def bound_findings(
     trace: EstimateBlock,
     cell: CellConfig,
@@ -227,29 +319,10 @@ def bound_findings(
     ``ON_BOUND_REL`` of a bound): per parameter the share of ticks (pooled over cells) and the
     cells that end the record on one. A parameter on a bound is a finding (the bound, not the
     data, decided it), never a published value: the guard published its branch's last good
-    values instead; ``published_on_a_bound`` checks that in the published values themselves."""
-    model = cell_model(cell, trace.n_cells, start, tuning)
-    bits = np.asarray(trace["on_bound"], dtype=np.int64)
-    share: dict[str, float] = {}
-    at_end: dict[str, list[str]] = {}
-    published: dict[str, float] = {}
-    for j, name in enumerate(WATCHED):
-        on = (bits >> j) & 1 == 1
-        share[name] = float(on.mean()) if on.size else 0.0
-        if trace.n_ticks:
-            ended = [cell_names[int(c)] for c in np.flatnonzero(on[-1])]
-            if ended:
-                at_end[name] = ended
-        lo, hi = model.bound(name)
-        x = trace[name]
-        pub = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
-        if pub.any():
-            published[name] = float(pub.mean())
-    return {
-        "share_of_ticks_on_a_bound": share,
-        "ends_on_a_bound": at_end,
-        "published_on_a_bound": published,
-    }
+    values instead; ``published_on_a_bound`` checks that in the published values themselves.
+    (A streamed run accumulates the same, ``RunAccumulator.bound_findings``.)"""
+    bounds = watched_bounds(cell, start, tuning, trace.n_cells)
+    return RunScorer.of_trace(trace, EvalWindow(), bounds).acc.bound_findings(cell_names)
 
 
 def identify_source(
@@ -257,6 +330,7 @@ def identify_source(
     spec: IdentifySpec,
     out: Path | None = None,
     progress: Progress | None = None,
+    scan: RecordScan | None = None,
 ) -> IdentifyResult:
     """Identify an opened recording; with ``out``, write its output files there.
 
@@ -265,46 +339,87 @@ def identify_source(
     source : InputSource
         The recording (e.g. from :func:`~bmsid.offline.inputs.open_input`).
     spec : IdentifySpec
-        The run's setup; ``spec.output`` says what is written.
+        The run's setup; ``spec.output`` says what is written, ``spec.keep_trace`` whether the
+        run is streamed.
     out : Path or None
-        Output directory (created): ``params.csv`` appended per block while the bank runs,
-        then ``metrics.json`` (metrics over ``spec.window`` plus ``spec.output.metadata``) and
-        the plots. None: nothing is written.
+        Output directory (created): ``params.csv`` (or ``.parquet``) appended per block while
+        the bank runs, then ``metrics.json`` (metrics over ``spec.window`` plus
+        ``spec.output.metadata`` and, when rows were decimated, ``output``) and the plots.
+        None: nothing is written.
     progress : callable or None
         Called with the samples consumed, per block.
+    scan : RecordScan or None
+        The streamed run's first pass when the caller made it already (:func:`scan_record`).
 
     Returns
     -------
     IdentifyResult
         Also written when the run completed no tick (metrics are then NaN, no plots).
     """
+    probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
+    start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
+    bounds = watched_bounds(spec.cell, start, spec.tuning, source.n_cells)
+    scorer: RunScorer | None = None
+    if not spec.keep_trace:
+        scan = scan or scan_record(source, spec)
+        scorer = RunScorer(scan.n_ticks, source.n_cells, spec.window, bounds)
+    every, announced = params_interval(spec.output, scan)
     with ExitStack() as stack:
         sink: EstimateSink | None = None
         if out is not None:
             prepare_out_dir(out)
             if spec.output.params_csv:
-                writer = stack.enter_context(ParamsCsvWriter(out / "params.csv", source.cell_names))
+                writer: ParamsSink = open_params_writer(
+                    out, source.cell_names, spec.output.params_format, every,
+                    spec.output.every_mode,
+                )  # fmt: skip
+                stack.callback(writer.close)
                 sink = writer.append
-        probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
-        start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
         result = run_blocks(
             source.blocks(spec.block_size), source.n_cells, spec.cell, spec.variant, spec.tuning,
-            spec.soc0, progress, source.cell_names, sink, start, spec.gates,
+            spec.soc0, progress, source.cell_names, sink, start, spec.gates, scorer,
         )  # fmt: skip
     if out is not None:
+        # a kept trace is scored once here, with the bounds, as the streamed run was
+        scored = scorer or RunScorer.of_trace(result.kept_trace(), spec.window, bounds)
+        result = replace(result, summary=scored)
         doc = {
             **metrics_document(result, spec.window),
             "start_values": start_values_document(spec.cell, start, spec.tuning, source.n_cells),
             "input_checks": {**source.input_report, "gates": result.input_gates},
-            "bounds": bound_findings(
-                result.trace, spec.cell, start, spec.tuning, result.cell_names
-            ),
+            "bounds": scored.acc.bound_findings(result.cell_names),
+            "output": _output_document(spec.output, every, announced),
             **spec.output.metadata,
         }
         write_metrics_json(doc, out / "metrics.json")
         title = spec.output.title or f"{Path(source.source).name} - {spec.variant}"
         write_plots(result, spec.window, out, title, spec.output.plots)
     return result
+
+
+def params_interval(output: OutputSpec, scan: RecordScan | None) -> tuple[float | None, bool]:
+    """The parameter table's interval (s; None: every tick) and whether it is the default
+    decimation of a long record (:func:`~bmsid.offline.outputs.auto_every_s`, which needs the
+    streamed run's ``scan``), to be announced."""
+    if output.every_s is not None:
+        return (output.every_s or None), False
+    if scan is None:
+        return None, False
+    every = auto_every_s(scan.n_ticks, scan.duration_s)
+    return every, every is not None
+
+
+def _output_document(output: OutputSpec, every: float | None, announced: bool) -> dict[str, Any]:
+    """The ``output`` entry of metrics.json: the parameter table's file and its rows."""
+    name = "params.parquet" if output.params_format == "parquet" else "params.csv"
+    return {
+        "params_file": name if output.params_csv else None,
+        "every_s": every,
+        "every_mode": output.every_mode if every is not None else None,
+        "default_decimation": announced,
+        "rows": "every tick and cell" if every is None else
+        f"one per {every:g} s and cell ({output.every_mode} value of each interval)",
+    }  # fmt: skip
 
 
 def identify_file(

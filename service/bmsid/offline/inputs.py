@@ -2,10 +2,13 @@
 
 A recording is opened as an :class:`InputSource` that yields :class:`~bmsid.samples.SampleBlock`
 columns in time order, whatever the file format: tester CSV (``.csv``, ``.csv.gz``, read by
-:func:`~bmsid.offline.csvio.read_tester_csv`) or candump log (``.log``, decoded by
-:func:`~bmsid.canbus.logs.samples_from_log` exactly as the daemon decodes the bus). Both readers
-load the whole file today and slice it; a streaming reader (issue 12) only has to yield the same
-blocks.
+:func:`~bmsid.offline.csvio.iter_tester_csv`) or candump log (``.log``, decoded by
+:func:`~bmsid.canbus.logs.iter_samples_from_log` exactly as the daemon decodes the bus). Both
+are :class:`StreamedInput`: every ``blocks()`` call reads the file again, piece by piece
+(``csvio.CHUNK_VALUES`` values: 65,536 samples of one cell), so memory does not grow with the
+record; what needs the whole record
+(sample count, gaps, merged rows, restarts) is known after one complete pass. In-memory columns
+are a :class:`LoadedInput`.
 
 What a reader did to the file (repeated timestamps merged, a restarted clock stitched on, the
 channel and cell count taken from a log) is kept on the source: ``notes`` (lines to print),
@@ -18,9 +21,10 @@ so every front end (CLI, benches) reports a bad value the same way.
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -29,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import ValidationError
 
-from bmsid.canbus.logs import LogSummary, samples_from_log, summarize_log
+from bmsid.canbus.logs import LogSummary, iter_samples_from_log, summarize_log
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.config.cell import CellConfig, OcvCurve, load_cell_config, paper_cell
 from bmsid.errors import UserError
@@ -40,9 +44,11 @@ from bmsid.offline.csvio import (
     RESTART_GAP_S,
     ColumnMap,
     TesterData,
-    read_tester_csv,
+    chunk_rows_for,
+    iter_tester_csv,
+    tester_csv_columns,
 )
-from bmsid.offline.plausibility import Finding, sample_period
+from bmsid.offline.plausibility import GAP_S, Finding, SamplePeriod, sample_period
 from bmsid.offline.scoring import EvalWindow
 from bmsid.samples import SampleBlock
 
@@ -85,6 +91,10 @@ class InputSource(Protocol):
 
     def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
         """Consecutive blocks of at most ``size`` samples, in time order."""
+        ...
+
+    def head(self, n: int) -> SampleBlock:
+        """The first ``n`` samples (all of a shorter record) as one block."""
         ...
 
 
@@ -159,6 +169,9 @@ class LoadedInput:
         for start in range(0, self.n_samples, size):
             yield self.samples.slice(start, start + size)
 
+    def head(self, n: int) -> SampleBlock:
+        return self.samples.slice(0, n)
+
     @classmethod
     def from_tester(cls, data: TesterData, source: str | None = None) -> LoadedInput:
         """A tester file's columns as a source (cells named by their voltage columns), with
@@ -196,13 +209,172 @@ class LoadedInput:
         )
 
 
+def _restart_finding(lines: Sequence[int]) -> Finding:
+    text = ", ".join(str(n) for n in lines)
+    return Finding(
+        "warning",
+        "time_restart",
+        f"the clock t_s restarts at line(s) {text}: stitched on after a {RESTART_GAP_S:g} s gap "
+        "(a new segment from rest); if the parts are separate tests, identify them separately",
+    )
+
+
+def _merged_note(n: int) -> str:
+    return f"merged {n} rows with repeated timestamps (the last row of each time is kept)"
+
+
+class StreamedInput:
+    """A recording read from its file piece by piece on every pass (see the module doc).
+
+    ``n_samples``, ``period``, the merges and restarts a CSV reader did, and with them
+    ``notes``, ``findings`` and ``input_report``, are complete after one full pass over
+    :meth:`blocks` (:func:`bmsid.offline.identify.scan_record` makes one); ``notes`` and
+    ``findings`` start with what opening the file found (a log's contents). ``findings`` may
+    be extended by the caller (plausibility checks) and go into ``input_report``.
+    The median step is that of the first piece (``chunk_rows_for``); gaps are counted over
+    the whole record.
+    """
+
+    def __init__(
+        self,
+        source: str,
+        cell_names: list[str],
+        pieces: Callable[[], Iterator[SampleBlock | TesterData]],
+        notes: Sequence[str] = (),
+        findings: Sequence[Finding] = (),
+        log_summary: LogSummary | None = None,
+        channel: str | None = None,
+    ) -> None:
+        self.source = source
+        self.cell_names = cell_names
+        self._pieces = pieces
+        self._notes = tuple(notes)
+        self.findings: tuple[Finding, ...] = tuple(findings)
+        self.log_summary = log_summary
+        self.channel = channel
+        self._scanned: tuple[int, SamplePeriod, int, tuple[int, ...]] | None = None
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.cell_names)
+
+    @property
+    def n_samples(self) -> int | None:
+        return None if self._scanned is None else self._scanned[0]
+
+    def period(self, gap_s: float = GAP_S) -> SamplePeriod:
+        """Median step (first piece) and gaps over ``GAP_S`` (whole record); after a pass."""
+        scanned = self._complete()
+        return SamplePeriod(scanned[1].median_dt_s, scanned[1].n_gaps, gap_s)
+
+    @property
+    def merged_repeats(self) -> int:
+        """Rows merged into a row with the same time stamp (reads the file if not read yet)."""
+        return self._complete()[2]
+
+    @property
+    def time_restarts(self) -> tuple[int, ...]:
+        """File lines where the clock restarted and was stitched on (reads the file if not
+        read yet)."""
+        return self._complete()[3]
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        merged = 0 if self._scanned is None else self._scanned[2]
+        return self._notes + ((_merged_note(merged),) if merged else ())
+
+    @property
+    def all_findings(self) -> tuple[Finding, ...]:
+        """What opening and reading the file found (a stitched clock), then ``findings``."""
+        restarts = () if self._scanned is None else self._scanned[3]
+        return ((_restart_finding(restarts),) if restarts else ()) + self.findings
+
+    def _complete(self) -> tuple[int, SamplePeriod, int, tuple[int, ...]]:
+        if self._scanned is None:
+            for _ in self.blocks():
+                pass
+        assert self._scanned is not None
+        return self._scanned
+
+    @property
+    def input_report(self) -> dict[str, Any]:
+        """As :attr:`LoadedInput.input_report` (reads the file once if not read yet)."""
+        _, period, merged, restarts = self._complete()
+        cells = None
+        if self.log_summary is not None:
+            ch = self.log_summary.channels.get(self.channel or "")
+            mapped = self.log_summary.mapped_channels
+            if ch is None and len(mapped) == 1:
+                ch = self.log_summary.channels[mapped[0]]
+            cells = None if ch is None else ch.n_cells
+        return {
+            "merged_repeats": merged,
+            "time_restarts": list(restarts),
+            "median_dt_s": None if math.isnan(period.median_dt_s) else period.median_dt_s,
+            "gaps_over_30s": period.n_gaps,
+            "channel": self.channel,
+            "cells_in_log": cells,
+            "notes": list(self.notes),
+            "findings": [f.as_dict() for f in self.all_findings],
+        }
+
+    def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
+        if size < 1:
+            raise ValueError(f"block size must be >= 1, got {size}")
+        n = gaps = merged = 0
+        restarts: list[int] = []
+        median = math.nan
+        t_prev = math.nan
+        rest: SampleBlock | None = None  # fewer than ``size`` samples carried to the next piece
+        for raw in self._pieces():
+            if isinstance(raw, TesterData):
+                merged += raw.merged_repeats
+                restarts += raw.time_restarts
+                piece = SampleBlock.from_arrays(
+                    raw.t_s, raw.current_A, raw.cell_voltages_V, raw.temperature_C
+                )
+            else:
+                piece = raw
+            if len(piece) == 0:
+                continue
+            dt = np.diff(np.concatenate(([t_prev], piece.t_s)))[0 if n else 1 :]
+            gaps += int(np.count_nonzero(dt > GAP_S))
+            if math.isnan(median):
+                median = sample_period(piece.t_s).median_dt_s
+            t_prev = float(piece.t_s[-1])
+            n += len(piece)
+            if rest is not None:
+                piece = SampleBlock.concat([rest, piece])
+            full = len(piece) - len(piece) % size
+            for start in range(0, full, size):
+                yield piece.slice(start, start + size)
+            rest = piece.slice(full, len(piece)) if full < len(piece) else None
+        if rest is not None:
+            yield rest
+        self._scanned = (n, SamplePeriod(median, gaps), merged, tuple(restarts))
+
+    def head(self, n: int) -> SampleBlock:
+        got: list[SampleBlock] = []
+        have = 0
+        for block in self.blocks(max(1, min(n, DEFAULT_BLOCK_SIZE))):
+            got.append(block.slice(0, n - have))
+            have += len(got[-1])
+            if have >= n:
+                break
+        if not got:
+            return SampleBlock.from_arrays(np.zeros(0), np.zeros(0), np.zeros((0, self.n_cells)))
+        return SampleBlock.concat(got)
+
+
 def read_csv_input(
     path: str | Path,
     *,
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
-) -> LoadedInput:
-    """A tester CSV as a source (format in :mod:`bmsid.offline.csvio`).
+    chunk_rows: int | None = None,
+) -> StreamedInput:
+    """A tester CSV as a streamed source (format in :mod:`bmsid.offline.csvio`), read in pieces
+    of ``chunk_rows`` rows (None: ``csvio.chunk_rows_for`` the file's width).
 
     Parameters
     ----------
@@ -216,11 +388,17 @@ def read_csv_input(
     Raises
     ------
     UserError
-        A missing or malformed file (one line naming the file and the lines).
+        A missing or malformed header at once; malformed rows (one line naming the file and
+        the lines) in the pass that reaches them.
     """
-    return LoadedInput.from_tester(
-        read_tester_csv(path, charge_positive=charge_positive, columns=columns)
-    )
+    names = tester_csv_columns(path, columns)
+
+    def pieces() -> Iterator[TesterData]:
+        return iter_tester_csv(
+            path, charge_positive=charge_positive, columns=columns, chunk_rows=chunk_rows
+        )
+
+    return StreamedInput(str(path), names, pieces)
 
 
 def _cell_range(a: int, b: int) -> str:
@@ -235,8 +413,10 @@ def read_log_input(
     mapping: str | Path | None = None,
     charge_positive: bool = False,
     channel: str | None = None,
-) -> LoadedInput:
-    """A candump log decoded as the daemon decodes the bus, as a source.
+    chunk_rows: int | None = None,
+) -> StreamedInput:
+    """A candump log decoded as the daemon decodes the bus, as a streamed source (samples
+    grouped in pieces of ``chunk_rows``; None: ``csvio.chunk_rows_for`` the cells and 2).
 
     The log is first summarised (:func:`~bmsid.canbus.logs.summarize_log`): its channels,
     frame counts and ids go into ``notes``, and the cells whose voltages it carries give the
@@ -262,7 +442,8 @@ def read_log_input(
     ------
     UserError
         A missing file, a bad mapping, several channels without ``channel``, a channel or
-        cell count the log does not hold, no decodable sample or no timestamps.
+        cell count the log does not hold at once; no decodable sample or no timestamps in the
+        first pass.
     """
     if n_cells is not None and n_cells < 1:
         raise UserError(f"--n-cells must be >= 1, got {n_cells}")
@@ -308,21 +489,21 @@ def read_log_input(
                 f"{_cell_range(1, n_cells)} analysed (leave --n-cells out for all)",
             )
         )
-    block = SampleBlock.from_samples(samples_from_log(path, bus, n_cells, channel=chosen))
-    if charge_positive:
-        block = SampleBlock(
-            block.t_s, -block.current_A, block.cell_voltages_V, None, block.temperature_C
-        )
-    names = [f"v_cell_{c + 1:02d}" for c in range(block.n_cells)]
-    return LoadedInput(
-        source=str(path),
-        samples=block,
-        cell_names=names,
-        notes=tuple(notes),
-        findings=tuple(findings),
-        log_summary=summary,
-        channel=chosen,
-    )
+    cells = n_cells
+    rows = chunk_rows or chunk_rows_for(n_cells + 2)
+
+    def pieces() -> Iterator[SampleBlock]:
+        samples = iter_samples_from_log(path, bus, cells, channel=chosen)
+        while chunk := list(itertools.islice(samples, rows)):
+            block = SampleBlock.from_samples(chunk)
+            if charge_positive:
+                block = SampleBlock(
+                    block.t_s, -block.current_A, block.cell_voltages_V, None, block.temperature_C
+                )
+            yield block
+
+    names = [f"v_cell_{c + 1:02d}" for c in range(n_cells)]
+    return StreamedInput(str(path), names, pieces, notes, findings, summary, chosen)
 
 
 def open_input(
@@ -333,7 +514,8 @@ def open_input(
     n_cells: int | None = None,
     channel: str | None = None,
     columns: Mapping[str, ColumnMap] | None = None,
-) -> LoadedInput:
+    chunk_rows: int | None = None,
+) -> StreamedInput:
     """The recording at ``path``: a candump log when it ends in ``.log``, else a tester CSV.
 
     ``mapping``, ``n_cells`` (None: from the log) and ``channel`` apply to logs only,
@@ -349,11 +531,13 @@ def open_input(
             mapping=mapping,
             charge_positive=charge_positive,
             channel=channel,
+            chunk_rows=chunk_rows,
         )
     for given, option in ((mapping, "--mapping"), (channel, "--channel")):
         if given is not None:
             raise UserError(f"{option} applies to candump .log inputs only")
-    return read_csv_input(path, charge_positive=charge_positive, columns=columns)
+    return read_csv_input(path, charge_positive=charge_positive, columns=columns,
+                          chunk_rows=chunk_rows)  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- cell config

@@ -1,8 +1,10 @@
 """What offline identification writes and says: metrics.json, the plots and the report lines.
 
-``params.csv`` is appended block by block while the bank runs
-(:class:`~bmsid.offline.writers.ParamsCsvWriter`); everything here needs the whole run and is
-written once at its end. Apart from the files it is given, pure.
+``params.csv`` (or ``params.parquet``) is appended block by block while the bank runs
+(:mod:`bmsid.offline.writers`), every tick or one row per ``every_s`` interval
+(:func:`auto_every_s` picks one for long records); everything here is written once at the run's
+end from what the run accumulated (:class:`~bmsid.offline.scoring.RunScorer`: running sums and
+the plots' min-max decimation). Apart from the files it is given, pure.
 """
 
 from __future__ import annotations
@@ -15,12 +17,15 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
+from bmsid.offline.accumulate import PLOT_SERIES
 from bmsid.offline.plots import plot_parameters, plot_voltage
-from bmsid.offline.scoring import EvalWindow, IdentifyResult, score
+from bmsid.offline.scoring import EvalWindow, IdentifyResult
+from bmsid.offline.writers import EveryMode, ParamsFormat
 
 #: Help of the ``--score-soc0`` option (``identify``, ``compare``): what the reference SOC is.
 SCORE_SOC0_HELP = (
@@ -36,6 +41,25 @@ MAX_PLOTTED_CELLS = 4
 #: ``auto``: every cell up to MAX_PLOTTED_CELLS (``voltage_<cell>.png`` each when there are
 #: several), else the first and the worst; ``first``: the first cell only, as ``voltage.png``.
 PlotCells = Literal["auto", "first"]
+FloatArray = npt.NDArray[np.float64]
+
+#: Records with more ticks than this get a decimated parameter table by default: one day of
+#: 1 s ticks, which a spreadsheet or a pandas session still opens whole (86,400 rows per cell).
+AUTO_EVERY_MAX_ROWS = 86_400
+#: The intervals the default decimation picks from, s.
+AUTO_EVERY_STEPS_S = (2.0, 5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0, 600.0, 900.0, 1800.0, 3600.0)
+
+
+def auto_every_s(n_ticks: int, duration_s: float) -> float | None:
+    """The default ``--every`` of a record: None (every tick) up to ``AUTO_EVERY_MAX_ROWS``
+    ticks, else the shortest of ``AUTO_EVERY_STEPS_S`` that leaves at most that many rows per
+    cell over ``duration_s`` (s). The estimates move over tens of seconds and more (tau1 ~30 s,
+    tau2 ~10 min, forgetting windows of minutes), so 5-30 s rows keep their course; a 3-day
+    1 s record gets 5 s, a 30-day one 30 s."""
+    if n_ticks <= AUTO_EVERY_MAX_ROWS:
+        return None
+    need = duration_s / AUTO_EVERY_MAX_ROWS
+    return next((s for s in AUTO_EVERY_STEPS_S if s >= need), AUTO_EVERY_STEPS_S[-1])
 
 
 @dataclass(frozen=True)
@@ -45,7 +69,14 @@ class OutputSpec:
     Attributes
     ----------
     params_csv : bool
-        Write ``params.csv`` (one row per tick and cell).
+        Write the parameter table (one row per tick, or per ``every_s``, and cell).
+    params_format : {"csv", "parquet"}
+        ``params.csv`` or ``params.parquet`` (same columns and units).
+    every_s : float or None
+        One row per interval of this many seconds; 0: every tick; None: the default
+        (:func:`auto_every_s`, announced; every tick when the run is not streamed).
+    every_mode : {"last", "mean"}
+        Per interval the last tick's values or the mean of its ticks.
     plots : {"auto", "first"}
         Which cells get the Fig. 10/11 plots (see ``PlotCells``).
     title : str or None
@@ -55,6 +86,9 @@ class OutputSpec:
     """
 
     params_csv: bool = True
+    params_format: ParamsFormat = "csv"
+    every_s: float | None = None
+    every_mode: EveryMode = "last"
     plots: PlotCells = "auto"
     title: str | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
@@ -74,35 +108,42 @@ def write_metrics_json(doc: Mapping[str, Any], path: Path) -> None:
 
 def plotted_cells(result: IdentifyResult, window: EvalWindow) -> list[int]:
     """All cells up to MAX_PLOTTED_CELLS, else the first and the worst (window RMSE)."""
-    nc = result.trace.n_cells
+    nc = len(result.cell_names)
     if nc <= MAX_PLOTTED_CELLS:
         return list(range(nc))
-    rmse = [m.rmse_V for m in score(result.trace, window).per_cell_window]
+    rmse = [m.rmse_V for m in result.scorer(window).scores().per_cell_window]
     return sorted({0, int(np.argmax(rmse))})
 
 
 def write_plots(
     result: IdentifyResult, window: EvalWindow, out: Path, title: str, cells: PlotCells = "auto"
 ) -> None:
-    """Fig. 10 (``parameters.png``) and Fig. 11 (``voltage*.png``) of the chosen cells."""
-    tr, names = result.trace, result.cell_names
-    if tr.n_ticks == 0:
+    """Fig. 10 (``parameters.png``) and Fig. 11 (``voltage*.png``) of the chosen cells, drawn
+    from the run's min-max decimation (every tick of a record up to ``PLOT_BINS`` ticks)."""
+    names = result.cell_names
+    if result.n_ticks == 0:
         return  # nothing to draw
+    plot = result.scorer(window).acc.plot
+
+    def series(name: str, cell: int) -> tuple[FloatArray, FloatArray]:
+        return plot.series(PLOT_SERIES.index(name), cell)
+
     if cells == "first":
-        plot_parameters(tr, [0], names, out / "parameters.png", title)
-        plot_voltage(tr, 0, names[0], out / "voltage.png", title)
+        plot_parameters(series, [0], names, out / "parameters.png", title)
+        plot_voltage(series, 0, names[0], out / "voltage.png", title)
         return
     chosen = plotted_cells(result, window)
-    plot_parameters(tr, chosen, names, out / "parameters.png", title)
+    plot_parameters(series, chosen, names, out / "parameters.png", title)
     for c in chosen:
-        file = "voltage.png" if tr.n_cells == 1 else f"voltage_{names[c]}.png"
-        plot_voltage(tr, c, names[c], out / file, title)
+        file = "voltage.png" if len(names) == 1 else f"voltage_{names[c]}.png"
+        plot_voltage(series, c, names[c], out / file, title)
 
 
 # ----------------------------------------------------------------------------- report lines
 def soc_init_text(result: IdentifyResult) -> str:
     """One line: the initial SOC of the first cells (%) and how it was found."""
-    z0 = result.trace["soc"][0] if result.trace.n_ticks else np.array([math.nan])
+    first = result.first_tick()
+    z0 = first["soc"][0] if first is not None else np.array([math.nan])
     socs = ", ".join(f"{100 * z:.1f} %" for z in z0[:4]) + (" ..." if z0.size > 4 else "")
     how = {
         "given": "given by --soc0",
@@ -117,8 +158,8 @@ def soc_init_text(result: IdentifyResult) -> str:
 
 def observer_text(result: IdentifyResult) -> str | None:
     """One line: what the SOC observer found at the end of the record (None when off)."""
-    tr = result.trace
-    if tr.n_ticks == 0 or not np.isfinite(tr["soc_std"][-1]).any():
+    tr = result.last_tick()
+    if tr is None or not np.isfinite(tr["soc_std"][-1]).any():
         return None
     q, q_sd = tr["capacity_Ah"][-1], tr["capacity_std_Ah"][-1]
     caps = ", ".join(f"{a:.3g} +- {b:.2g} Ah" for a, b in zip(q[:4], q_sd[:4], strict=True))
@@ -132,12 +173,13 @@ def observer_text(result: IdentifyResult) -> str | None:
 def ocv_range_warning(result: IdentifyResult, cell: CellConfig) -> str | None:
     """A warning when SOC was read off the OCV curve at one of its ends: the first voltage lies
     outside the curve's range, so SOC is clamped and the OCV model is off by the difference."""
-    if result.soc_init_method != "ocv_at_rest" or result.trace.n_ticks == 0:
+    first = result.first_tick()
+    if result.soc_init_method != "ocv_at_rest" or first is None:
         return None
     ocv = ocv_model(cell)
     lo, hi = cell.ocv.soc_min, cell.ocv.soc_max
     v_lo, v_hi = float(ocv.ocv(np.array(lo))), float(ocv.ocv(np.array(hi)))
-    v0 = result.trace["v_meas_V"][0]
+    v0 = first["v_meas_V"][0]
     outside = [
         f"{name} {v:.4f} V"
         for name, v in zip(result.cell_names, v0, strict=True)

@@ -98,6 +98,18 @@ def first_error(findings: Iterable[Finding]) -> Finding | None:
     return next((f for f in findings if f.level == "error"), None)
 
 
+#: The checks before a run look at the record's first samples only, so that their memory does
+#: not grow with the record: two days at 1 s, fewer for packs of more than 20 cells (at most
+#: 4 M values of time, current and voltages). A shorter record is checked whole.
+CHECK_HEAD_SAMPLES = 172_800
+CHECK_HEAD_VALUES = 4_000_000
+
+
+def check_head_samples(n_cells: int) -> int:
+    """Samples of a record of ``n_cells`` cells that the checks before a run look at."""
+    return min(CHECK_HEAD_SAMPLES, CHECK_HEAD_VALUES // (n_cells + 2))
+
+
 # ----------------------------------------------------------------------------- time base
 @dataclass(frozen=True)
 class SamplePeriod:

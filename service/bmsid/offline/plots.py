@@ -6,7 +6,7 @@ matplotlib with the Agg backend (no display needed); every function writes one f
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -14,11 +14,13 @@ import matplotlib.pyplot as plt
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate.types import EstimateBlock
-
 matplotlib.use("Agg")
 
 FloatArray = npt.NDArray[np.float64]
+#: ``series(name, cell)``: times (s) and values of a plotted series of one cell (every tick, or
+#: a min-max decimation: ``bmsid.offline.accumulate.MinMaxDecimator``). Names: the trace
+#: fields, and ``error_V`` (measured - model, V).
+Series = Callable[[str, int], tuple[FloatArray, FloatArray]]
 
 #: (trace field, axis label, factor from SI to the plotted unit) for Fig. 10.
 _PARAMS = (
@@ -32,14 +34,14 @@ _PARAMS = (
 
 
 def plot_parameters(
-    trace: EstimateBlock, cells: Sequence[int], names: Sequence[str], path: Path, title: str
+    series: Series, cells: Sequence[int], names: Sequence[str], path: Path, title: str
 ) -> None:
     """Fig. 10: R0, R1, C1, R2, C2 and the forgetting factor over time (h), one line per cell."""
     fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
-    t_h = trace.t_s / 3600.0
     for ax, (key, label, k) in zip(axes.ravel(), _PARAMS, strict=True):
         for c in cells:
-            ax.plot(t_h, trace[key][:, c] * k, lw=0.8, label=names[c])
+            t, y = series(key, c)
+            ax.plot(t / 3600.0, y * k, lw=0.8, label=names[c])
         ax.set_ylabel(label)
         if key.startswith("C"):
             ax.set_yscale("log")  # C = tau / R spikes while R passes near zero
@@ -54,18 +56,19 @@ def plot_parameters(
     plt.close(fig)
 
 
-def plot_voltage(trace: EstimateBlock, cell: int, name: str, path: Path, title: str) -> None:
+def plot_voltage(series: Series, cell: int, name: str, path: Path, title: str) -> None:
     """Fig. 11: measured and model voltage (V) over time, and the error (mV) below."""
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(11, 7), sharex=True,
                                    gridspec_kw={"height_ratios": [2, 1]})  # fmt: skip
-    t_h = trace.t_s / 3600.0
-    meas, model = trace["v_meas_V"][:, cell], trace["v_model_V"][:, cell]
-    ax1.plot(t_h, meas, lw=0.8, label="measured")
-    ax1.plot(t_h, model, lw=0.8, ls="--", label="model (a priori)")
+    t_meas, meas = series("v_meas_V", cell)
+    t_model, model = series("v_model_V", cell)
+    t_err, err = series("error_V", cell)
+    ax1.plot(t_meas / 3600.0, meas, lw=0.8, label="measured")
+    ax1.plot(t_model / 3600.0, model, lw=0.8, ls="--", label="model (a priori)")
     ax1.set_ylabel("voltage / V")
     ax1.legend()
     ax1.grid(alpha=0.3)
-    ax2.plot(t_h, (meas - model) * 1e3, lw=0.6, color="tab:red")
+    ax2.plot(t_err / 3600.0, err * 1e3, lw=0.6, color="tab:red")
     ax2.set_ylabel("error / mV")
     ax2.set_xlabel("time / h")
     ax2.grid(alpha=0.3)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,8 +29,9 @@ from bmsid.config.cell import CellConfig
 from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
-from bmsid.metrics import VoltageMetrics, voltage_metrics
+from bmsid.metrics import VoltageMetrics
 from bmsid.model.simulator import coulomb_count
+from bmsid.offline.accumulate import CoulombCarry, ErrorSums, PartMasks, RunAccumulator
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -268,42 +270,97 @@ class Scores:
         return [c.overall for c in self.cells]
 
 
-def _score_set(
-    meas: FloatArray, model: FloatArray, startup: BoolArray, window: BoolArray, band: IntArray
-) -> ScoreSet:
-    """Eq. 31 over the parts of equally shaped arrays (1-D for a cell, 2-D pooled)."""
-
-    def part(mask: BoolArray) -> VoltageMetrics:
-        # A NaN measurement leaves a tick out of voltage_metrics: that is how a part is masked.
-        return voltage_metrics(np.where(mask, meas, np.nan).ravel(), model.ravel())
-
-    bands = (BandScore(b, part(band == k)) for k, b in enumerate(SOC_BANDS))
+def _score_set(sums: ErrorSums, cell: int | None) -> ScoreSet:
+    """The parts of one cell (or pooled, None) from the run's Eq. 31 sums."""
+    bands = (BandScore(b, sums.metrics(4 + k, cell)) for k, b in enumerate(SOC_BANDS))
     return ScoreSet(
-        overall=part(np.ones_like(window)),
-        startup=part(startup),
-        after_startup=part(~startup),
-        window=part(window),
+        overall=sums.metrics(RunAccumulator.OVERALL, cell),
+        startup=sums.metrics(RunAccumulator.STARTUP, cell),
+        after_startup=sums.metrics(RunAccumulator.AFTER, cell),
+        window=sums.metrics(RunAccumulator.WINDOW, cell),
         soc_bands=tuple(b for b in bands if b.metrics.n_samples > 0),
     )
+
+
+class RunScorer:
+    """Eq. 31 and the rest of metrics.json, scored block by block of estimates in tick order
+    (:class:`~bmsid.offline.accumulate.RunAccumulator`): the start-up is the first
+    ``startup_ticks(n_ticks)`` ticks, the window skips ``startup_ticks(n_ticks,
+    window.skip_fraction)``, so the run's tick count is given up front. A whole trace is one
+    ``add`` (:meth:`of_trace`).
+
+    Parameters
+    ----------
+    n_ticks, n_cells : int
+        Ticks the run produces, cells of each block.
+    window : EvalWindow
+        The evaluation window (and the SOC reference of the window and the bands).
+    bounds : mapping or None
+        Bounds (lo, hi) of each ``guard.WATCHED`` parameter, shape (n_cells,) each, for the
+        bound findings; None: none counted (``bound_findings`` then reports nothing).
+    """
+
+    def __init__(
+        self,
+        n_ticks: int,
+        n_cells: int,
+        window: EvalWindow,
+        bounds: Mapping[str, tuple[FloatArray, FloatArray]] | None = None,
+    ) -> None:
+        self.window = window
+        self.n_ticks = n_ticks
+        self.n_startup = startup_ticks(n_ticks)
+        self._n_skip = startup_ticks(n_ticks, window.skip_fraction)
+        self.acc = RunAccumulator(n_ticks, n_cells, len(SOC_BANDS), bounds)
+        ref = window.soc_reference
+        self._count = None if ref is None else CoulombCarry(
+            ref.soc0, ref.capacity_Ah, ref.coulombic_efficiency, ref.gap_s
+        )  # fmt: skip
+
+    @classmethod
+    def of_trace(
+        cls,
+        trace: EstimateBlock,
+        window: EvalWindow,
+        bounds: Mapping[str, tuple[FloatArray, FloatArray]] | None = None,
+    ) -> RunScorer:
+        """A whole trace scored at once."""
+        scorer = cls(trace.n_ticks, trace.n_cells, window, bounds)
+        scorer.add(trace)
+        return scorer
+
+    def add(self, block: EstimateBlock) -> None:
+        """The next block of estimates (ticks after those already added)."""
+        if block.n_ticks == 0:
+            return
+        k = self.acc.seen + np.arange(block.n_ticks)
+        if self._count is None:
+            soc = np.asarray(block["soc"], dtype=np.float64)
+        else:
+            z = self._count.soc(block.t_s, block.current_A)
+            soc = np.repeat(z[:, None], block.n_cells, axis=1)
+        win = np.repeat((k >= self._n_skip)[:, None], block.n_cells, axis=1)
+        if self.window.soc_lo is not None:
+            win &= soc >= self.window.soc_lo
+        if self.window.soc_hi is not None:
+            win &= soc <= self.window.soc_hi
+        parts = PartMasks(startup=(k < self.n_startup)[:, None], window=win, band=band_index(soc))
+        self.acc.add(block, parts, soc)
+
+    def scores(self) -> Scores:
+        """Eq. 31 pooled and per cell over the ticks added so far."""
+        sums = self.acc.sums
+        return Scores(
+            pooled=_score_set(sums, None),
+            cells=tuple(_score_set(sums, c) for c in range(self.acc.n_cells)),
+            n_startup_ticks=self.n_startup,
+        )
 
 
 def score(trace: EstimateBlock, window: EvalWindow) -> Scores:
     """Eq. 31 on the model voltage, pooled over the cells and per cell: the whole record, the
     start-up and the rest, ``window``, and the SOC bands of ``window.soc_reference``'s SOC."""
-    meas = np.asarray(trace["v_meas_V"], dtype=np.float64)
-    model = np.asarray(trace["v_model_V"], dtype=np.float64)
-    n0 = startup_ticks(trace.n_ticks)
-    startup = np.repeat((np.arange(trace.n_ticks) < n0)[:, None], trace.n_cells, axis=1)
-    win = window.mask(trace)
-    band = band_index(scoring_soc(trace, window.soc_reference))
-    return Scores(
-        pooled=_score_set(meas, model, startup, win, band),
-        cells=tuple(
-            _score_set(meas[:, c], model[:, c], startup[:, c], win[:, c], band[:, c])
-            for c in range(trace.n_cells)
-        ),
-        n_startup_ticks=n0,
-    )
+    return RunScorer.of_trace(trace, window).scores()
 
 
 # ----------------------------------------------------------------------------- metrics.json
@@ -315,8 +372,9 @@ class IdentifyResult:
     ----------
     variant : str
         The estimator variant that ran.
-    trace : EstimateBlock
-        The bank's estimates at every identification tick.
+    trace : EstimateBlock or None
+        The bank's estimates at every identification tick; None for a streamed run, which kept
+        only ``summary``.
     soc_init_method : str
         How the initial SOC was found (``given``, ``ocv_at_rest``,
         ``ocv_ir_corrected``, ``config``; ``pending`` when no cell had a valid voltage).
@@ -334,10 +392,15 @@ class IdentifyResult:
     input_gates : dict
         What the plausibility gates refused, per reason and cell, and the cells that never
         carried a reading or never a valid one (``bmsid.gates.GateState.report``).
+    summary : RunScorer or None
+        The streamed scores, SOC range, bound findings and plot decimation of the run's
+        evaluation window (a streamed run); None: computed from ``trace`` when needed.
+    n_ticks : int
+        Identification ticks of the run.
     """
 
     variant: Variant
-    trace: EstimateBlock
+    trace: EstimateBlock | None
     soc_init_method: str
     counters: dict[str, int]
     runtime_s: float
@@ -345,6 +408,52 @@ class IdentifyResult:
     cell_names: list[str] = field(default_factory=list)
     start_values: StartValues | None = None
     input_gates: dict[str, Any] = field(default_factory=dict)
+    summary: RunScorer | None = None
+
+    @property
+    def n_ticks(self) -> int:
+        if self.trace is not None:
+            return self.trace.n_ticks
+        return 0 if self.summary is None else self.summary.acc.seen
+
+    def scorer(self, window: EvalWindow) -> RunScorer:
+        """The run scored over ``window``: the streamed summary when it was made for this
+        window, else the kept trace scored at once; ValueError for a streamed run asked for
+        another window."""
+        if self.summary is not None and self.summary.window == window:
+            return self.summary
+        if self.trace is None:
+            raise ValueError("a streamed run is scored over its own evaluation window only")
+        return RunScorer.of_trace(self.trace, window)
+
+    def first_tick(self) -> EstimateBlock | None:
+        """The run's first tick (None when it had none)."""
+        if self.trace is not None:
+            return self.trace.select(slice(0, 1)) if self.trace.n_ticks else None
+        return None if self.summary is None else self.summary.acc.first
+
+    def last_tick(self) -> EstimateBlock | None:
+        """The run's last tick (None when it had none)."""
+        if self.trace is not None:
+            n = self.trace.n_ticks
+            return self.trace.select(slice(n - 1, n)) if n else None
+        return None if self.summary is None else self.summary.acc.last
+
+    def soc_extremes(self) -> FloatArray:
+        """The smallest and largest finite estimator SOC of the run (fractions; empty when
+        none), for ``plausibility.check_soc_range``."""
+        if self.trace is not None:
+            z = np.asarray(self.trace["soc"], dtype=np.float64)
+            z = z[np.isfinite(z)]
+            return np.array([z.min(), z.max()]) if z.size else np.zeros(0)
+        ext = np.zeros(0) if self.summary is None else self.summary.acc.est_soc
+        return ext if np.isfinite(ext).all() else np.zeros(0)
+
+    def kept_trace(self) -> EstimateBlock:
+        """The whole trace; ValueError for a streamed run (``IdentifySpec.keep_trace``)."""
+        if self.trace is None:
+            raise ValueError("the run was streamed: no trace kept (IdentifySpec.keep_trace)")
+        return self.trace
 
 
 def _parts(s: ScoreSet, n_ticks: int, n_startup: int) -> dict[str, Any]:
@@ -356,22 +465,10 @@ def _parts(s: ScoreSet, n_ticks: int, n_startup: int) -> dict[str, Any]:
     }
 
 
-def _soc_range(z: FloatArray) -> dict[str, float | None]:
-    ok = z[np.isfinite(z)]
-    if ok.size == 0:
-        return {"soc_first": None, "soc_last": None, "soc_min": None, "soc_max": None}
-    first, last = z[0], z[-1]
-    return {
-        "soc_first": float(np.nanmean(first)) if np.isfinite(first).any() else None,
-        "soc_last": float(np.nanmean(last)) if np.isfinite(last).any() else None,
-        "soc_min": float(ok.min()),
-        "soc_max": float(ok.max()),
-    }
-
-
-def scoring_soc_document(trace: EstimateBlock, reference: SocReference | None) -> dict[str, Any]:
+def scoring_soc_document(scorer: RunScorer) -> dict[str, Any]:
     """The ``scoring_soc`` entry of metrics.json: which SOC decided the window and the bands, and
     the range it covered (fractions; first and last ticks averaged over the cells)."""
+    reference = scorer.window.soc_reference
     head: dict[str, Any]
     if reference is None:
         head = {"source": "estimator", "description": "the estimator's SOC (coulomb count)"}
@@ -384,7 +481,7 @@ def scoring_soc_document(trace: EstimateBlock, reference: SocReference | None) -
             "coulombic_efficiency": reference.coulombic_efficiency,
             "gap_s": reference.gap_s,
         }
-    return {**head, **_soc_range(scoring_soc(trace, reference))}
+    return {**head, **scorer.acc.soc_range()}
 
 
 def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, Any]:
@@ -396,8 +493,9 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     (non-empty 10 % SOC bands), ``evaluation_window`` and ``scoring_soc`` (the SOC that decided
     the window and bands); the same per cell under ``cells``.
     """
-    s = score(result.trace, window)
-    n, n0 = result.trace.n_ticks, s.n_startup_ticks
+    scorer = result.scorer(window)
+    s = scorer.scores()
+    n, n0 = scorer.acc.seen, s.n_startup_ticks
     cells: dict[str, Any] = {}
     for c, name in enumerate(result.cell_names):
         cells[name] = {
@@ -413,7 +511,7 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
         "evaluation_window": window.as_dict(),
         **_parts(s.pooled, n, n0),
         "startup_fraction": STARTUP_FRACTION,
-        "scoring_soc": scoring_soc_document(result.trace, window.soc_reference),
+        "scoring_soc": scoring_soc_document(scorer),
         "n_input_samples": result.n_samples,
         "n_ticks": n,
         "soc_init_method": result.soc_init_method,

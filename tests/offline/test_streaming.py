@@ -1,0 +1,242 @@
+"""Streamed identification (issue 12): the same params.csv and metrics.json as the whole-file
+path, inputs read in pieces, decimated and Parquet output, plots from a min-max decimation."""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import itertools
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from test_identify_cli import synthetic_columns, write_csv
+
+from bmsid.cli.main import main
+from bmsid.config.cell import paper_cell
+from bmsid.estimate.fields import CELL_FIELDS, FIELD_NAMES
+from bmsid.estimate.types import EstimateBlock
+from bmsid.offline import outputs
+from bmsid.offline.accumulate import MinMaxDecimator
+from bmsid.offline.csvio import iter_tester_csv, read_tester_csv
+from bmsid.offline.identify import IdentifySpec, RecordScan, identify_source, params_interval
+from bmsid.offline.inputs import open_input
+from bmsid.offline.outputs import OutputSpec, auto_every_s
+from bmsid.offline.scoring import EvalWindow, SocReference
+from bmsid.offline.writers import TickDecimator
+
+
+@pytest.fixture(scope="module")
+def pack_csv(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two cells, 900 s, with rows logged twice (merged) and a NaN-free clock."""
+    cols = synthetic_columns(900, n_cells=2, seed=3)
+    keep = np.ones(900, dtype=int)
+    keep[[100, 333, 640]] = 2  # repeated time stamps across the reader's pieces
+    cols = {k: np.repeat(v, keep) for k, v in cols.items()}
+    return write_csv(tmp_path_factory.mktemp("stream") / "pack.csv", cols)
+
+
+def _close(a: Any, b: Any, path: str = "") -> None:
+    """Equal JSON documents, numbers to float rounding."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), path
+        for k in a:
+            _close(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for k, (x, y) in enumerate(zip(a, b, strict=True)):
+            _close(x, y, f"{path}[{k}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-15, nan_ok=True), path
+    else:
+        assert a == b, path
+
+
+@pytest.mark.parametrize("window", [
+    EvalWindow(),
+    EvalWindow(skip_fraction=0.1, soc_lo=0.6, soc_hi=0.9,
+               soc_reference=SocReference(0.95, 70.0)),
+])  # fmt: skip
+def test_streamed_run_writes_what_the_whole_file_run_writes(
+    pack_csv: Path, tmp_path: Path, window: EvalWindow
+) -> None:
+    whole_spec = IdentifySpec(cell=paper_cell(), variant="hy-affrls-lpso", window=window)
+    whole = identify_source(open_input(pack_csv), whole_spec, tmp_path / "whole")
+    assert whole.trace is not None and whole.trace.n_ticks == 900
+    # pieces of 101 rows (a merged repeat straddles one), blocks of 37 samples, no trace kept
+    streamed_spec = IdentifySpec(cell=paper_cell(), variant="hy-affrls-lpso", window=window,
+                                 block_size=37, keep_trace=False)  # fmt: skip
+    streamed = identify_source(
+        open_input(pack_csv, chunk_rows=101), streamed_spec, tmp_path / "streamed"
+    )
+    assert streamed.trace is None and streamed.n_ticks == 900
+    a = (tmp_path / "whole" / "params.csv").read_text()
+    b = (tmp_path / "streamed" / "params.csv").read_text()
+    assert a == b and a.count("\n") == 1 + 2 * 900
+    ma = json.loads((tmp_path / "whole" / "metrics.json").read_text())
+    mb = json.loads((tmp_path / "streamed" / "metrics.json").read_text())
+    for doc in (ma, mb):
+        doc.pop("runtime_s")
+        for cell in doc["cells"].values():
+            cell.pop("runtime_s")
+    assert ma["input_checks"]["merged_repeats"] == 3
+    assert ma["startup"]["n_ticks"] == 90 and ma["bounds"]["share_of_ticks_on_a_bound"]
+    _close(ma, mb)
+    for name in ("parameters.png", "voltage_v_cell_01.png", "voltage_v_cell_02.png"):
+        assert (tmp_path / "streamed" / name).stat().st_size > 0
+
+
+def test_reader_pieces_join_to_the_whole_file(pack_csv: Path) -> None:
+    whole = read_tester_csv(pack_csv)
+    for rows in (1, 2, 101, 334, 10_000):
+        pieces = list(iter_tester_csv(pack_csv, chunk_rows=rows))
+        np.testing.assert_array_equal(np.concatenate([p.t_s for p in pieces]), whole.t_s)
+        np.testing.assert_array_equal(
+            np.concatenate([p.cell_voltages_V for p in pieces]), whole.cell_voltages_V
+        )
+        assert sum(p.merged_repeats for p in pieces) == whole.merged_repeats == 3
+        assert max(p.n_samples for p in pieces) <= rows
+
+
+def _block(t: np.ndarray, n_cells: int = 2) -> EstimateBlock:
+    x = np.repeat(t[:, None], n_cells, axis=1) + np.arange(n_cells)[None, :]
+    cells = {k: x.copy() for k in FIELD_NAMES}
+    cells["on_bound"] = np.zeros_like(x)
+    return EstimateBlock(t_s=t, current_A=t.copy(), cells=cells,
+                         quality=np.zeros(x.shape, dtype=np.int64))  # fmt: skip
+
+
+class _Collect:
+    def __init__(self) -> None:
+        self.blocks: list[EstimateBlock] = []
+        self.closed = False
+
+    def append(self, block: EstimateBlock) -> None:
+        self.blocks.append(block)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.mark.parametrize("cuts", [(), (1,), (9, 10, 11), (5, 37, 38, 80)])
+def test_decimation_keeps_the_last_tick_of_each_interval(cuts: tuple[int, ...]) -> None:
+    t = 100.0 + np.arange(95) * 1.0  # 95 ticks of 1 s from t = 100 s
+    t[50:] += 0.5  # an uneven clock
+    full = _block(t)
+    for mode in ("last", "mean"):
+        sink = _Collect()
+        dec = TickDecimator(sink, 10.0, mode)
+        edges = (0, *cuts, full.n_ticks)
+        for a, b in itertools.pairwise(edges):
+            dec.append(full.select(slice(a, b)))
+        dec.close()
+        out = EstimateBlock.concat(sink.blocks, 2)
+        k = np.floor((t - t[0]) / 10.0)
+        last = np.flatnonzero(np.append(np.diff(k) != 0, True))
+        assert sink.closed
+        np.testing.assert_array_equal(out.t_s, t[last])  # the interval's last tick's time
+        if mode == "last":
+            np.testing.assert_array_equal(out["R0_ohm"], full["R0_ohm"][last])
+        else:
+            means = [full["R0_ohm"][k == j].mean(axis=0) for j in np.unique(k)]
+            np.testing.assert_allclose(out["R0_ohm"], np.array(means), rtol=1e-12)
+
+
+def test_min_max_decimation_keeps_spikes_and_short_records_whole() -> None:
+    n = 10_000
+    t = np.arange(n, dtype=float)
+    y = np.sin(t / 500.0)
+    y[4321] = 50.0  # a one-tick spike
+    y[777] = np.nan
+    dec = MinMaxDecimator.for_ticks(n, 1, 1, n_bins=100)
+    for a in range(0, n, 333):
+        dec.add(t[a : a + 333], y[a : a + 333, None, None])
+    ts, ys = dec.series(0, 0)
+    assert ys.size <= 200 and 50.0 in ys and ts[np.argmax(ys)] == 4321.0
+    assert np.all(np.diff(ts) > 0) and np.isfinite(ys).all()
+    small = MinMaxDecimator.for_ticks(50, 1, 1, n_bins=100)
+    small.add(t[:50], y[:50, None, None])
+    ts, ys = small.series(0, 0)
+    np.testing.assert_array_equal(ts, t[:50])
+    np.testing.assert_array_equal(ys, y[:50])
+
+
+def test_parquet_holds_the_csv_columns_and_values_every_interval(
+    pack_csv: Path, tmp_path: Path
+) -> None:
+    a, b = tmp_path / "csv", tmp_path / "pq"
+    assert main(["identify", str(pack_csv), "--out", str(a), "--algorithm", "hy-affrls"]) == 0
+    assert main(["identify", str(pack_csv), "--out", str(b), "--algorithm", "hy-affrls",
+                 "--format", "parquet", "--every", "10"]) == 0  # fmt: skip
+    with (a / "params.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    table = pq.read_table(b / "params.parquet")
+    assert table.column_names == list(rows[0])
+    assert not (b / "params.csv").exists()
+    got = table.to_pylist()
+    t_all = np.unique([float(r["t_s"]) for r in rows])
+    k = np.floor((t_all - t_all[0]) / 10.0)
+    last = t_all[np.append(np.diff(k) != 0, True)]
+    assert len(got) == 2 * last.size
+    np.testing.assert_allclose(sorted({r["t_s"] for r in got}), last, rtol=0, atol=1e-6)
+    fmt = {s.out_key: s.fmt for s in CELL_FIELDS} | {"t_s": "%.6f", "quality": "%d"}
+    by_key = {(r["t_s"], r["cell"]): r for r in rows}
+    for row in got:
+        ref = by_key[(f"{row['t_s']:.6f}", row["cell"])]
+        for name, value in row.items():
+            if name == "cell":
+                assert value == ref[name]
+            else:  # the CSV's text is the Parquet value in the field's CSV format
+                assert fmt[name] % value == ref[name], name
+    doc = json.loads((b / "metrics.json").read_text())
+    assert doc["output"]["every_s"] == 10.0 and not doc["output"]["default_decimation"]
+    assert doc["output"]["params_file"] == "params.parquet"
+
+
+def test_a_long_record_gets_an_announced_decimation(
+    pack_csv: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert auto_every_s(86_400, 86_399.0) is None
+    assert auto_every_s(259_200, 259_199.0) == 5.0  # 3 days of 1 s ticks
+    assert auto_every_s(2_592_000, 2_591_999.0) == 30.0  # 30 days
+    scan = RecordScan(n_samples=10**6, n_ticks=10**6, t_first_s=0.0, t_last_s=999_999.0)
+    assert params_interval(OutputSpec(), scan) == (20.0, True)
+    assert params_interval(OutputSpec(every_s=0.0), scan) == (None, False)
+    assert params_interval(OutputSpec(every_s=3.0), scan) == (3.0, False)
+    monkeypatch.setattr(outputs, "AUTO_EVERY_MAX_ROWS", 300)  # the 900-tick record is "long"
+    out = tmp_path / "auto"
+    assert main(["identify", str(pack_csv), "--out", str(out), "--algorithm", "hy-affrls"]) == 0
+    said = capsys.readouterr().out
+    assert "900 ticks: params.csv gets one row per 5 s and cell (last value" in said
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["output"]["default_decimation"] and doc["output"]["every_s"] == 5.0
+    assert doc["n_ticks"] == 900  # the metrics still score every tick
+    lines = (out / "params.csv").read_text().splitlines()
+    assert len(lines) == 1 + 2 * 180
+
+
+def test_bad_rows_anywhere_stop_the_run_before_it_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cols = synthetic_columns(300)
+    p = write_csv(tmp_path / "nan.csv", cols)
+    lines = p.read_text().splitlines()
+    lines[250] = lines[250].replace(lines[250].split(",")[2], "nan", 1)
+    p.write_text("\n".join(lines) + "\n")
+    assert main(["identify", str(p), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "line(s) 251" in err and "Traceback" not in err
+    assert not (tmp_path / "o" / "params.csv").exists()
+    gz = write_csv(tmp_path / "cut.csv.gz", cols)
+    gz.write_bytes(gz.read_bytes()[:-200])  # a truncated download
+    assert main(["identify", str(gz), "--out", str(tmp_path / "g")]) == 2
+    err = capsys.readouterr().err
+    assert "cut.csv.gz: cannot read" in err and "Traceback" not in err
+    with gzip.open(gz, "rt") as fh, pytest.raises(EOFError):
+        fh.read()
