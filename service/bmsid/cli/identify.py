@@ -40,7 +40,6 @@ import math
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -68,6 +67,7 @@ from bmsid.offline.inputs import (
     parse_tuning,
     parse_window,
     tuning_overrides,
+    with_score_reference,
 )
 from bmsid.offline.outputs import (
     SCORE_SOC0_HELP,
@@ -78,7 +78,7 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.plausibility import Finding
-from bmsid.offline.scoring import SocReference, metrics_document
+from bmsid.offline.scoring import metrics_document
 from bmsid.samples import SampleBlock
 
 
@@ -272,12 +272,7 @@ def run(args: argparse.Namespace) -> int:
     cell, derived_note, checks = _check_input(args, head, cell, tuning)
     del head
     note = derived_note or note
-    if args.score_soc0 is not None:
-        try:
-            ref = SocReference.from_cell(cell, args.score_soc0, tuning.gap_s)
-        except ValueError as exc:
-            raise UserError(f"--score-soc0: {exc}") from None
-        window = replace(window, soc_reference=ref)
+    window = with_score_reference(window, cell, args.score_soc0, tuning.gap_s)
     meta = {
         "input": str(args.input),
         "cell_config": note,

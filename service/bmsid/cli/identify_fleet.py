@@ -24,9 +24,9 @@ from bmsid.offline.inputs import (
     parse_tuning,
     parse_window,
     tuning_overrides,
+    with_score_reference,
 )
 from bmsid.offline.outputs import OutputSpec
-from bmsid.offline.scoring import SocReference
 
 DEFAULT_WORST = 5
 
@@ -55,12 +55,7 @@ def fleet_spec(args: argparse.Namespace, ocv_coeffs: Sequence[float] | None) -> 
     window = parse_window(args.soc_window, args.skip_fraction)
     check_soc0(args.soc0)
     cell, note = cell_config(args.cell_config, args.capacity_ah, ocv_coeffs)
-    if args.score_soc0 is not None:
-        try:
-            ref = SocReference.from_cell(cell, args.score_soc0, tuning.gap_s)
-        except ValueError as exc:
-            raise UserError(f"--score-soc0: {exc}") from None
-        window = replace(window, soc_reference=ref)
+    window = with_score_reference(window, cell, args.score_soc0, tuning.gap_s)
     meta = {"cell_config": note, "tuning_overrides": tuning_overrides(args.tuning)}
     return IdentifySpec(
         cell=cell, variant=args.algorithm, tuning=tuning, soc0=args.soc0, window=window,

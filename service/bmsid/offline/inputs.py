@@ -25,7 +25,7 @@ import itertools
 import math
 import re
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -49,7 +49,7 @@ from bmsid.offline.csvio import (
     tester_csv_columns,
 )
 from bmsid.offline.plausibility import GAP_S, Finding, SamplePeriod, sample_period
-from bmsid.offline.scoring import EvalWindow
+from bmsid.offline.scoring import EvalWindow, SocReference
 from bmsid.samples import SampleBlock
 
 FloatArray = npt.NDArray[np.float64]
@@ -98,6 +98,30 @@ class InputSource(Protocol):
         ...
 
 
+def _input_report(
+    period: SamplePeriod, merged: int, restarts: Sequence[int], log_summary: LogSummary | None,
+    channel: str | None, notes: Sequence[str], findings: Sequence[Finding],
+) -> dict[str, Any]:  # fmt: skip
+    """``input_report`` of a loaded or a streamed input (see ``LoadedInput.input_report``)."""
+    cells = None
+    if log_summary is not None:
+        ch = log_summary.channels.get(channel or "")
+        mapped = log_summary.mapped_channels
+        if ch is None and len(mapped) == 1:
+            ch = log_summary.channels[mapped[0]]
+        cells = None if ch is None else ch.n_cells
+    return {
+        "merged_repeats": merged,
+        "time_restarts": list(restarts),
+        "median_dt_s": None if math.isnan(period.median_dt_s) else period.median_dt_s,
+        "gaps_over_30s": period.n_gaps,
+        "channel": channel,
+        "cells_in_log": cells,
+        "notes": list(notes),
+        "findings": [f.as_dict() for f in findings],
+    }
+
+
 @dataclass(frozen=True)
 class LoadedInput:
     """A recording held in memory as one block, yielded in slices (views, no copies).
@@ -144,24 +168,10 @@ class LoadedInput:
         """JSON-ready: ``merged_repeats``, ``time_restarts`` (lines), ``median_dt_s`` (None
         when undefined), ``gaps_over_30s``, ``channel``, ``cells_in_log``, ``notes`` and
         ``findings`` (level, code, message)."""
-        period = sample_period(self.samples.t_s)
-        cells = None
-        if self.log_summary is not None:
-            ch = self.log_summary.channels.get(self.channel or "")
-            mapped = self.log_summary.mapped_channels
-            if ch is None and len(mapped) == 1:
-                ch = self.log_summary.channels[mapped[0]]
-            cells = None if ch is None else ch.n_cells
-        return {
-            "merged_repeats": self.merged_repeats,
-            "time_restarts": list(self.time_restarts),
-            "median_dt_s": None if math.isnan(period.median_dt_s) else period.median_dt_s,
-            "gaps_over_30s": period.n_gaps,
-            "channel": self.channel,
-            "cells_in_log": cells,
-            "notes": list(self.notes),
-            "findings": [f.as_dict() for f in self.findings],
-        }
+        return _input_report(
+            sample_period(self.samples.t_s), self.merged_repeats, self.time_restarts,
+            self.log_summary, self.channel, self.notes, self.findings,
+        )  # fmt: skip
 
     def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
         if size < 1:
@@ -300,23 +310,10 @@ class StreamedInput:
     def input_report(self) -> dict[str, Any]:
         """As :attr:`LoadedInput.input_report` (reads the file once if not read yet)."""
         _, period, merged, restarts = self._complete()
-        cells = None
-        if self.log_summary is not None:
-            ch = self.log_summary.channels.get(self.channel or "")
-            mapped = self.log_summary.mapped_channels
-            if ch is None and len(mapped) == 1:
-                ch = self.log_summary.channels[mapped[0]]
-            cells = None if ch is None else ch.n_cells
-        return {
-            "merged_repeats": merged,
-            "time_restarts": list(restarts),
-            "median_dt_s": None if math.isnan(period.median_dt_s) else period.median_dt_s,
-            "gaps_over_30s": period.n_gaps,
-            "channel": self.channel,
-            "cells_in_log": cells,
-            "notes": list(self.notes),
-            "findings": [f.as_dict() for f in self.all_findings],
-        }
+        return _input_report(
+            period, merged, restarts, self.log_summary, self.channel, self.notes,
+            self.all_findings,
+        )  # fmt: skip
 
     def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
         if size < 1:
@@ -695,3 +692,17 @@ def check_soc0(soc0: float | None) -> None:
     """UserError unless ``soc0`` is None or a fraction in [0, 1]."""
     if soc0 is not None and not (math.isfinite(soc0) and 0.0 <= soc0 <= 1.0):
         raise UserError(f"--soc0 is a fraction in [0, 1], got {soc0:g}")
+
+
+def with_score_reference(
+    window: EvalWindow, cell: CellConfig, score_soc0: float | None, gap_s: float
+) -> EvalWindow:
+    """``window`` scored against a coulomb count from ``score_soc0`` (``--score-soc0``) when
+    given; a bad start is a UserError naming the option."""
+    if score_soc0 is None:
+        return window
+    try:
+        ref = SocReference.from_cell(cell, score_soc0, gap_s)
+    except ValueError as exc:
+        raise UserError(f"--score-soc0: {exc}") from None
+    return replace(window, soc_reference=ref)
