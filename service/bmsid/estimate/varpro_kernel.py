@@ -22,6 +22,7 @@ writable executable memory, which a JIT needs: the daemon's ``estimator.kernels`
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable
 
@@ -126,9 +127,10 @@ def _kernel_source(
     return G, b, last
 
 
+@functools.cache
 def _compile() -> NormalEquations | None:
-    """The compiled kernel, compiled (or loaded from numba's cache) now; None where numba is
-    missing or cannot compile here (a sandbox that forbids writable executable memory: the
+    """The compiled kernel, compiled (or loaded from numba's cache) once per process; None where
+    numba is missing or cannot compile here (a sandbox that forbids writable executable memory: the
     shipped systemd unit sets ``estimator.kernels = "numpy"`` for that)."""
     try:
         import numba  # noqa: PLC0415 (optional: the reference runs without it)
@@ -153,7 +155,7 @@ def select(name: str | None = None) -> str:
     global _impl, KERNEL  # noqa: PLW0603 (one process-wide choice, made once)
     compiled = None if name == "numpy" else _compile()
     if name == "compiled" and compiled is None:
-        raise RuntimeError("the compiled kernel is not available here (numba missing or off)")
+        raise RuntimeError("the compiled kernel is not available here (numba missing or failing)")
     _impl = compiled or normal_equations_numpy
     KERNEL = "compiled" if compiled is not None else "numpy"
     return KERNEL
