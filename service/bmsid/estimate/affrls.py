@@ -62,3 +62,16 @@ def rls_update(
 def reset_covariance(n_rows: int, n_params: int, p0: float) -> FloatArray:
     """P = p0 I for every row (the reset policy after a gap or a configuration change)."""
     return np.repeat(np.eye(n_params)[None, :, :] * p0, n_rows, axis=0)
+
+
+def fusion_covariance(P: FloatArray) -> FloatArray:
+    """Zero the OCV offset's rows and columns of P: the AFFRLS leaves the offset alone.
+
+    Under a steady mean current the offset is collinear with R2 x2; tracked per tick it drifts
+    along that unobservable direction. It is refit with each swarm window instead, under the
+    prior ``ocv_offset_prior_V``.
+    """
+    P = P.copy()
+    P[..., 4, :] = 0.0
+    P[..., :, 4] = 0.0
+    return P

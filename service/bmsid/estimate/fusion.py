@@ -15,13 +15,14 @@ LPSO owns the poles, where recursive ARX identification is ill-conditioned (it d
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate import lpso, varpro_kernel
-from bmsid.estimate.affrls import reset_covariance, rls_update
+from bmsid.estimate.affrls import fusion_covariance, reset_covariance, rls_update
 from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
 from bmsid.estimate.stage import (
@@ -42,19 +43,6 @@ from bmsid.model.ecm import branches_step
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
-
-
-def fusion_covariance(P: FloatArray) -> FloatArray:
-    """Zero the OCV offset's rows and columns of P: the AFFRLS leaves the offset alone.
-
-    Under a steady mean current the offset is collinear with R2 x2; tracked per tick it drifts
-    along that unobservable direction. It is refit with each swarm window instead, under the
-    prior ``ocv_offset_prior_V``.
-    """
-    P = P.copy()
-    P[..., 4, :] = 0.0
-    P[..., :, 4] = 0.0
-    return P
 
 
 class FusionStage:
@@ -245,9 +233,12 @@ class FusionStage:
 
     def _window(self, c: int) -> tuple[Window, FloatArray]:
         tun = self.tuning
-        return self.buffer.window(
+        w, valid = self.buffer.window(
             c, self._period_s, tun.window_s, tun.identify_hysteresis_scale, tun.identify_ocv_offset
         )
+        if not tun.identify_hysteresis_scale:  # h M(z) known (scale 1): part of the OCV side
+            w = replace(w, y_V=w.y_V - w.hm_V * (valid > 0))
+        return w, valid
 
     def _tau_box(self, c: int) -> tuple[FloatArray, FloatArray]:
         """(lo, hi) of (tau1, tau2) of cell ``c``, s."""

@@ -9,7 +9,11 @@ Management Systems Vol. II", ch. 3-4):
   ``dz_c/db = eta dt / Q_c``; SOC random-walks with the current gain error and what the model
   cannot know (``soc_walk_per_sqrt_h``), the offset with sensor drift;
 * measurement (Eq. 9): ``v_c = OCV(z_c) + M h - R0 (i - b) - R1 x1 - R2 x2``; the innovation is
-  the parameter stage's a-priori model error, ``H = [dOCV/dz, R0 + R1 + R2]``.
+  the parameter stage's a-priori model error, ``H = [dOCV/dz, R0 + R1 + R2]``;
+* with ``learn_hysteresis``, ``x`` also holds a correction d_k of the half-gap M at each knot
+  of a SOC grid, one for the pack (``M(z) = M_table(z) + sum_k w_k(z) d_k``,
+  ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
+  M per SOC region from the data, the table its prior.
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but
 only while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved
@@ -31,6 +35,7 @@ import numpy as np
 
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.hysteresis_map import hat_matrix, map_knots
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.state import CoulombState, _uniform
@@ -67,8 +72,15 @@ class ObserverState(CoulombState):
         self.tun = tuning
         q_mean_Ah = float(np.mean(model.capacity_Ah))
         self.b = 0.0
-        self.P = np.zeros((n + 1, n + 1))
+        ocv = model.ocv
+        self._knots = map_knots(ocv.m_soc) if tuning.learn_hysteresis else np.zeros(0)
+        self._m_knots = np.interp(self._knots, ocv.m_soc, ocv.m_V)  # the table, V
+        m_sd = tuning.hysteresis_prior_rel * self._m_knots + tuning.hysteresis_prior_floor_V
+        self._d_walk = (tuning.hysteresis_walk_rel_per_sqrt_day * m_sd) ** 2 / 86400.0  # V^2/s
+        self.d = np.zeros(self._knots.shape[0])  # M correction at each knot, V
+        self.P = np.zeros((n + 1 + self.d.shape[0],) * 2)
         self.P[n, n] = (tuning.offset_prior_C * q_mean_Ah) ** 2
+        self.P[n + 1 :, n + 1 :] = np.diag(m_sd**2)
         self._b_max = tuning.offset_max_C * q_mean_Ah
         self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
         self.capacity = CapacityTracker(
@@ -113,6 +125,13 @@ class ObserverState(CoulombState):
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
 
+    def hysteresis_m(self, zc: FloatArray) -> FloatArray:
+        """The table's M (V) at ``zc`` plus the learnt correction, never below 0."""
+        m = self.model.ocv.hysteresis_M(zc)
+        if not self.d.any():
+            return m
+        return np.maximum(m + hat_matrix(self._knots, zc) @ self.d, 0.0)
+
     def _restart(self, tick: Tick) -> None:
         """After downtime the count missed what the pack did: SOC is as uncertain as the first
         voltage makes it (its correlation with the offset gone, which did not cause it), the
@@ -120,7 +139,8 @@ class ObserverState(CoulombState):
         n = self.n
         self.start_variance(tick, "restart", self.z)
         self.P[:n, :n] = np.diag(np.diag(self.P)[:n] + self._start_var)
-        self.P[:n, n] = self.P[n, :n] = 0.0
+        self.P[:n, n:] = 0.0
+        self.P[n:, :n] = 0.0
         self.capacity.forget_anchors()
         self._reanchor = True
         self._widen = False
@@ -186,12 +206,27 @@ class ObserverState(CoulombState):
         else:
             r_load = self._i_load_A * tun.r_dc_rel_sigma * hb
             r = tun.v_sigma_V**2 + r_load**2
-        r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
+        if self.d.shape[0]:  # M learnt: its uncertainty is in P, not in the anchor's error
+            r_anchor = np.full(n, tun.v_sigma_floor_V**2)
+            scale = np.where(
+                ctx.m_table_V > 0, params["M_V"] / np.maximum(ctx.m_table_V, 1e-12), 1.0
+            )
+            scale = np.where(np.isfinite(scale), scale, 1.0)
+            # Only rests teach M (the branches relaxed, the hysteresis not), and only cells
+            # whose SOC is known better than M there: a SOC error is an OCV error as well.
+            sd_z = np.sqrt(np.maximum(np.diag(self.P)[:n], 0.0))
+            W = hat_matrix(self._knots, zc)
+            m_sd = np.sqrt(W @ np.diag(self.P)[n + 1 :])
+            teach = anchor & (np.abs(hz) * sd_z <= m_sd)
+            G = (teach * scale * ctx.h)[:, None] * W
+        else:
+            r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
+            G = np.zeros((n, 0))
         r = np.where(anchor, r_anchor, r)
         valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
         forced = anchor | self._reanchor
         valid &= converged | forced
-        self._update(np.flatnonzero(valid), hz, hb, e, r, forced)
+        self._update(np.flatnonzero(valid), hz, hb, G, e, r, forced)
         anchored = anchor & valid
         if anchored.any():
             z_ocv = self.model.ocv.soc_from_ocv(ctx.ocv_V + e)
@@ -214,6 +249,8 @@ class ObserverState(CoulombState):
         P[:n, n] = P[n, :n] = pb + g * pbb
         P[np.arange(n), np.arange(n)] += self._qz
         P[n, n] += self._qb
+        k = np.arange(n + 1, P.shape[0])
+        P[k, k] += self._d_walk * self._since_s
         self._g = np.zeros(n)
         self._qz = np.zeros(n)
         self._qb = 0.0
@@ -221,27 +258,28 @@ class ObserverState(CoulombState):
 
     def _update(
         self, idx: np.ndarray[Any, np.dtype[np.intp]], hz: FloatArray, hb: FloatArray,
-        e: FloatArray, r: FloatArray, forced: BoolArray | bool,
+        G: FloatArray, e: FloatArray, r: FloatArray, forced: BoolArray | bool,
     ) -> None:  # fmt: skip
-        """Joint EKF update of the cells ``idx``; cells not ``forced`` (anchor, restart) are
-        gated on their innovation."""
+        """Joint EKF update of the cells ``idx`` (``G``: dv/dd, (n, K)); cells not ``forced``
+        (anchor, restart) are gated on their innovation."""
         n, P = self.n, self.P
-        if idx.size:
-            s_diag = hz[idx] ** 2 * P[idx, idx] + 2 * hz[idx] * hb[idx] * P[idx, n]
-            s_diag = s_diag + hb[idx] ** 2 * P[n, n] + r[idx]
-            inside = (e[idx] ** 2 <= self.tun.gate_sigmas**2 * s_diag) | np.broadcast_to(
-                forced, (n,)
-            )[idx]
-            self.counters["observer_gated"] += int((~inside).sum())
-            idx = idx[inside]
         if idx.size == 0:
             return
-        # H = [diag(hz) | hb] is sparse: P H' and H P H' in O(n m), not dense products.
-        PHt = P[:, idx] * hz[idx] + np.outer(P[:, n], hb[idx])  # (n + 1, m)
-        S = hz[idx, None] * PHt[idx, :] + hb[idx, None] * PHt[n, :]  # (m, m)
+        # H = [diag(hz) | hb | G] is sparse: P H' and H P H' in O(N m), not dense products.
+        Gi = G[idx]
+        PHt = P[:, idx] * hz[idx] + np.outer(P[:, n], hb[idx]) + P[:, n + 1 :] @ Gi.T  # (N, m)
+        S = hz[idx, None] * PHt[idx, :] + hb[idx, None] * PHt[n, :] + Gi @ PHt[n + 1 :, :]
         S[np.diag_indices_from(S)] += r[idx]
+        inside = (e[idx] ** 2 <= self.tun.gate_sigmas**2 * np.diag(S)) | np.broadcast_to(
+            forced, (n,)
+        )[idx]
+        self.counters["observer_gated"] += int((~inside).sum())
+        if not inside.all():
+            idx, PHt, S = idx[inside], PHt[:, inside], S[np.ix_(inside, inside)]
+        if idx.size == 0:
+            return
         try:
-            K = np.linalg.solve(S, PHt.T).T  # (n + 1, m)
+            K = np.linalg.solve(S, PHt.T).T  # (N, m)
         except np.linalg.LinAlgError:
             return
         dx = K @ e[idx]
@@ -255,6 +293,8 @@ class ObserverState(CoulombState):
         self.P = P
         self.z = np.clip(self.z + dx[:n], 0.0, 1.0)
         self.b = float(np.clip(self.b + dx[n], -self._b_max, self._b_max))
+        if self.d.shape[0]:
+            self.d = np.maximum(self.d + dx[n + 1 :], -self._m_knots)  # M >= 0 at the knots
         self.counters["observer_updates"] += 1
 
     def _use_capacity(self) -> None:
@@ -277,8 +317,8 @@ class ObserverState(CoulombState):
         sigma = np.where(cells, np.sqrt(self._start_var), np.sqrt(np.diag(self.P)[:n]))
         keep = ~cells
         self.P[:n, :n] *= np.outer(keep, keep)  # a restarted cell forgets its correlations
-        self.P[:n, n] *= keep
-        self.P[n, :n] *= keep
+        self.P[:n, n:] *= keep[:, None]
+        self.P[n:, :n] *= keep
         self.P[np.arange(n), np.arange(n)] = sigma**2
         self._gate_learning()
         return cells
@@ -321,12 +361,14 @@ class ObserverState(CoulombState):
 
     _ARRAYS = ("P", "_g", "_qz", "_learn_gate", "_q_As", "_i_load_A", "_tau_load_s", "_anchored")
     _SCALARS = ("b", "_qb", "_since_s", "_rest_s")
+    _ARRAYS_MAP = ("d", "_knots")
 
     def state_dict(self) -> dict[str, Any]:
         st = super().state_dict()
         st["observer"] = {
             **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS},
             **{k.lstrip("_"): float(getattr(self, k)) for k in self._SCALARS},
+            **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS_MAP},
             "reanchor": self._reanchor,
             "capacity": self.capacity.state_dict(),
         }
@@ -339,6 +381,17 @@ class ObserverState(CoulombState):
             self._widen = True
             return
         renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
+        knots = np.asarray(obs.get("knots", np.zeros(0)), dtype=np.float64)
+        n = self.n
+        if knots.shape != self._knots.shape or not np.allclose(knots, self._knots):
+            # another map (none before it was learnt, another table): SOC and offset kept,
+            # the map starts from its prior
+            p_old = np.asarray(renamed["P"])[: n + 1, : n + 1]
+            renamed["P"] = self.P.copy()
+            renamed["P"][: n + 1, : n + 1] = p_old
+            renamed["P"][: n + 1, n + 1 :] = renamed["P"][n + 1 :, : n + 1] = 0.0
+        else:
+            self.d = np.asarray(obs["d"], dtype=np.float64).copy()
         load_arrays(self, renamed, self._ARRAYS, "state/observer")
         for k in self._SCALARS:
             setattr(self, k, float(obs[k.lstrip("_")]))

@@ -64,6 +64,20 @@ class ObserverTuning(BaseModel):
     restart_gap_s: float = Field(600.0, gt=0.0)
     """A gap in the data (a restart after downtime) longer than this re-anchors SOC from the
     first voltage after it, s."""
+    learn_hysteresis: bool = True
+    """Learn the hysteresis half-gap M per SOC region as states of the filter (one correction
+    per knot for the pack: its cells are one type at one temperature), the configured M(z)
+    table the prior (``hysteresis_map.py``). Rests resolve it: the branches relax, the
+    hysteresis does not, and the count ties each rest's SOC to the others'."""
+    hysteresis_prior_rel: float = Field(0.25, gt=0.0)
+    """Prior std of M at each knot, as a fraction of the table's M: the uncertainty the anchors
+    assumed of the table before M was learnt (a C/20 test's half-gap against polarisation)."""
+    hysteresis_prior_floor_V: float = Field(1e-3, ge=0.0)
+    """Added to that prior std, V: a table of zeros may still be wrong by a rested cell's
+    voltage noise (``v_sigma_floor_V``)."""
+    hysteresis_walk_rel_per_sqrt_day: float = Field(0.1, ge=0.0)
+    """Random walk of each knot, as a fraction of its prior std per sqrt(day): the prior
+    uncertainty again after 100 days without a rest in that region (ageing, seasons)."""
     capacity_prior_rel: float = Field(0.05, gt=0.0)
     """Relative std of the configured capacity (the capacity estimate's prior)."""
     capacity_min_dsoc: float = Field(0.2, gt=0.0, lt=1.0)

@@ -37,21 +37,23 @@ class TickContext:
         soc_clamped: SOC clamped to the OCV curve's range, shape (n,).
         ocv_V: OCV(z) of Eq. 4, V.
         m_table_V: hysteresis half-gap M(z) of Eq. 32, V.
+        h: hysteresis state h in [-1, 1] (Eq. 5-6).
         hm_V: hysteresis voltage h M(z), V (Eq. 9).
         v_safe_V: measured voltage, or OCV(z) where a cell has none (the update skips it), V.
         learn: cells whose parameters may learn from this tick (a valid voltage, SOC outside
             the OCV curve's knees: ``EstimatorTuning.knee_slope_factor``).
     """
 
-    __slots__ = ("hm_V", "learn", "m_table_V", "ocv_V", "soc_clamped", "tick", "v_safe_V")
+    __slots__ = ("h", "hm_V", "learn", "m_table_V", "ocv_V", "soc_clamped", "tick", "v_safe_V")
 
     def __init__(self, tick: Tick) -> None:
         # Filled by the state stage; the shared empty placeholders cost nothing per tick (a
-        # dataclass would need a factory, i.e. six allocations per tick).
+        # dataclass would need a factory, i.e. seven allocations per tick).
         self.tick = tick
         self.soc_clamped: FloatArray = _EMPTY
         self.ocv_V: FloatArray = _EMPTY
         self.m_table_V: FloatArray = _EMPTY
+        self.h: FloatArray = _EMPTY
         self.hm_V: FloatArray = _EMPTY
         self.v_safe_V: FloatArray = _EMPTY
         self.learn: BoolArray = _EMPTY_BOOL

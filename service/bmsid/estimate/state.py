@@ -107,13 +107,18 @@ class CoulombState:
         zc = np.minimum(np.maximum(self.z, ocv.soc_min), ocv.soc_max)
         ctx.soc_clamped = zc
         ctx.ocv_V = ocv.ocv(zc)
-        ctx.m_table_V = ocv.hysteresis_M(zc)
+        ctx.m_table_V = self.hysteresis_m(zc)
+        ctx.h = self.h
         ctx.hm_V = self.h * ctx.m_table_V
         ctx.v_safe_V = np.where(tick.ok, tick.v_V, ctx.ocv_V)
         if self._learn_everywhere:
             ctx.learn = tick.ok
         else:
             ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
+
+    def hysteresis_m(self, zc: FloatArray) -> FloatArray:
+        """The half-gap M (V) at the (clamped) SOC ``zc``: the configured table (Eq. 32)."""
+        return self.model.ocv.hysteresis_M(zc)
 
     def _start(self, tick: Tick, cells: BoolArray) -> BoolArray:
         """SOC of ``cells`` from the caller's soc0 or a fixed policy's config value, else from

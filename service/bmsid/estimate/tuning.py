@@ -75,8 +75,13 @@ class EstimatorTuning(BaseModel):
     a point is tens of mV of OCV error, which the estimators would learn as resistance (R2
     driven to its bound in every low-SOC tail). The model keeps running there with what was
     learnt before; ``inf`` learns everywhere."""
-    identify_hysteresis_scale: bool = True
-    """Identify a scale on the configured M(z) table (Eq. 32) instead of trusting it."""
+    identify_hysteresis_scale: bool = False
+    """Identify a scale on the M(z) half-gap (Eq. 32) with the resistances, every tick and in
+    each swarm window. Off by default: under load h sits at +-1 for minutes, so a scale on
+    h M(z) is a level the fits share with the slow branch (R2) and any SOC error; measured on
+    the multi-day records (``bench/multiday.py``, 3 days) it cost R0+R1+R2 5-24 % where M was
+    known (0.3-7 % with it off). M is learnt at rests by the SOC observer instead
+    (``observer.learn_hysteresis``), where the branches relax and the hysteresis does not."""
 
     observer: ObserverTuning = ObserverTuning()
     """The SOC observer: SOC, the current-sensor offset and capacity from the voltage."""

@@ -44,7 +44,7 @@ import numpy.typing as npt
 from bmsid.config.cell import CellConfig, paper_cell
 from bmsid.config.engine import ocv_model
 from bmsid.model.ecm import soc_delta
-from bmsid.model.simulator import simulate
+from bmsid.model.simulator import coulomb_count, simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.profiles import dst_current
 from bmsid.synthetic import TRUTH
@@ -128,6 +128,9 @@ class MultidayOptions:
     """Arrhenius activation energy of R0 and R1, J/mol: 30 kJ/mol, typical of the ohmic and
     charge-transfer resistances of NMC/graphite cells near room temperature (R x 1.40 at 17 degC,
     x 0.73 at 33 degC against 25 degC)."""
+    hysteresis_tilt: float = 0.0
+    """Shape of the true hysteresis half-gap against the cell's table: true M(z) = table M(z) x
+    (1 + tilt (1 - 2 z)) (0.6: 1.6x the table at empty, 0.4x at full; 0: the table)."""
     r0_growth_per_day: float = 0.0
     """R0 rise per day, relative, linear in time (0.03: +3 % a day; accelerated ageing)."""
     capacity_fade_per_day: float = 0.0
@@ -150,6 +153,8 @@ class MultidayOptions:
             raise ValueError(f"soc0 must lie in ({self.plan.soc_floor:g}, 0.97)")
         if not -1.0 <= self.h0 <= 1.0:
             raise ValueError("h0 must lie in [-1, 1]")
+        if not -1.0 < self.hysteresis_tilt < 1.0:
+            raise ValueError("hysteresis_tilt must lie in (-1, 1): M stays positive")
         if self.capacity_fade_per_day * self.n_days >= 0.5:
             raise ValueError("capacity fade above 50 % over the record")
         if min(self.v_noise_V, self.i_noise_A, self.start_load_A, self.temp_swing_C) < 0:
@@ -167,6 +172,8 @@ class MultidayTruth:
     """Noise-free terminal voltage, V."""
     soc: FloatArray
     h: FloatArray
+    M_V: FloatArray
+    """True hysteresis half-gap M(z) at the true SOC, V."""
     R0_ohm: FloatArray
     R1_ohm: FloatArray
     R2_ohm: FloatArray
@@ -292,10 +299,15 @@ def generate(options: MultidayOptions | None = None) -> MultidayRecord:
     r0 = TRUTH["R0_ohm"] * arr * age
     r1 = TRUTH["R1_ohm"] * arr
     const = {k: np.full(n, TRUTH[k]) for k in ("R2_ohm", "tau1_s", "tau2_s")}
+    # The SOC does not depend on M: counted first, it sets the true M's shape per sample.
+    dt = np.diff(t, append=t[-1] + 1.0)
+    z = coulomb_count(i_true, dt, opt.soc0, q, cell.coulombic_efficiency)
+    m_scale = 1.0 + opt.hysteresis_tilt * (1.0 - 2.0 * z)
     sim = simulate(
         t, i_true, ocv_model(cell), capacity_Ah=q, R0_ohm=r0[None, :], R1_ohm=r1[None, :],
         tau1_s=TRUTH["tau1_s"], R2_ohm=TRUTH["R2_ohm"], tau2_s=TRUTH["tau2_s"],
         gamma=cell.hysteresis.gamma, eta=cell.coulombic_efficiency, soc0=opt.soc0, h0=opt.h0,
+        M_scale=m_scale[None, :],
     )  # fmt: skip
     if sim.soc_clamped.any():
         raise ValueError("the true SOC left the OCV curve's range: check soc0 and the plan")
@@ -304,7 +316,8 @@ def generate(options: MultidayOptions | None = None) -> MultidayRecord:
     v = v_true + rng.normal(0.0, opt.v_noise_V, n)
     i_meas = i_true + opt.current_offset_A + rng.normal(0.0, opt.i_noise_A, n)
     truth = MultidayTruth(
-        t_s=t, current_A=i_true, voltage_V=v_true, soc=sim.soc, h=sim.h[0], R0_ohm=r0,
+        t_s=t, current_A=i_true, voltage_V=v_true, soc=sim.soc, h=sim.h[0],
+        M_V=m_scale * ocv_model(cell).hysteresis_M(sim.soc), R0_ohm=r0,
         R1_ohm=r1, R2_ohm=const["R2_ohm"], tau1_s=const["tau1_s"], tau2_s=const["tau2_s"],
         capacity_Ah=q, current_offset_A=np.full(n, opt.current_offset_A), temperature_C=temp,
         phase=phase,

@@ -1,0 +1,38 @@
+"""Piecewise-linear functions of SOC on a knot grid: the hysteresis half-gap M(z) per region.
+
+Eq. 32's M(z) is a table from the OCV test; the SOC observer (``observer.py``) learns a
+correction per knot, ``M(z) = M_table(z) + sum_k w_k(z) d_k`` with hat functions w_k, the table
+its prior. The knots are the table's own and a 10 % grid, so the prior *is* the table and every
+SOC region can move on its own. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Uniform knots (fractions of SOC) every map has besides the table's: ten SOC regions.
+_GRID = np.linspace(0.0, 1.0, 11)
+
+
+def map_knots(table_soc: FloatArray) -> FloatArray:
+    """The table's knots (clipped to [0, 1]) and the 10 % grid points not within 1e-6 of one,
+    sorted, knots closer than 1e-6 merged (no zero-width regions)."""
+    table = np.unique(np.clip(np.asarray(table_soc, dtype=np.float64), 0.0, 1.0))
+    grid = _GRID[np.abs(_GRID[:, None] - table[None, :]).min(axis=1) > 1e-6]
+    k = np.sort(np.concatenate([table, grid]))
+    return np.asarray(k[np.concatenate([[True], np.diff(k) > 1e-6])], dtype=np.float64)
+
+
+def hat_matrix(knots: FloatArray, z: FloatArray) -> FloatArray:
+    """W (len(z), K): the hat-function weights of each SOC (ends held), rows summing to 1."""
+    zc = np.clip(np.asarray(z, dtype=np.float64), knots[0], knots[-1])
+    j = np.clip(np.searchsorted(knots, zc, side="right") - 1, 0, knots.shape[0] - 2)
+    f = (zc - knots[j]) / (knots[j + 1] - knots[j])
+    w = np.zeros((zc.shape[0], knots.shape[0]))
+    rows = np.arange(zc.shape[0])
+    w[rows, j] = 1.0 - f
+    w[rows, j + 1] += f
+    return w
