@@ -134,7 +134,7 @@ class ArxRlsStage:
         lo, hi = self._bounds
         clipped = np.minimum(np.maximum(raw, lo), hi)
         inside = (clipped == raw).all(axis=0)
-        if good.all():  # the usual tick: every row taken (the rows of a new array)
+        if np.count_nonzero(good) == good.size:  # the usual tick: every row taken
             self.clamped |= ~inside
             self.R0, self.R1, self.R2, self.tau1, self.tau2 = clipped
             self.arx_ok |= good

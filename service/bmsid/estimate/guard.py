@@ -233,7 +233,8 @@ class PublishGuard:
 
         # episodes: one re-initialisation each; over once the cell converged again, unharmed
         reinit = diverged & ~self.episode
-        if reinit.any() or self.episode.any():
+        # np.count_nonzero: a fifth of ndarray.any()'s cost on these short masks
+        if np.count_nonzero(reinit) or np.count_nonzero(self.episode):
             over = self.episode & ~diverged & ~converging
             self.episode = (self.episode | reinit) & ~over
             cause = soc_bad * CAUSE_SOC | error_bad * CAUSE_ERROR | params_bad * CAUSE_PARAMS
@@ -247,7 +248,7 @@ class PublishGuard:
         # sits on a bound, its branch: R0, or R1 C1 tau1, or R2 C2 tau2, so C = tau / R stays
         # true and R0 still follows temperature while tau2 waits on its bound) and a bad SOC
         held = np.asarray(on_bound, dtype=bool) | self.episode
-        clamped = held.any()
+        clamped = np.count_nonzero(held) > 0
         mask: BoolArray | None = None
         if self._near is not None:
             w = params[_WATCHED_ROWS]
@@ -255,7 +256,7 @@ class PublishGuard:
             # the "last good" one (their quality stays CONVERGING: no finding yet)
             sits = (w <= self._near[0]) | (w >= self._near[1])
             self.bound_bits = (sits * _BIT_VALUES).sum(axis=0)
-            if sits.any():
+            if np.count_nonzero(sits):
                 none = np.zeros(self.n, dtype=bool)
                 branch = np.array([sits[0], sits[1] | sits[3], sits[2] | sits[4], none])
                 mask = branch[_BRANCH_OF_HELD] | held
@@ -272,7 +273,7 @@ class PublishGuard:
             self.good = published
         else:
             self.good = params
-        if soc_bad.any():
+        if np.count_nonzero(soc_bad):
             out["soc"] = self.good_soc = np.where(soc_bad, self.good_soc, soc)
         else:
             self.good_soc = soc.copy()
@@ -337,7 +338,10 @@ def _ewma(
     """Bias-corrected EWMA over time: ``x += g / w (value - x)`` where ``use``, with ``g = 1 -
     exp(-dt / tau)`` and ``w = 1 - exp(-seen / tau)`` (``seen`` counted with this tick): the
     weighted mean of what it saw, not a pull towards 0. Returns (seen s, x)."""
-    seen = np.where(use, seen_s + dt, seen_s)
+    every = np.count_nonzero(use) == use.size  # the usual tick: the same numbers, no masks
+    seen = seen_s + dt if every else np.where(use, seen_s + dt, seen_s)
     g = -math.expm1(-dt / tau_s)
     w = np.maximum(-np.expm1(seen * (-1.0 / tau_s)), g)  # >= g > 0: no 0/0 where unused
+    if every:
+        return seen, x + (g / w) * (value - x)
     return seen, np.where(use, x + (g / w) * (value - x), x)

@@ -144,14 +144,14 @@ def _theta_to_params(th: FloatArray, T_s: float) -> tuple[CircuitParams, IntArra
     # Every tick maps a few sets: the masks below (np.where, np.select, ~25 us on one cell)
     # are skipped when no set fails, which is the usual tick; the arithmetic is the same.
     finite = np.all(np.isfinite(th), axis=-1)
-    all_finite = bool(finite.all())
+    all_finite = np.count_nonzero(finite) == finite.size
     if not all_finite:
         th = np.where(finite[..., None], th, 0.0)
     t1, t2, t3, t4, t5 = (th[..., j] for j in range(5))
     dm = 1.0 - t1 - t2
     dp = 1.0 + t1 - t2
     stable = (dm > 0) & (dp > 0)
-    all_stable = bool(stable.all())
+    all_stable = np.count_nonzero(stable) == stable.size
     dm_s = dm if all_stable else np.where(dm > 0, dm, 1.0)
     dp_s = dp if all_stable else np.where(dp > 0, dp, 1.0)
     T = T_s
