@@ -169,12 +169,18 @@ class ObserverState(CoulombState):
         tun = self.tun
         tau2 = params["tau2_s"]
         self._tau_load_s = tau2
-        anchor = ~self._anchored & (
-            self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
-        )
-        any_anchor = np.count_nonzero(anchor) > 0  # a fifth of ndarray.any()'s cost
+        # Shorter than anchor_min_rest_s (most ticks), no cell's rest is long enough: the mask
+        # below would be all False; its five array operations are skipped.
+        anchor: BoolArray | None = None
+        if self._rest_s >= tun.anchor_min_rest_s:
+            anchor = ~self._anchored & (
+                self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
+            )
+        any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
+        if anchor is None:
+            anchor = np.zeros(self.n, dtype=bool)
         self._predict()
         tick, n = ctx.tick, self.n
         zc = ctx.soc_clamped
