@@ -206,6 +206,30 @@ def test_the_guard_is_per_cell(seq: tuple[int, list[TickIn]]) -> None:
         assert together.counters[key] == sum(gi.counters[key] for gi in alone)
 
 
+@settings(max_examples=200, deadline=None)
+@given(sequences())
+def test_the_one_cell_path_keeps_the_array_paths_statistics(seq: tuple[int, list[TickIn]]) -> None:
+    """A one-cell guard (its model-error test in Python floats) holds the statistics the same
+    cell holds in a guard of several (arrays), to the bit."""
+    n, ticks = seq
+    together = guard(n + 1)  # the last cell repeats the first: at least two cells, arrays
+    alone = [guard(1) for _ in range(n)]
+    for tk in ticks:
+        cells = {k: np.append(v, v[:1]) for k, v in tk.cells.items()}
+        together.apply(
+            tk.t_s, cells, np.append(tk.quality, tk.quality[:1]),
+            np.append(tk.on_bound, tk.on_bound[:1]), np.append(tk.learn, tk.learn[:1]),
+        )  # fmt: skip
+        for i, gi in enumerate(alone):
+            sl = slice(i, i + 1)
+            gi.apply(
+                tk.t_s, {k: v[sl] for k, v in tk.cells.items()}, tk.quality[sl],
+                tk.on_bound[sl], tk.learn[sl],
+            )  # fmt: skip
+            for k in ("e2_fast", "fast_s", "e2_scale", "scale_s", "excess_s", "episode"):
+                assert getattr(together, k)[i].tobytes() == getattr(gi, k)[0].tobytes(), k
+
+
 # ----------------------------------------------------------------------- the rules, one by one
 def test_good_ticks_pass_through_unchanged() -> None:
     g = guard(3)

@@ -6,7 +6,14 @@ import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from bmsid.model.arx import MapStatus, denominator_condition, params_to_theta, theta_to_params
+from bmsid.model.arx import (
+    MapStatus,
+    _theta_to_params,
+    _theta_to_params_rows,
+    denominator_condition,
+    params_to_theta,
+    theta_to_params,
+)
 
 R = st.floats(1e-4, 0.1)  # ohm: 0.1 mOhm .. 100 mOhm
 TAU = st.floats(0.1, 5000.0)  # s
@@ -82,3 +89,34 @@ def test_failure_statuses_are_explicit() -> None:
     assert s == MapStatus.NONPOSITIVE_R
     _, s = theta_to_params(np.array([np.nan, 0, 0, 0, 0]), 1.0)
     assert s == MapStatus.NOT_FINITE
+
+
+def _both_paths(theta: np.ndarray, t_s: float) -> None:
+    """The per-set Python path (few rows) and the array path give the same bits."""
+    with np.errstate(all="ignore"):
+        p_arr, s_arr = _theta_to_params(theta, t_s)
+    p_row, s_row = _theta_to_params_rows(theta, t_s)
+    np.testing.assert_array_equal(s_row, s_arr)
+    for k in ("R0_ohm", "R1_ohm", "tau1_s", "R2_ohm", "tau2_s"):
+        np.testing.assert_array_equal(getattr(p_row, k), getattr(p_arr, k), strict=True)
+
+
+@given(
+    st.lists(
+        st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=5, max_size=5),
+        min_size=1, max_size=4,
+    ),
+    T,
+)  # fmt: skip
+def test_scalar_path_equals_array_path_any_theta(rows: list[list[float]], t_s: float) -> None:
+    _both_paths(np.array(rows, dtype=np.float64), t_s)
+
+
+@settings(max_examples=300)
+@given(R, R, TAU, R, TAU, T, st.floats(-1e-3, 1e-3), st.floats(-1e-3, 1e-3))
+def test_scalar_path_equals_array_path_near_real_sets(
+    r0: float, r1: float, t1: float, r2: float, t2: float, t_s: float, d1: float, d2: float
+) -> None:
+    th = params_to_theta(r0, r1, t1, r2, t2, t_s)
+    bent = th * np.array([1.0 + d1, 1.0 + d2, 1.0 - d1, 1.0, 1.0 + d2])  # invalid sets too
+    _both_paths(np.stack([th, bent]), t_s)

@@ -22,7 +22,8 @@ from bmsid.cli.main import main
 from bmsid.config.cell import save_cell_config
 from bmsid.offline import fleet
 from bmsid.offline.csvio import TesterData, write_tester_csv
-from bmsid.offline.identify import IdentifySpec
+from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.offline.scoring import EvalWindow
 from bmsid.synthetic import paper_dst_case
 
 N_SAMPLES = 400
@@ -223,6 +224,27 @@ def test_dask_cluster_gives_the_pool_numbers(
     assert a.keys() == b.keys() and len(a) == 4
     for key in a:
         np.testing.assert_allclose(a[key], b[key], rtol=1e-9, err_msg=str(key))
+
+
+@pytest.mark.parametrize(
+    "window", [EvalWindow(), EvalWindow(skip_fraction=0.1, soc_lo=0.955, soc_hi=0.975)]
+)
+def test_a_streamed_task_summarises_as_the_kept_trace(
+    inputs: dict[str, Path], tmp_path: Path, window: EvalWindow
+) -> None:
+    # several blocks: the streamed RMSE is summed block by block, the kept trace's at once
+    spec = IdentifySpec(cell=paper_dst_case(10).cell, window=window, block_size=97)
+    item = fleet.fleet_inputs([str(inputs["b"])])[0]
+    streamed = fleet.identify_task(fleet.FleetTask(item, str(tmp_path / "streamed"), spec))
+    kept = identify_file(item.path, spec, tmp_path / "kept")
+    assert kept.trace is not None and kept.trace.n_ticks == N_SAMPLES
+    ref = fleet.cell_summaries(kept, spec)
+    assert streamed.ok and len(streamed.cells) == len(ref) == 2
+    for got, want in zip(streamed.cells, ref, strict=True):
+        assert (got.cell, got.t_s, got.quality) == (want.cell, want.t_s, want.quality)
+        np.testing.assert_allclose(got.params, want.params, rtol=1e-9)
+        np.testing.assert_allclose(got.rmse_mV, want.rmse_mV, rtol=1e-9)
+        assert np.isfinite(got.rmse_mV) and got.rmse_mV > 0
 
 
 # ----------------------------------------------------------------------------- failing tasks

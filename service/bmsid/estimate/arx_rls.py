@@ -29,6 +29,8 @@ from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.arx import MapStatus, params_to_theta, theta_to_params
 from bmsid.model.ecm import branches_step
 
+_MAP_OK = int(MapStatus.OK)  # numpy compares an array with an IntEnum member ~5x slower
+
 
 class ArxRlsStage:
     """AFFRLS on the ARX model of every cell; ``hysteresis`` removes M(z) h from U_E first."""
@@ -100,9 +102,10 @@ class ArxRlsStage:
             self.T_arx = dt
             self.theta_arx = self._seed_theta()
         if self.hist_n >= 2 and self.T_arx > 0:
-            phi = np.concatenate(
-                [self.ue_hist, np.tile([i, self.i_hist[0], self.i_hist[1]], (self.n, 1))], axis=1
-            )
+            phi = np.empty((self.n, 5))
+            phi[:, :2] = self.ue_hist
+            phi[:, 2] = i
+            phi[:, 3:] = self.i_hist
             e = ue - np.einsum("nk,nk->n", phi, self.theta_arx * self.arx_scale)
             self.arx_err = np.where(ok, e, 0.0)
             learn = ctx.learn
@@ -116,18 +119,26 @@ class ArxRlsStage:
             self._accept(learn)
         else:
             self.arx_err = np.where(ok, v - v_model, 0.0)
-        self.ue_hist = np.stack([ue, self.ue_hist[:, 0]], axis=1)
+        ue_hist = np.empty((self.n, 2))
+        ue_hist[:, 0] = ue
+        ue_hist[:, 1] = self.ue_hist[:, 0]
+        self.ue_hist = ue_hist
         self.i_hist = np.array([i, self.i_hist[0]])
         self.hist_n += 1
         self.v_model = np.asarray(v_model, dtype=np.float64)
 
     def _accept(self, ok: BoolArray) -> None:
         p, status = theta_to_params(self.theta_arx * self.arx_scale, self.T_arx)
-        good = ok & (status == MapStatus.OK)
-        raw = np.stack([p.R0_ohm, p.R1_ohm, p.R2_ohm, p.tau1_s, p.tau2_s])
+        good = ok & (status == _MAP_OK)
+        raw = np.array([p.R0_ohm, p.R1_ohm, p.R2_ohm, p.tau1_s, p.tau2_s])
         lo, hi = self._bounds
         clipped = np.minimum(np.maximum(raw, lo), hi)
-        inside = np.all(clipped == raw, axis=0)
+        inside = (clipped == raw).all(axis=0)
+        if np.count_nonzero(good) == good.size:  # the usual tick: every row taken
+            self.clamped |= ~inside
+            self.R0, self.R1, self.R2, self.tau1, self.tau2 = clipped
+            self.arx_ok |= good
+            return
         self.counters["arx_rejected"] += int((ok & ~good).sum())
         self.clamped |= good & ~inside
         self.R0 = np.where(good, clipped[0], self.R0)

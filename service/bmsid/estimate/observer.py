@@ -163,11 +163,12 @@ class ObserverState(CoulombState):
             eta = self._eff if i < 0 else 1.0
             dz = eta * dt / self._q_As
             self._g = self._g + dz
-            self._qz = self._qz + tun.current_gain_sigma**2 * np.abs(i) * dz
+            self._qz = self._qz + tun.current_gain_sigma**2 * abs(i) * dz
             self.capacity.count(eta * i * dt / 3600.0)
         dt_s = tick.dt_s
         self._qz = self._qz + tun.soc_walk_per_sqrt_h**2 * dt_s / 3600.0
-        q_mean_Ah = float(np.mean(self.capacity.q_Ah))
+        q_Ah = self.capacity.q_Ah
+        q_mean_Ah = float(q_Ah.sum() / q_Ah.size)  # np.mean's sum and division, a third the cost
         self._qb += (tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2 * dt_s / 86400.0
         self._since_s += dt_s
 
@@ -188,12 +189,18 @@ class ObserverState(CoulombState):
         tun = self.tun
         tau2 = params["tau2_s"]
         self._tau_load_s = tau2
-        anchor = ~self._anchored & (
-            self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
-        )
-        any_anchor = bool(anchor.any())
+        # Shorter than anchor_min_rest_s (most ticks), no cell's rest is long enough: the mask
+        # below would be all False; its five array operations are skipped.
+        anchor: BoolArray | None = None
+        if self._rest_s >= tun.anchor_min_rest_s:
+            anchor = ~self._anchored & (
+                self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
+            )
+        any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
+        if anchor is None:
+            anchor = np.zeros(self.n, dtype=bool)
         self._predict()
         tick, n = ctx.tick, self.n
         zc = ctx.soc_clamped
@@ -353,7 +360,7 @@ class ObserverState(CoulombState):
         return {
             "soc": self.z,
             "h": self.h,
-            "soc_std": np.sqrt(np.maximum(np.diag(self.P)[:n], 0.0)),
+            "soc_std": np.sqrt(np.maximum(self.P.diagonal()[:n], 0.0)),
             "capacity_Ah": self.capacity.q_Ah,
             "capacity_std_Ah": np.sqrt(self.capacity.var_Ah2),
             "current_offset_A": np.full(n, self.b),

@@ -112,14 +112,14 @@ class TickAssembler:
         completes, else None."""
         tun = self.tuning
         self.counters["samples"] += 1
-        if not np.isfinite(t_s):
+        if not math.isfinite(t_s):
             self.counters["non_increasing_time"] += 1
             return None
-        if not np.isfinite(current_A):
+        if not math.isfinite(current_A):
             self.counters["nan_current"] += 1
             current_A = self.i_raw
         bad_v = ~np.isfinite(v)
-        n_bad = int(bad_v.sum())
+        n_bad = int(np.count_nonzero(bad_v))
         v_raw = v
         if n_bad:
             self.counters["nan_voltage"] += n_bad
@@ -151,16 +151,29 @@ class TickAssembler:
         if not math.isnan(temperature_C):
             self.bin_T += temperature_C
             self.bin_Tn += 1
-        self.bin_v += v
-        self.bin_vn += ~bad_v
         if t_s - self.t_tick < tun.id_period_s - 0.5 * dt:
+            self.bin_v += v
+            self.bin_vn += ~bad_v
             return None
+        if self.bin_n == 1 and not n_bad:
+            # A bin of one sample with every voltage (the usual 1 s record): the mean below is
+            # (0 + v) / 1, i.e. v + 0.0, without the bin arrays (they stay zero)
+            has_v = ~bad_v
+            v_avg = v + 0.0
+        else:
+            self.bin_v += v
+            self.bin_vn += ~bad_v
+            has_v = self.bin_vn > 0
+            v_avg = np.where(has_v, self.bin_v / np.maximum(self.bin_vn, 1), np.nan)
+            self.bin_v[:] = 0.0
+            self.bin_vn[:] = 0
         i_avg = self.bin_i / self.bin_n
-        has_v = self.bin_vn > 0
-        v_avg = np.where(has_v, self.bin_v / np.maximum(self.bin_vn, 1), np.nan)
         dt_tick = t_s - self.t_tick
         temp = self.bin_T / self.bin_Tn if self.bin_Tn else math.nan
-        self._clear_bin()
+        self.bin_i = 0.0
+        self.bin_n = 0
+        self.bin_T = 0.0
+        self.bin_Tn = 0
         return self._tick(
             t_s, i_avg, v_avg, has_v, dt_tick, first=False, new_segment=False, temperature_C=temp
         )
@@ -225,7 +238,7 @@ class TickAssembler:
             v_V=v,
             ok=ok,
             coulomb_steps=steps,
-            current_std_A=float(np.sqrt(self.i_var)),
+            current_std_A=math.sqrt(self.i_var) if self.i_var >= 0 else math.nan,
             temperature_C=temperature_C,
             first=first,
             new_segment=new_segment,

@@ -66,8 +66,11 @@ def branches_step(
     unchanged when ``dt_s`` <= 0 (the first sample, a time base that jumped back)."""
     if dt_s <= 0:
         return x1, x2
-    return (rc_step(x1, rc_decay(dt_s, tau1_s), current_A),
-            rc_step(x2, rc_decay(dt_s, tau2_s), current_A))  # fmt: skip
+    # rc_step(x, rc_decay(dt_s, tau), current_A) inlined (a gain of 1 multiplies by 1.0: the
+    # same numbers); this runs every tick, the calls were a third of its cost on one cell
+    a1 = np.exp(-dt_s / tau1_s)
+    a2 = np.exp(-dt_s / tau2_s)
+    return a1 * x1 + (1.0 - a1) * current_A, a2 * x2 + (1.0 - a2) * current_A
 
 
 def rc_filter(current_A: FloatArray, a: float) -> FloatArray:

@@ -174,7 +174,7 @@ class OcvModel:
             (self._low, z < self.eq4_min, self.eq4_min),
             (self._high, z > self.eq4_max, self.eq4_max),
         ):
-            if poly is not None and np.any(beyond):
+            if poly is not None and np.count_nonzero(beyond):  # np.any: 10x the cost a tick
                 p = np.asarray(np.polyder(poly) if deriv else poly, dtype=np.float64)
                 zc = np.clip(z, self.soc_min, self.soc_max)
                 v = np.where(beyond, _horner(p, zc - z0), v)

@@ -2,11 +2,13 @@
 on a Dask distributed cluster, and a fleet summary of what came back.
 
 Each input is one task, :func:`identify_task`: it runs :func:`~bmsid.offline.identify.identify_file`
-(a black box here) with the run's :class:`~bmsid.offline.identify.IdentifySpec`, writes the
-input's outputs into its own subdirectory of the root, and returns an :class:`InputSummary` of a
-few numbers per cell. Only the task (paths and the spec) and that summary cross a process or
-network boundary, never samples or traces, so on a cluster every worker must see the inputs and
-the output root at the same absolute paths (a shared filesystem).
+(a black box here) with the run's :class:`~bmsid.offline.identify.IdentifySpec`, streamed (the
+task keeps the last tick and the running sums, not the trace: a long input does not grow the
+worker's memory), writes the input's outputs into its own subdirectory of the root, and returns
+an :class:`InputSummary` of a few numbers per cell. Only the task (paths and the spec) and that
+summary cross a process or network boundary, never samples or traces, so on a cluster every
+worker must see the inputs and the output root at the same absolute paths (a shared
+filesystem).
 
 A failed input (unreadable, a bad column, an exception in the task or a worker that died) is an
 ``InputSummary`` with ``error`` set: one line, and the other inputs go on.
@@ -27,7 +29,7 @@ import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +37,7 @@ import numpy as np
 from bmsid.errors import UserError
 from bmsid.estimate.types import Quality
 from bmsid.offline.identify import IdentifySpec, identify_file
-from bmsid.offline.scoring import IdentifyResult, score
+from bmsid.offline.scoring import IdentifyResult
 
 #: What a directory argument contributes (searched recursively).
 INPUT_SUFFIXES = (".csv", ".csv.gz", ".log")
@@ -172,18 +174,20 @@ class FleetTask:
 
 
 def cell_summaries(result: IdentifyResult, spec: IdentifySpec) -> tuple[CellSummary, ...]:
-    """Each cell's values at the last tick and its RMSE over ``spec.window`` (the run keeps its
-    trace: ``IdentifySpec.keep_trace``, the library's default)."""
-    trace = result.kept_trace()
-    if trace.n_ticks == 0:
+    """Each cell's values at the last tick and its RMSE over ``spec.window``, from what a
+    streamed run keeps (its last tick and its running sums over the window: the fleet's tasks
+    stream) or from a kept trace (``IdentifySpec.keep_trace``); the same numbers either way,
+    the RMSE to float rounding (sums added block by block)."""
+    last = result.last_tick()
+    if last is None:
         return ()
-    per_cell = score(trace, spec.window).per_cell_window
+    per_cell = result.scorer(spec.window).scores().per_cell_window
     return tuple(
         CellSummary(
             cell=name,
-            t_s=float(trace.t_s[-1]),
-            params=tuple(float(trace[f][-1, c]) for f in SUMMARY_FIELDS),
-            quality=int(trace.quality[-1, c]),
+            t_s=float(last.t_s[0]),
+            params=tuple(float(last[f][0, c]) for f in SUMMARY_FIELDS),
+            quality=int(last.quality[0, c]),
             rmse_mV=1e3 * per_cell[c].rmse_V,
         )
         for c, name in enumerate(result.cell_names)
@@ -218,15 +222,18 @@ _ONE_AT_A_TIME = threading.Lock()
 
 def identify_task(task: FleetTask) -> InputSummary:
     """Run one input (in a worker): its outputs into ``task.out_dir``, a summary back; never
-    raises for a bad input."""
+    raises for a bad input. The run is streamed whatever ``task.spec.keep_trace`` says (as
+    ``bmsid identify`` of one file: a first pass counts the ticks, the default decimation of a
+    long record's parameter table applies), so a worker's memory does not grow with the record."""
+    spec = replace(task.spec, keep_trace=False)
     try:
         with _ONE_AT_A_TIME:
             wall, cpu = time.perf_counter(), time.process_time()
-            result = identify_file(task.input.path, task.spec, Path(task.out_dir))
+            result = identify_file(task.input.path, spec, Path(task.out_dir))
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        if result.kept_trace().n_ticks == 0:
+        if result.n_ticks == 0:
             raise UserError("no identification tick (too short or no valid time)")
-        cells = cell_summaries(result, task.spec)
+        cells = cell_summaries(result, spec)
     except Exception as exc:  # any failure is this input's, reported in one line
         return failed(task.input, exc)
     return InputSummary(task.input, None, result.n_samples, cells, wall, cpu)
