@@ -8,6 +8,8 @@ SOC region can move on its own. Pure numpy.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
 
@@ -36,3 +38,18 @@ def hat_matrix(knots: FloatArray, z: FloatArray) -> FloatArray:
     w[rows, j] = 1.0 - f
     w[rows, j + 1] += f
     return w
+
+
+def restore_covariance(
+    P_prior: FloatArray, P_saved: FloatArray, n: int, saved: dict[str, Any], knots: FloatArray
+) -> tuple[FloatArray, bool]:
+    """The observer's covariance from a checkpoint (``saved``, its P ``P_saved``) for a filter
+    of ``n`` cells, an offset and the map on ``knots``; True when the checkpoint's map is on
+    the same knots. Otherwise its SOC and offset block with ``P_prior``'s map block."""
+    old = np.asarray(saved.get("knots", np.zeros(0)), dtype=np.float64)
+    if old.shape == knots.shape and np.allclose(old, knots):
+        return np.asarray(P_saved, dtype=np.float64), True
+    P = P_prior.copy()
+    P[: n + 1, : n + 1] = np.asarray(P_saved)[: n + 1, : n + 1]
+    P[: n + 1, n + 1 :] = P[n + 1 :, : n + 1] = 0.0
+    return P, False

@@ -35,7 +35,7 @@ import numpy as np
 
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
-from bmsid.estimate.hysteresis_map import hat_matrix, map_knots
+from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covariance
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.state import CoulombState, _uniform
@@ -221,10 +221,8 @@ class ObserverState(CoulombState):
             scale = np.where(np.isfinite(scale), scale, 1.0)
             # Only rests teach M (the branches relaxed, the hysteresis not), and only cells
             # whose SOC is known better than M there: a SOC error is an OCV error as well.
-            sd_z = np.sqrt(np.maximum(np.diag(self.P)[:n], 0.0))
-            W = hat_matrix(self._knots, zc)
-            m_sd = np.sqrt(W @ np.diag(self.P)[n + 1 :])
-            teach = anchor & (np.abs(hz) * sd_z <= m_sd)
+            W, var = hat_matrix(self._knots, zc), np.maximum(np.diag(self.P), 0.0)
+            teach = anchor & (np.abs(hz) * np.sqrt(var[:n]) <= np.sqrt(W @ var[n + 1 :]))
             G = (teach * scale * ctx.h)[:, None] * W
         else:
             r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
@@ -388,16 +386,10 @@ class ObserverState(CoulombState):
             self._widen = True
             return
         renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
-        knots = np.asarray(obs.get("knots", np.zeros(0)), dtype=np.float64)
-        n = self.n
-        if knots.shape != self._knots.shape or not np.allclose(knots, self._knots):
-            # another map (none before it was learnt, another table): SOC and offset kept,
-            # the map starts from its prior
-            p_old = np.asarray(renamed["P"])[: n + 1, : n + 1]
-            renamed["P"] = self.P.copy()
-            renamed["P"][: n + 1, : n + 1] = p_old
-            renamed["P"][: n + 1, n + 1 :] = renamed["P"][n + 1 :, : n + 1] = 0.0
-        else:
+        # another map (none before it was learnt, another table): SOC and offset kept, the
+        # map starts from its prior
+        renamed["P"], same = restore_covariance(self.P, renamed["P"], self.n, obs, self._knots)
+        if same:
             self.d = np.asarray(obs["d"], dtype=np.float64).copy()
         load_arrays(self, renamed, self._ARRAYS, "state/observer")
         for k in self._SCALARS:
