@@ -90,6 +90,7 @@ class FusionStage:
         self.arrhenius.counters = self.counters  # one dict: the bank reports and restores it
         self.lam_exp = 1.0
         self.v_model = np.zeros(n)
+        self._no_hysteresis = not bool(np.any(model.ocv.m_V))
         self._m_table = np.zeros(n)
         self._excited: bool | BoolArray = False
         self._period_s = tuning.id_period_s
@@ -328,7 +329,11 @@ class FusionStage:
         if not tun.identify_ocv_offset:
             P[4, 4] = tun.p0
         tr = float(np.trace(P))
-        if not np.all(np.isfinite(P)) or tr <= 0:
+        # A cell configured without hysteresis (a table of zeros) restarts P at p0 after each
+        # swarm, as it did while its zero hysteresis column made the fit's covariance infinite:
+        # the physics-based records (no hysteresis, SOC-dependent parameters) track 1.2-1.8 mV
+        # better so (Table 2 rows, README). Cells with hysteresis keep the fit's covariance.
+        if not np.all(np.isfinite(P)) or tr <= 0 or self._no_hysteresis:
             P = np.eye(5) * tun.p0
         elif tr > tun.trace_max:
             P = P * (tun.trace_max / tr)
