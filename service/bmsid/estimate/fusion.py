@@ -91,6 +91,7 @@ class FusionStage:
         self.lam_exp = 1.0
         self.v_model = np.zeros(n)
         self._no_hysteresis = not bool(np.any(model.ocv.m_V))
+        self._fit_scale = tuning.fits_hysteresis_scale
         self._m_table = np.zeros(n)
         self._excited: bool | BoolArray = False
         self._period_s = tuning.id_period_s
@@ -131,7 +132,7 @@ class FusionStage:
         self.clamped[:] = False
         self._m_table = ctx.m_table_V
         ok, v, ocv_v, hm = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V
-        use_h = 1.0 if tun.identify_hysteresis_scale else 0.0
+        use_h = 1.0 if self._fit_scale else 0.0
         phi = self._phi
         phi[:, 0] = -i
         phi[:, 1] = -self.x1
@@ -193,7 +194,7 @@ class FusionStage:
         sc = self.scale[rows]
         th = theta_n * sc
         cl = np.minimum(np.maximum(th, self._lin_lo[rows]), self._lin_hi[rows])
-        if not self.tuning.identify_hysteresis_scale:
+        if not self._fit_scale:
             cl[:, 3] = 1.0
         if not self.tuning.identify_ocv_offset:
             cl[:, 4] = 0.0
@@ -235,9 +236,9 @@ class FusionStage:
     def _window(self, c: int) -> tuple[Window, FloatArray]:
         tun = self.tuning
         w, valid = self.buffer.window(
-            c, self._period_s, tun.window_s, tun.identify_hysteresis_scale, tun.identify_ocv_offset
+            c, self._period_s, tun.window_s, self._fit_scale, tun.identify_ocv_offset
         )
-        if not tun.identify_hysteresis_scale:  # h M(z) known (scale 1): part of the OCV side
+        if not self._fit_scale:  # h M(z) known (scale 1): part of the OCV side
             w = replace(w, y_V=w.y_V - w.hm_V * (valid > 0))
         return w, valid
 
@@ -324,7 +325,7 @@ class FusionStage:
         self.tau1[c], self.tau2[c] = taus
         self.theta[c] = self._clamp_linear((fit.theta[0] / sc)[None, :], slice(c, c + 1))[0]
         P = fit.cov[0]
-        if not tun.identify_hysteresis_scale:
+        if not self._fit_scale:
             P[3, 3] = tun.p0
         if not tun.identify_ocv_offset:
             P[4, 4] = tun.p0

@@ -75,13 +75,15 @@ class EstimatorTuning(BaseModel):
     a point is tens of mV of OCV error, which the estimators would learn as resistance (R2
     driven to its bound in every low-SOC tail). The model keeps running there with what was
     learnt before; ``inf`` learns everywhere."""
-    identify_hysteresis_scale: bool = False
+    identify_hysteresis_scale: bool | None = None
     """Identify a scale on the M(z) half-gap (Eq. 32) with the resistances, every tick and in
-    each swarm window. Off by default: under load h sits at +-1 for minutes, so a scale on
-    h M(z) is a level the fits share with the slow branch (R2) and any SOC error; measured on
-    the multi-day records (``bench/multiday.py``, 3 days) it cost R0+R1+R2 5-24 % where M was
-    known (0.3-7 % with it off). M is learnt at rests by the SOC observer instead
-    (``observer.learn_hysteresis``), where the branches relax and the hysteresis does not."""
+    each swarm window. ``None`` (default): only when the SOC observer does not learn M
+    (``observer.enabled`` and ``observer.learn_hysteresis``), as the paper's method with a plain
+    count. Under load h sits at +-1 for minutes, so a scale on h M(z) is a level the fits share
+    with the slow branch (R2) and any SOC error: on the multi-day records (``bench/multiday.py``,
+    3 days) it cost R0+R1+R2 up to 24 % where M was known; with M learnt at rests instead,
+    8.6 % at most from day 2. With a plain count it also absorbs SOC drift (A123 DYN50 with the observer off:
+    9.2 mV with it, 15.2 without)."""
 
     observer: ObserverTuning = ObserverTuning()
     """The SOC observer: SOC, the current-sensor offset and capacity from the voltage."""
@@ -160,6 +162,13 @@ class EstimatorTuning(BaseModel):
     divergence_soc_margin: float = Field(0.01, ge=0.0, le=0.5)
     """SOC (fraction) may leave [0, 1] by this much before it is a divergence: a coulomb count
     a per cent past full at the end of a charge is the capacity's error, not a lost state."""
+
+    @property
+    def fits_hysteresis_scale(self) -> bool:
+        """``identify_hysteresis_scale`` resolved: explicit, or on when M is not learnt."""
+        if self.identify_hysteresis_scale is not None:
+            return self.identify_hysteresis_scale
+        return not (self.observer.enabled and self.observer.learn_hysteresis)
 
     @model_validator(mode="after")
     def _check(self) -> Self:
