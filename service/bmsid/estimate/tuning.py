@@ -82,8 +82,8 @@ class EstimatorTuning(BaseModel):
     count. Under load h sits at +-1 for minutes, so a scale on h M(z) is a level the fits share
     with the slow branch (R2) and any SOC error: on the multi-day records (``bench/multiday.py``,
     3 days) it cost R0+R1+R2 up to 24 % where M was known; with M learnt at rests instead,
-    8.6 % at most from day 2. With a plain count it also absorbs SOC drift (A123 DYN50 with the observer off:
-    9.2 mV with it, 15.2 without)."""
+    8.6 % at most from day 2. With a plain count it also absorbs SOC drift (A123 DYN50, the
+    observer off: 9.2 mV with it, 15.2 without)."""
 
     observer: ObserverTuning = ObserverTuning()
     """The SOC observer: SOC, the current-sensor offset and capacity from the voltage."""
