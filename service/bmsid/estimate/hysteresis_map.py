@@ -41,15 +41,16 @@ def hat_matrix(knots: FloatArray, z: FloatArray) -> FloatArray:
 
 
 def restore_covariance(
-    P_prior: FloatArray, P_saved: FloatArray, n: int, saved: dict[str, Any], knots: FloatArray
+    P_prior: FloatArray, saved: dict[str, Any], n: int, knots: FloatArray
 ) -> tuple[FloatArray, bool]:
-    """The observer's covariance from a checkpoint (``saved``, its P ``P_saved``) for a filter
-    of ``n`` cells, an offset and the map on ``knots``; True when the checkpoint's map is on
-    the same knots. Otherwise its SOC and offset block with ``P_prior``'s map block."""
+    """The observer's covariance from a checkpoint's ``saved`` state (its ``P``, ``knots``) for
+    a filter of ``n`` cells, an offset and the map on ``knots``; True when the checkpoint's map
+    is on the same knots. Otherwise its SOC and offset block with ``P_prior``'s map block."""
+    P_saved = np.asarray(saved["P"], dtype=np.float64)
     old = np.asarray(saved.get("knots", np.zeros(0)), dtype=np.float64)
     if old.shape == knots.shape and np.allclose(old, knots):
-        return np.asarray(P_saved, dtype=np.float64), True
+        return P_saved, True
     P = P_prior.copy()
-    P[: n + 1, : n + 1] = np.asarray(P_saved)[: n + 1, : n + 1]
+    P[: n + 1, : n + 1] = P_saved[: n + 1, : n + 1]
     P[: n + 1, n + 1 :] = P[n + 1 :, : n + 1] = 0.0
     return P, False

@@ -388,7 +388,7 @@ class ObserverState(CoulombState):
         renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
         # another map (none before it was learnt, another table): SOC and offset kept, the
         # map starts from its prior
-        renamed["P"], same = restore_covariance(self.P, renamed["P"], self.n, obs, self._knots)
+        renamed["P"], same = restore_covariance(self.P, obs, self.n, self._knots)
         if same:
             self.d = np.asarray(obs["d"], dtype=np.float64).copy()
         load_arrays(self, renamed, self._ARRAYS, "state/observer")

@@ -299,12 +299,13 @@ def generate(options: MultidayOptions | None = None) -> MultidayRecord:
     r0 = TRUTH["R0_ohm"] * arr * age
     r1 = TRUTH["R1_ohm"] * arr
     const = {k: np.full(n, TRUTH[k]) for k in ("R2_ohm", "tau1_s", "tau2_s")}
+    ocv = ocv_model(cell)
     # The SOC does not depend on M: counted first, it sets the true M's shape per sample.
     dt = np.diff(t, append=t[-1] + 1.0)
     z = coulomb_count(i_true, dt, opt.soc0, q, cell.coulombic_efficiency)
     m_scale = 1.0 + opt.hysteresis_tilt * (1.0 - 2.0 * z)
     sim = simulate(
-        t, i_true, ocv_model(cell), capacity_Ah=q, R0_ohm=r0[None, :], R1_ohm=r1[None, :],
+        t, i_true, ocv, capacity_Ah=q, R0_ohm=r0[None, :], R1_ohm=r1[None, :],
         tau1_s=TRUTH["tau1_s"], R2_ohm=TRUTH["R2_ohm"], tau2_s=TRUTH["tau2_s"],
         gamma=cell.hysteresis.gamma, eta=cell.coulombic_efficiency, soc0=opt.soc0, h0=opt.h0,
         M_scale=m_scale[None, :],
@@ -317,7 +318,7 @@ def generate(options: MultidayOptions | None = None) -> MultidayRecord:
     i_meas = i_true + opt.current_offset_A + rng.normal(0.0, opt.i_noise_A, n)
     truth = MultidayTruth(
         t_s=t, current_A=i_true, voltage_V=v_true, soc=sim.soc, h=sim.h[0],
-        M_V=m_scale * ocv_model(cell).hysteresis_M(sim.soc), R0_ohm=r0,
+        M_V=m_scale * ocv.hysteresis_M(sim.soc), R0_ohm=r0,
         R1_ohm=r1, R2_ohm=const["R2_ohm"], tau1_s=const["tau1_s"], tau2_s=const["tau2_s"],
         capacity_Ah=q, current_offset_A=np.full(n, opt.current_offset_A), temperature_C=temp,
         phase=phase,
