@@ -27,6 +27,7 @@ from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
 from bmsid.estimate.stage import (
     BoolArray,
+    BranchSteps,
     FloatArray,
     Forgetting,
     TickContext,
@@ -39,7 +40,6 @@ from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.varpro import Window, fit_linear, fixed_rmse
-from bmsid.model.ecm import branches_step
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
@@ -64,8 +64,7 @@ class FusionStage:
         cell_ids: npt.NDArray[np.int64],
         n_stagger: int,
     ) -> None:
-        self.model = model
-        self.tuning = tuning
+        self.model, self.tuning = model, tuning
         self.n = n = model.n_cells
         varpro_kernel.ensure()  # compile (or load) the window fits now, not in the first swarm
         self.cell_ids = cell_ids
@@ -77,6 +76,7 @@ class FusionStage:
         # Normalisation of the linear parameters (R0, R1, R2, M scale, offset).
         self.scale = np.stack([r0, r1, r2, np.ones(n), np.full(n, 0.05)], axis=1)
         self._theta0 = np.stack([r0, r1, r2, np.ones(n), np.zeros(n)], axis=1) / self.scale
+        self._clamp_tol = 1e-12 * np.abs(self.scale)  # a clamp that moves less is no clamp
         self._phi = np.ones((n, 5))  # regressor, refilled every tick (column 4: the offset's 1)
         size = int(np.ceil(tuning.window_s / tuning.id_period_s)) + 1
         self.buffer = WindowBuffer(size=size, n_cells=n)
@@ -92,6 +92,9 @@ class FusionStage:
         self.v_model = np.zeros(n)
         self._no_hysteresis = not bool(np.any(model.ocv.m_V))
         self._fit_scale = tuning.fits_hysteresis_scale
+        self._branches = BranchSteps()
+        # The RLS regressor's scale: the OCV offset's column zeroed (see fusion_covariance).
+        self._phi_scale = self.scale * np.array([1.0, 1.0, 1.0, float(self._fit_scale), 0.0])
         self._m_table = np.zeros(n)
         self._excited: bool | BoolArray = False
         self._period_s = tuning.id_period_s
@@ -124,15 +127,14 @@ class FusionStage:
             self.buffer.clear()
             self.schedule.new_segment(tick.t_s)
         dt, ip, i = tick.dt_s, tick.i_prev_A, tick.current_A
-        self.x1, self.x2 = branches_step(self.x1, self.x2, self.tau1, self.tau2, ip, dt)
+        self.x1, self.x2 = self._branches(self.x1, self.x2, self.tau1, self.tau2, ip, dt)
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
         self._period_s = tick.period_s
         self._excited = is_excited(tick, self._excitation_limit_A)  # one bool for a uniform pack
         self.clamped[:] = False
         self._m_table = ctx.m_table_V
-        ok, v, ocv_v, hm = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V
-        use_h = 1.0 if self._fit_scale else 0.0
+        ok, v, ocv_v, hm, learn = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V, ctx.learn
         phi = self._phi
         phi[:, 0] = -i
         phi[:, 1] = -self.x1
@@ -140,14 +142,12 @@ class FusionStage:
         phi[:, 3] = hm
         v_model = ocv_v + (phi * (self.theta * self.scale)).sum(axis=1)
         e = v - v_model
-        self.arx_err = np.where(ok, e, 0.0)
+        self.arx_err = e if np.count_nonzero(ok) == self.n else np.where(ok, e, 0.0)
         quiet = is_quiet(tick, self._rest_limit_A)
-        learn = ctx.learn
         e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, learn, quiet, dt, forget, tun)
-        # The OCV offset is not tracked per tick (see fusion_covariance): column zeroed.
-        phi_n = phi * (self.scale * np.array([1.0, 1.0, 1.0, use_h, 0.0]))
+        phi_n = phi * self._phi_scale
         theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, learn, tun.trace_max)
-        self.theta = self._clamp_linear(self._project_linear(theta, self.P))
+        self.theta = self._clamp_linear(*self._project_linear(theta, self.P))
         self._carry_temperature(tick.temperature_C, dt, learn)
         self.buffer.push(i, v - ocv_v, hm, learn)
         self._run_swarms(tick.t_s)
@@ -164,7 +164,7 @@ class FusionStage:
         if r0 is not None:
             self.theta[:, 0] = np.clip(r0, lo, hi) / sc
 
-    def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> FloatArray:
+    def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Project an estimate that left the bounds back onto them in the metric of P.
 
         Clipping one coordinate alone leaves the coordinates correlated with it carrying a step
@@ -172,12 +172,12 @@ class FusionStage:
         wrong way. Moving coordinate j onto its bound by d shifts the others by P[:, j] d /
         P[j, j] (the least-squares estimate conditioned on theta_j at the bound). P is kept, so
         the parameter can leave the bound again when the data say so. Coordinates are taken one
-        at a time, in a fixed order; the final clip removes what is left.
+        at a time, in a fixed order; the final clip removes what is left. Returns it and it x sc.
         """
         sc, lo, hi = self.scale, self._lin_lo, self._lin_hi
         th = theta_n * sc
         if not ((th < lo) | (th > hi)).any():
-            return theta_n
+            return theta_n, th
         theta_n = theta_n.copy()
         for j in range(5):  # fixed order, whatever the other cells do (bank == single)
             th_j = theta_n[:, j] * sc[:, j]
@@ -187,26 +187,29 @@ class FusionStage:
                 pjj[:, None] > 0, P[:, :, j] / np.where(pjj > 0, pjj, 1.0)[:, None], 0.0
             )
             theta_n += gain * d_n[:, None]
-        return theta_n
+        return theta_n, theta_n * sc
 
-    def _clamp_linear(self, theta_n: FloatArray, rows: slice = slice(None)) -> FloatArray:
-        """theta (normalised) of the cells ``rows`` clipped to the bounds; flags the moved."""
+    def _clamp_linear(
+        self, theta_n: FloatArray, th: FloatArray | None = None, rows: slice = slice(None)
+    ) -> FloatArray:
+        """theta_n (normalised; ``th``: x scale) of the cells ``rows`` clipped; flags the moved."""
         sc = self.scale[rows]
-        th = theta_n * sc
+        th = theta_n * sc if th is None else th
         cl = np.minimum(np.maximum(th, self._lin_lo[rows]), self._lin_hi[rows])
         if not self._fit_scale:
             cl[:, 3] = 1.0
         if not self.tuning.identify_ocv_offset:
             cl[:, 4] = 0.0
-        moved = np.any(np.abs(cl - th) > 1e-12 * np.abs(sc), axis=1)
-        self.clamped[rows] |= moved
-        self.counters["clamped"] += int(moved.sum())
+        moved = (np.abs(cl - th) > self._clamp_tol[rows]).any(axis=1)
+        n_moved = int(np.count_nonzero(moved))  # usually 0: flags and count stay as they are
+        if n_moved:
+            self.clamped[rows] |= moved
+            self.counters["clamped"] += n_moved
         return np.asarray(cl / sc)
 
     def _publish_linear(self) -> None:
-        th = self.theta * self.scale
-        self.R0, self.R1, self.R2 = th[:, 0].copy(), th[:, 1].copy(), th[:, 2].copy()
-        self.Ms, self.off = th[:, 3].copy(), th[:, 4].copy()
+        # one copy, transposed: each field is a row of it (contiguous, fresh every tick)
+        self.R0, self.R1, self.R2, self.Ms, self.off = (self.theta * self.scale).T.copy()
 
     # ------------------------------------------------------------------ swarms
     def _run_swarms(self, t: float) -> None:
@@ -323,7 +326,7 @@ class FusionStage:
                 self.counters["swarms_rejected"] += 1
                 return
         self.tau1[c], self.tau2[c] = taus
-        self.theta[c] = self._clamp_linear((fit.theta[0] / sc)[None, :], slice(c, c + 1))[0]
+        self.theta[c] = self._clamp_linear((fit.theta[0] / sc)[None, :], rows=slice(c, c + 1))[0]
         P = fit.cov[0]
         if not self._fit_scale:
             P[3, 3] = tun.p0

@@ -101,7 +101,7 @@ class CoulombState:
         if tick.dt_s > 0:
             kappa = self._kappa_charge if ip < 0 else self._kappa_discharge
             self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
-        if self._pending.any():  # after the count: a cell's SOC is that of its start sample
+        if np.count_nonzero(self._pending):  # after the count: SOC is that of the start sample
             self._start(tick, self._pending)
         ocv = m.ocv
         zc = np.minimum(np.maximum(self.z, ocv.soc_min), ocv.soc_max)
@@ -110,7 +110,8 @@ class CoulombState:
         ctx.m_table_V = self.hysteresis_m(zc)
         ctx.h = self.h
         ctx.hm_V = self.h * ctx.m_table_V
-        ctx.v_safe_V = np.where(tick.ok, tick.v_V, ctx.ocv_V)
+        all_ok = np.count_nonzero(tick.ok) == self.n  # the usual tick: no mask to apply
+        ctx.v_safe_V = tick.v_V if all_ok else np.where(tick.ok, tick.v_V, ctx.ocv_V)
         if self._learn_everywhere:
             ctx.learn = tick.ok
         else:

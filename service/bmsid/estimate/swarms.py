@@ -9,6 +9,7 @@ fit costs and what a finished swarm changes; this module only buffers and schedu
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -131,9 +132,21 @@ class SwarmSchedule:
         self.phase = phase
         self.period_s = period_s
         self.min_window_s = min_window_s
+        self._first_due_s = 0.0
         self.next_swarm = np.zeros(n_cells)
         self.swarm_count = np.zeros(n_cells, dtype=np.int64)
         self.running: list[CellSwarm | None] = [None] * n_cells
+
+    @property
+    def next_swarm(self) -> FloatArray:
+        """When each cell's next swarm is due, s (assigned whole: the earliest is kept)."""
+        return self._next_swarm
+
+    @next_swarm.setter
+    def next_swarm(self, t_s: FloatArray) -> None:
+        self._next_swarm = t_s
+        # the earliest, which most ticks are before: one float compare a tick, not an array min
+        self._first_due_s = float(t_s.min()) if t_s.size else math.inf
 
     def new_segment(self, t_s: float) -> None:
         """Histories restart at ``t_s``: running swarms end, the first is due after min_window."""
@@ -143,18 +156,18 @@ class SwarmSchedule:
     def due(self, t_s: float) -> list[int]:
         """Cells whose swarm is due at ``t_s`` (and not running); their next time moves on by
         whole periods (a long stall does not queue up missed swarms)."""
-        if t_s < self.next_swarm.min():
+        if t_s < self._first_due_s:
             return []
         idle = np.array([s is None for s in self.running])
-        due = np.flatnonzero((t_s >= self.next_swarm) & idle)
+        nxt = self._next_swarm
+        due = np.flatnonzero((t_s >= nxt) & idle)
         for c in due:
-            self.next_swarm[c] += self.period_s * max(
-                1.0, np.ceil((t_s - self.next_swarm[c]) / self.period_s)
-            )
+            nxt[c] += self.period_s * max(1.0, np.ceil((t_s - nxt[c]) / self.period_s))
+        self.next_swarm = nxt  # the earliest moved on
         return [int(c) for c in due]
 
     def n_running(self) -> int:
-        return sum(s is not None for s in self.running)
+        return len(self.running) - self.running.count(None)
 
     def state_dict(self) -> dict[str, Any]:
         """Running swarms are not saved: after a restore they start again at their next time."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -223,7 +224,7 @@ class TickAssembler:
         if 0 < dt <= tun.gap_s:
             self.dt_nom = dt if self.dt_nom == 0.0 else self.dt_nom + 0.05 * (dt - self.dt_nom)
         # Excitation: running variance of the current (time constant excitation_window_s).
-        g = 1.0 - np.exp(-max(dt, 0.0) / tun.excitation_window_s) if dt > 0 else 0.0
+        g = _excitation_gain(dt, tun.excitation_window_s) if dt > 0 else 0.0
         self.i_mean += g * (i - self.i_mean)
         self.i_var += g * ((i - self.i_mean) ** 2 - self.i_var)
         steps = tuple(zip(self._steps_i, self._steps_dt, strict=True))
@@ -271,3 +272,10 @@ class TickAssembler:
         self.bin_Tn = int(self.bin_Tn)
         self._steps_i = [float(x) for x in np.asarray(st.get("steps_i", []), dtype=float)]
         self._steps_dt = [float(x) for x in np.asarray(st.get("steps_dt", []), dtype=float)]
+
+
+@lru_cache(maxsize=64)
+def _excitation_gain(dt_s: float, window_s: float) -> np.float64:
+    """The excitation EWMA's gain over a tick of ``dt_s`` > 0 s (the same few steps again: once
+    each; numpy's exp and scalar type, as the running moments always had)."""
+    return np.float64(1.0 - np.exp(-dt_s / window_s))
