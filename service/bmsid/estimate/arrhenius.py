@@ -1,4 +1,4 @@
-"""Temperature between drives: R0 carried along an Arrhenius law (pure numpy, per cell).
+"""Temperature: R0 carried along an Arrhenius law (pure numpy, per cell).
 
 R0 is identified from current changes. Under a constant current (a charge, a cruise) there are
 none: R0 I is a constant offset, nothing in the voltage tells R0 from an OCV error, and the
@@ -9,19 +9,28 @@ temperature, R0 follows it there:
     R(T) = R(T_ref) exp(B (1 / T - 1 / T_ref)),   T in kelvin, B = Ea / R_gas
 
 applied tick by tick (R x exp(B (1/T - 1/T_prev))): the factors telescope, so from the last
-identified values (every learning tick identifies them anew) R follows the law exactly, a
-temperature that comes back brings R back, and a constant temperature changes nothing (a
-swarm's result between learning ticks is kept). B is the cell's activation temperature,
-identified from its own learnt (ln R0, 1 / T) pairs by a scalar Kalman filter on the
-differences of consecutive pairs (one per ``PAIR_S`` of learning, used when the temperature
-moved at least ``MIN_DT_K`` between them), starting from the prior ``B_PRIOR_K`` (30 kJ/mol:
-ohmic and charge-transfer resistances of Li-ion cells near room temperature, 15-60 kJ/mol in
-the literature) with std ``B_PRIOR_STD_K``. A slow daily swing moves the temperature a fraction
-of a kelvin between pairs, so there B stays near its prior. Without a temperature (NaN) nothing
-changes, and a constant one changes nothing either: records without a varying temperature give
-what they gave before. Only R0 is carried: carrying R1 too (the multi-day truth scales both)
-was measured worse for R0+R1+R2 (3-day `all` scenario, day 2: 15.6 % against 4.3 %), the
-estimator's R1 being confounded with the slow branch under a constant current.
+identified values R follows the law exactly, a temperature that comes back brings R back, and
+a constant temperature changes nothing (a swarm's result is kept). The law applies while R0 is
+learnt too: to the RLS it is the prediction step of a parameter with a known drift, so the
+estimate does not lag a moving temperature by the forgetting factor's memory, and the data
+correct only what the law gets wrong. (Carried only between drives before: on the 3-day
+``temp-ea50`` record of ``bench/multiday.py``, R0 median error under load on days 2/3 4.8/4.9
+-> 1.3/1.4 %, 95th percentile 7.3/7.7 -> 2.5/2.7 %; ``temp-ageing`` 2.1/2.4 -> 0.9/1.2 %.)
+
+B is the cell's activation temperature, identified from its own learnt (ln R0, 1 / T) pairs by a
+scalar Kalman filter on the differences of consecutive pairs (one per ``PAIR_S`` of learning,
+used when the temperature moved at least ``MIN_DT_K`` between them), starting from the prior
+``B_PRIOR_K`` (30 kJ/mol: ohmic and charge-transfer resistances of Li-ion cells near room
+temperature, 15-60 kJ/mol in the literature) with std ``B_PRIOR_STD_K``. A slow daily swing
+moves the temperature a fraction of a kelvin between pairs, so there B stays near its prior
+(keeping a pair's reference until the temperature moved 1 K, weighted by the time between, took
+B from 3,600 to 5,600 K on ``temp-ea50``, truth 6,000, but R0 lags the temperature by the RLS's
+memory and the learnt pairs carry it: measured before that prediction, R0 came out worse,
+6.4/6.8 % there and 3.7/4.4 % on ``temp-ageing``). Without a temperature (NaN) nothing changes,
+and a constant one changes nothing either: records without a varying temperature give what they
+gave before. Only R0 is carried: carrying R1 too (the multi-day truth scales both) was measured
+worse for R0+R1+R2 (3-day `all` scenario, day 2: 15.6 % against 4.3 %), the estimator's R1 being
+confounded with the slow branch under a constant current.
 """
 
 from __future__ import annotations
@@ -75,10 +84,10 @@ class ArrheniusCarry:
         r0_ohm: FloatArray,
     ) -> FloatArray | None:
         """One tick. ``learnt``: cells whose R0 (ohm) was identified this tick (it feeds B);
-        ``carry``: cells that learn nothing now: their R0 moves by the law's factor from the
-        previous tick's temperature to this one's. Per-tick factors telescope, so a temperature
-        that comes back brings R0 back exactly, and a constant one changes nothing. Returns the
-        carried R0, or None when nothing is carried."""
+        ``carry``: cells whose R0 moves by the law's factor from the previous tick's temperature to
+        this one's (every identified cell: a learning one takes it as its prediction). Per-tick
+        factors telescope, so a temperature that comes back brings R0 back exactly, and a constant
+        one changes nothing. Returns the carried R0, or None when nothing is carried."""
         if not math.isfinite(temperature_C):
             return None
         t_k = temperature_C + KELVIN

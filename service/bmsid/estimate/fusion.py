@@ -155,12 +155,12 @@ class FusionStage:
         self.v_model = np.asarray(v_model, dtype=np.float64)
 
     def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
-        """R0 follows the temperature where nothing is learnt now (``estimate/arrhenius.py``)."""
+        """R0 follows the temperature, also while learning (``estimate/arrhenius.py``)."""
         if math.isnan(temperature_C):
             return
         sc, lo, hi = self.scale[:, 0], self._lin_lo[:, 0], self._lin_hi[:, 0]
         th0 = self.theta[:, 0] * sc
-        r0 = self.arrhenius.step(temperature_C, dt_s, learn & self.fused, self.fused & ~learn, th0)
+        r0 = self.arrhenius.step(temperature_C, dt_s, learn & self.fused, self.fused, th0)
         if r0 is not None:
             self.theta[:, 0] = np.clip(r0, lo, hi) / sc
 
