@@ -26,7 +26,7 @@ from bmsid.estimate.stage import (
 )
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.model.arx import MapStatus, params_to_theta, theta_to_params
+from bmsid.model.arx import MapStatus, params_to_theta, theta_to_rows
 from bmsid.model.ecm import branches_step
 
 _MAP_OK = int(MapStatus.OK)  # numpy compares an array with an IntEnum member ~5x slower
@@ -52,7 +52,8 @@ class ArxRlsStage:
         self.lam_exp = 1.0  # 1 / (forgetting time step): reports lambda per second
         self.v_model = np.zeros(self.n)
         self._m_table = np.zeros(self.n)
-        self._bounds = (model.lo[:, :5].T, model.hi[:, :5].T)  # R0, R1, R2, tau1, tau2
+        rows = [0, 1, 2, 4, 3]  # model columns R0, R1, R2, tau1, tau2 as theta_to_rows' rows
+        self._bounds = (model.lo[:, rows].T, model.hi[:, rows].T)
         self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
 
     def _start_values(self) -> None:
@@ -128,24 +129,20 @@ class ArxRlsStage:
         self.v_model = np.asarray(v_model, dtype=np.float64)
 
     def _accept(self, ok: BoolArray) -> None:
-        p, status = theta_to_params(self.theta_arx * self.arx_scale, self.T_arx)
+        raw, status = theta_to_rows(self.theta_arx * self.arx_scale, self.T_arx)
         good = ok & (status == _MAP_OK)
-        raw = np.array([p.R0_ohm, p.R1_ohm, p.R2_ohm, p.tau1_s, p.tau2_s])
         lo, hi = self._bounds
-        clipped = np.minimum(np.maximum(raw, lo), hi)
-        inside = (clipped == raw).all(axis=0)
+        clipped = np.minimum(np.maximum(raw, lo), hi)  # rows R0, R1, R2, tau2, tau1
+        inside = np.logical_and.reduce(clipped == raw)  # ufunc reduce: no .all() dispatch
         if np.count_nonzero(good) == good.size:  # the usual tick: every row taken
             self.clamped |= ~inside
-            self.R0, self.R1, self.R2, self.tau1, self.tau2 = clipped
+            self.R0, self.R1, self.R2, self.tau2, self.tau1 = clipped
             self.arx_ok |= good
             return
-        self.counters["arx_rejected"] += int((ok & ~good).sum())
+        self.counters["arx_rejected"] += int(np.count_nonzero(ok & ~good))
         self.clamped |= good & ~inside
-        self.R0 = np.where(good, clipped[0], self.R0)
-        self.R1 = np.where(good, clipped[1], self.R1)
-        self.R2 = np.where(good, clipped[2], self.R2)
-        self.tau1 = np.where(good, clipped[3], self.tau1)
-        self.tau2 = np.where(good, clipped[4], self.tau2)
+        held = np.array([self.R0, self.R1, self.R2, self.tau2, self.tau1])
+        self.R0, self.R1, self.R2, self.tau2, self.tau1 = np.where(good, clipped, held)
         self.arx_ok |= good
 
     def outputs(self) -> dict[str, FloatArray]:

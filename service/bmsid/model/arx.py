@@ -81,6 +81,17 @@ def params_to_theta(
 
 def theta_to_params(theta: FloatArray, T_s: float) -> tuple[CircuitParams, IntArray]:
     """Circuit parameters and a ``MapStatus`` per set from theta (..., 5) (corrected Eq. 22, 23)."""
+    rows, status = theta_to_rows(theta, T_s)
+    p = CircuitParams(
+        R0_ohm=rows[0].copy(), R1_ohm=rows[1].copy(), tau1_s=rows[4].copy(),
+        R2_ohm=rows[2].copy(), tau2_s=rows[3].copy(),
+    )  # fmt: skip
+    return p, status
+
+
+def theta_to_rows(theta: FloatArray, T_s: float) -> tuple[FloatArray, IntArray]:
+    """``theta_to_params`` as one array (5, ...) of rows R0, R1, R2, tau2, tau1 (branch 2 before
+    branch 1: the finiteness check reads R0..tau2 as one block), and the status per set."""
     th = np.asarray(theta, dtype=np.float64)
     if th.ndim == 2 and th.shape[0] <= SCALAR_ROWS:
         return _theta_to_params_rows(th, T_s)
@@ -94,18 +105,14 @@ def theta_to_params(theta: FloatArray, T_s: float) -> tuple[CircuitParams, IntAr
 SCALAR_ROWS = 4
 
 
-def _theta_to_params_rows(th: FloatArray, T_s: float) -> tuple[CircuitParams, IntArray]:
+def _theta_to_params_rows(th: FloatArray, T_s: float) -> tuple[FloatArray, IntArray]:
     rows = [_map_one(row, T_s) for row in th.tolist()]
     cols = np.array(rows, dtype=np.float64).reshape(len(rows), 6).T
-    p = CircuitParams(
-        R0_ohm=cols[1].copy(), R1_ohm=cols[2].copy(), tau1_s=cols[3].copy(),
-        R2_ohm=cols[4].copy(), tau2_s=cols[5].copy(),
-    )  # fmt: skip
-    return p, cols[0].astype(np.int64)
+    return cols[1:], cols[0].astype(np.int64)
 
 
 def _map_one(theta: list[float], T: float) -> tuple[float, float, float, float, float, float]:
-    """``_theta_to_params`` for one set in Python floats: (status, R0, R1, tau1, R2, tau2)."""
+    """``_theta_to_params`` for one set in Python floats: (status, R0, R1, R2, tau2, tau1)."""
     t1, t2, t3, t4, t5 = theta
     fail = (0.0, 0.0, 0.0, 0.0, 0.0)
     if not (math.isfinite(t1) and math.isfinite(t2) and math.isfinite(t3)
@@ -137,57 +144,54 @@ def _map_one(theta: list[float], T: float) -> tuple[float, float, float, float, 
     if not (math.isfinite(m1) and math.isfinite(r_fast) and math.isfinite(r_slow)
             and math.isfinite(tau_s)):  # fmt: skip
         return (float(_NOT_FINITE), *fail)
-    return (float(_OK), m1, r_fast, tau_f, r_slow, tau_s)
+    return (float(_OK), m1, r_fast, r_slow, tau_s, tau_f)
 
 
-def _theta_to_params(th: FloatArray, T_s: float) -> tuple[CircuitParams, IntArray]:
-    # Every tick maps a few sets: the masks below (np.where, np.select, ~25 us on one cell)
-    # are skipped when no set fails, which is the usual tick; the arithmetic is the same.
-    finite = np.all(np.isfinite(th), axis=-1)
-    all_finite = np.count_nonzero(finite) == finite.size
-    if not all_finite:
+def _theta_to_params(th: FloatArray, T_s: float) -> tuple[FloatArray, IntArray]:
+    # Every tick maps every cell and, in the 96-cell DST bench, most sets fail some check: numpy
+    # calls, not arithmetic, are the cost. So the results go into one array, the checks are a
+    # few reductions over its rows and the status is assigned last check first (the first
+    # failing check wins, as in the scalar path); the arithmetic is the same IEEE operations.
+    finite: npt.NDArray[np.bool_] | None = None
+    if not math.isfinite(np.add.reduce(th, axis=None)):  # a finite sum has finite terms
+        finite = np.all(np.isfinite(th), axis=-1)
         th = np.where(finite[..., None], th, 0.0)
     t1, t2, t3, t4, t5 = (th[..., j] for j in range(5))
     dm = 1.0 - t1 - t2
     dp = 1.0 + t1 - t2
-    stable = (dm > 0) & (dp > 0)
+    stable = np.minimum(dm, dp) > 0  # NaN-propagating: as (dm > 0) & (dp > 0)
     all_stable = np.count_nonzero(stable) == stable.size
     dm_s = dm if all_stable else np.where(dm > 0, dm, 1.0)
     dp_s = dp if all_stable else np.where(dp > 0, dp, 1.0)
     T = T_s
-    m1 = (t4 - t3 - t5) / dp_s
-    m2 = dp_s * T * T / (4.0 * dm_s)
-    m3 = (1.0 + t2) * T / dm_s
+    by_T = T != 1.0  # x * 1.0 is x to the bit: at the usual T = 1 s those products are skipped
+    out = np.empty((5, *th.shape[:-1]))
+    m1, r_fast, r_slow, tau_s, tau_f = (out[j, ...] for j in range(5))  # m1 is R0
+    np.divide(t4 - t3 - t5, dp_s, out=m1)
+    m2 = (dp_s * T * T if by_T else dp_s) / (4.0 * dm_s)
+    m3 = ((1.0 + t2) * T if by_T else 1.0 + t2) / dm_s
     m4 = (-t3 - t4 - t5) / dm_s
-    m5 = (t5 - t3) * T / dm_s
+    m5 = ((t5 - t3) * T if by_T else t5 - t3) / dm_s
     disc = m3 * m3 - 4.0 * m2
-    root = np.sqrt(np.where(disc > 0, disc, 0.0))
-    tau_f = 0.5 * (m3 - root)
-    tau_s = 0.5 * (m3 + root)
+    root = np.sqrt(np.fmax(disc, 0.0))  # NaN and <= 0: 0 (disc is never -0)
+    np.multiply(0.5, m3 - root, out=tau_f)
+    np.multiply(0.5, m3 + root, out=tau_s)
     spread = tau_s - tau_f
     gap = np.where(spread > 0, spread, 1.0)
-    r_slow = (tau_s * (m4 - m1) + m1 * m3 - m5) / gap
-    r_fast = m4 - m1 - r_slow
-    fin = np.isfinite(m1) & np.isfinite(r_fast) & np.isfinite(r_slow) & np.isfinite(tau_s)
-    positive = (tau_f > 0) & (tau_s > 0) & (m1 > 0) & (r_fast > 0) & (r_slow > 0)
-    if all_finite and all_stable and bool((positive & fin & (disc > 0)).all()):
-        ok = CircuitParams(R0_ohm=m1, R1_ohm=r_fast, tau1_s=tau_f, R2_ohm=r_slow, tau2_s=tau_s)
-        return ok, np.zeros(finite.shape, dtype=np.int64)
-    # The first failing check names the status (np.select takes the first true condition).
-    status = np.select(
-        [~finite, ~stable, disc <= 0, (tau_f <= 0) | (tau_s <= 0),
-         (m1 <= 0) | (r_fast <= 0) | (r_slow <= 0), ~fin],
-        [_NOT_FINITE, _UNSTABLE, _COMPLEX, _NONPOS_TAU, _NONPOS_R, _NOT_FINITE],
-        _OK,
-    ).astype(np.int64)  # fmt: skip
-    good = status == _OK
-    out = CircuitParams(
-        R0_ohm=np.where(good, m1, 0.0),
-        R1_ohm=np.where(good, r_fast, 0.0),
-        tau1_s=np.where(good, tau_f, 0.0),
-        R2_ohm=np.where(good, r_slow, 0.0),
-        tau2_s=np.where(good, tau_s, 0.0),
-    )
+    m41 = m4 - m1
+    np.divide(tau_s * m41 + m1 * m3 - m5, gap, out=r_slow)
+    np.subtract(m41, r_slow, out=r_fast)
+    # fmin skips NaN, so "fmin(a, b) <= 0" is "a <= 0 or b <= 0" as the scalar path tests it.
+    status = np.where(np.logical_and.reduce(np.isfinite(out[:4])), _OK, _NOT_FINITE)
+    np.copyto(status, _NONPOS_R, where=np.fmin.reduce(out[:3], axis=0) <= 0)
+    np.copyto(status, _NONPOS_TAU, where=np.fmin(tau_f, tau_s) <= 0)
+    np.copyto(status, _COMPLEX, where=disc <= 0)
+    if not all_stable:
+        np.copyto(status, _UNSTABLE, where=~stable)
+    if finite is not None:
+        np.copyto(status, _NOT_FINITE, where=~finite)
+    if np.count_nonzero(status):
+        np.copyto(out, 0.0, where=status != _OK)
     return out, status
 
 
