@@ -495,7 +495,9 @@ def test_the_reanchor_of_an_old_checkpoint_corrects_its_soc() -> None:
 def test_rests_teach_the_hysteresis_half_gap_per_soc_region() -> None:
     """Issue 11 item 6: the true M is 1.6x the table at empty and 0.4x at full. After three
     days of rests the learnt M at 20 % SOC (the second drive's rest, h = -1) has moved from
-    the table towards the truth, at no cost to the regions the rests did not see."""
+    the table towards the truth, at no cost to the regions the rests did not see. (It moved
+    further, 17.7 mV, while a swarm that finished on a window of rest could set R2 on its lower
+    bound at that rest: the slow branch's relaxation was then learnt as M.)"""
     rec = generate(MultidayOptions(n_days=3, hysteresis_tilt=0.6))
     bank = build_bank(rec.cell, 1, tuning=TUN)
     bank.update_block(_block(rec))
@@ -504,7 +506,7 @@ def test_rests_teach_the_hysteresis_half_gap_per_soc_region() -> None:
     z = np.array([0.2])
     table, learnt = float(obs.model.ocv.hysteresis_M(z)[0]), float(obs.hysteresis_m(z)[0])
     truth = table * (1.0 + 0.6 * (1.0 - 2.0 * 0.2))
-    assert abs(learnt - truth) < 0.75 * abs(table - truth), (table, learnt, truth)
+    assert abs(learnt - truth) < 0.9 * abs(table - truth), (table, learnt, truth)
     # the map stays physical and near its prior where it was not taught
     m_all = obs.hysteresis_m(np.linspace(0.0, 1.0, 101))
     assert np.all(np.isfinite(m_all)) and np.all(m_all >= 0.0)

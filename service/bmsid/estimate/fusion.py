@@ -22,7 +22,12 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate import lpso, varpro_kernel
-from bmsid.estimate.affrls import fusion_covariance, reset_covariance, rls_update
+from bmsid.estimate.affrls import (
+    fusion_covariance,
+    reset_covariance,
+    rls_update,
+    swarm_covariance,
+)
 from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
 from bmsid.estimate.stage import (
@@ -308,7 +313,12 @@ class FusionStage:
         taus = np.clip(np.sort(np.exp(cs.swarm.gbest)), *self._tau_box(c))  # exp(log) may miss
         if not np.isfinite(cs.swarm.gbest_f):
             return
-        window, valid = self._window(c)  # data up to now, not just the snapshot
+        # Judged on the data up to now, not the snapshot: a swarm started as a drive ended can
+        # finish on a window of rest, which determines nothing (fit variances ~1e9 p0).
+        if self.buffer.n_steps(tun.window_s, self._period_s, self._step_A) < tun.swarm_min_steps:
+            self.counters["swarms_rejected"] += 1
+            return
+        window, valid = self._window(c)
         n_w = window.current_A.shape[0]
         age = (n_w - 1 - np.arange(n_w)) * window.dt_s
         weights = valid * tun.lambda_max**age
@@ -327,20 +337,8 @@ class FusionStage:
                 return
         self.tau1[c], self.tau2[c] = taus
         self.theta[c] = self._clamp_linear((fit.theta[0] / sc)[None, :], rows=slice(c, c + 1))[0]
-        P = fit.cov[0]
-        if not self._fit_scale:
-            P[3, 3] = tun.p0
-        if not tun.identify_ocv_offset:
-            P[4, 4] = tun.p0
-        tr = float(np.trace(P))
-        # A cell configured without hysteresis (a table of zeros) restarts P at p0 after each
-        # swarm, as it did while its zero hysteresis column made the fit's covariance infinite:
-        # the physics-based records (no hysteresis, SOC-dependent parameters) track 1.2-1.8 mV
-        # better so (Table 2 rows, README). Cells with hysteresis keep the fit's covariance.
-        if not np.all(np.isfinite(P)) or tr <= 0 or self._no_hysteresis:
-            P = np.eye(5) * tun.p0
-        elif tr > tun.trace_max:
-            P = P * (tun.trace_max / tr)
+        restart, keep_r0 = self._no_hysteresis or tun.swarm_rls_restart, not self._no_hysteresis
+        P = swarm_covariance(fit.cov[0], tun, self._fit_scale, restart=restart, keep_r0=keep_r0)
         self.P[c] = fusion_covariance(P)
         # The fit's x = x_unit - (c / R) a^k: with R1 or R2 in (0, lower bound) the clipped R
         # multiplies c / R (CALCE US06 45 C, 60 s observer updates: 284 mV), so R x is kept.

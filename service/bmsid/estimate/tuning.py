@@ -107,6 +107,10 @@ class EstimatorTuning(BaseModel):
     force. The swarm ranks candidates on the window it was started with and the result is
     judged on the window at its end, so up to ~1.5x happens with good results (A123 DYN50:
     0.67-1.6x, one 4.5x); a wrong optimum is far worse."""
+    swarm_rls_restart: bool = True
+    """After each applied swarm the RLS restarts: P back to ``p0`` for all but R0, which keeps
+    its window variance (``affrls.swarm_covariance``). False: the RLS carries the window fit's
+    covariance, as before issue 11 (CALCE 0 degC DST 9.48 mV instead of 6.53)."""
     swarm_period_s: float = Field(600.0, gt=0.0)
     """A swarm starts every this many seconds per cell (cells of a bank are staggered)."""
     n_particles: int = Field(12, ge=4, le=200)
