@@ -103,3 +103,23 @@ def test_impossible_ends_are_refused() -> None:
         OcvCurve(mean=PAPER_OCV_MEAN, soc_min=0.02, soc_max=0.98, v_full_V=v_hi - 0.01)
     ok = OcvCurve(mean=PAPER_OCV_MEAN, soc_min=0.02, soc_max=0.98, v_full_V=v_hi + 0.05)
     assert ok.v_empty_V is None
+
+
+@settings(max_examples=80, deadline=None)
+@given(curves, joins, ratios, st.floats(0.02, 0.98), st.floats(0.02, 0.98))
+def test_a_step_along_the_secant_lands_on_the_inverse(
+    c: np.ndarray, j: tuple[float, float], r: tuple[float, float], z: float, z_true: float
+) -> None:
+    """The observer's anchor (weak prior): z + e / slope with e = OCV(z') - OCV(z) is z', where
+    the tangent overshoots or falls short on a curved OCV; slope > 0 on a monotone curve, and
+    z' the SOC whose OCV was measured."""
+    m = _model(c, j[0], j[1], r[0], r[1])
+    v = m.ocv(np.array([z_true]))
+    slope, z_to = m.secant_slope(np.array([z]), v)
+    assert np.isfinite(slope).all() and slope[0] > 0
+    e = float(m.ocv(z_to)[0] - m.ocv(np.array([z]))[0])  # the innovation the inverse implies
+    if abs(z_to[0] - z) > 1e-3:
+        assert z + e / slope[0] == pytest.approx(z_to[0], abs=1e-9)
+    else:
+        assert slope[0] == pytest.approx(float(m.docv_dz(np.array([z]))[0]))
+    assert z_to[0] == pytest.approx(z_true, abs=2e-3)

@@ -29,6 +29,7 @@ at a few scalar operations.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -38,14 +39,10 @@ from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covariance
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
-from bmsid.estimate.state import CoulombState, _uniform
+from bmsid.estimate.state import CoulombState, _uniform, start_soc_sigma
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.ticks import Tick
 from bmsid.model.ecm import hysteresis_kappa
-
-#: Start SOC uncertainty sources, V: what the first voltage cannot tell beyond hysteresis
-#: and the IR drop (relaxation left from before the start, sensor offset).
-START_V_SIGMA_V = 0.01
 
 
 class ObserverState(CoulombState):
@@ -116,7 +113,12 @@ class ObserverState(CoulombState):
         i_abs = abs(tick.current_A)
         a = np.exp(-tick.dt_s / self._tau_load_s)
         self._i_load_A = np.maximum(i_abs, a * self._i_load_A + (1 - a) * i_abs)
-        if i_abs < self._rest_limit_A:
+        # Until a SOC is known (learn gate), |I| within 2 std of the offset rests too (a 1 % C
+        # offset is the rest limit); not later: on LFP that moved SOC far (A123 3.48 -> 3.67 mV)
+        limit = self._rest_limit_A
+        if not np.count_nonzero(self._learn_gate):
+            limit += 2.0 * math.sqrt(max(float(self.P[self.n, self.n]), 0.0))
+        if i_abs < limit:
             self._rest_s += tick.dt_s
         elif self._rest_s:
             self._rest_s = 0.0
@@ -207,6 +209,10 @@ class ObserverState(CoulombState):
         hz = self.model.ocv.docv_dz(zc)
         hb = params["R0_ohm"] + params["R1_ohm"] + params["R2_ohm"]
         e = tick.v_V - params["v_model_V"]
+        jump = anchor | self._reanchor  # SOC may move far: the OCV's secant, not its tangent
+        if np.count_nonzero(jump):
+            secant, z_ocv = self.model.ocv.secant_slope(zc, ctx.ocv_V + e)
+            hz = np.where(jump & np.isfinite(secant), secant, hz)
         if self._reanchor:  # the branches' state after downtime is unknown
             r_rc = abs(tick.current_A) * (params["R1_ohm"] + params["R2_ohm"])
             r = tun.v_sigma_V**2 + r_rc**2
@@ -234,7 +240,6 @@ class ObserverState(CoulombState):
         self._update(np.flatnonzero(valid), hz, hb, G, e, r, forced)
         anchored = anchor & valid
         if anchored.any():
-            z_ocv = self.model.ocv.soc_from_ocv(ctx.ocv_V + e)
             z_var = r / np.maximum(hz**2, 1e-12)
             self.capacity.anchor(tick.t_s, z_ocv, z_var, float(self.P[n, n]), anchored)
             self._use_capacity()
@@ -345,11 +350,7 @@ class ObserverState(CoulombState):
         if method == "config":  # a value the user fixed, not a measurement
             self._start_var = np.full(self.n, tun.start_soc_sigma_max**2)
             return
-        m = self.model
-        slope = np.abs(m.ocv.docv_dz(np.clip(z, m.ocv.soc_min, m.ocv.soc_max)))
-        r_rc = m.start("R1_ohm") + m.start("R2_ohm")
-        sigma_v = m.ocv.hysteresis_M(z) + abs(tick.current_A) * r_rc + START_V_SIGMA_V
-        sigma = np.minimum(sigma_v / np.maximum(slope, 1e-9), tun.start_soc_sigma_max)
+        sigma = start_soc_sigma(self.model, z, abs(tick.current_A), tun.start_soc_sigma_max)
         self._start_var = np.maximum(sigma, tun.given_soc_sigma) ** 2
 
     # ------------------------------------------------------------------ outputs, checkpoints

@@ -36,6 +36,24 @@ def _uniform(x: FloatArray) -> float | FloatArray:
     return float(x[0]) if np.all(x == x[0]) else x
 
 
+#: Start SOC uncertainty sources, V: what the first voltage cannot tell beyond hysteresis
+#: and the IR drop (relaxation left from before the start, sensor offset).
+START_V_SIGMA_V = 0.01
+
+
+def start_soc_sigma(
+    model: CellModel, z: FloatArray, i_abs_A: float, sigma_max: float
+) -> FloatArray:
+    """Std (fraction) of a SOC read from the first voltage at ``z`` under ``i_abs_A``: the
+    voltage's uncertainty (hysteresis M(z), the start values' IR drop of R1 + R2, relaxation
+    and offset) through the OCV slope, at most ``sigma_max`` (a flat LFP plateau)."""
+    ocv = model.ocv
+    slope = np.abs(ocv.docv_dz(np.clip(z, ocv.soc_min, ocv.soc_max)))
+    r_rc = model.start("R1_ohm") + model.start("R2_ohm")
+    sigma_v = ocv.hysteresis_M(z) + i_abs_A * r_rc + START_V_SIGMA_V
+    return np.asarray(np.minimum(sigma_v / np.maximum(slope, 1e-9), sigma_max), dtype=np.float64)
+
+
 def learnable_soc_range(ocv: OcvModel, knee_slope_factor: float) -> tuple[float, float]:
     """The SOC range (fractions) around mid-SOC where |dOCV/dz| stays within
     ``knee_slope_factor`` x its median over 20-80 %: outside it lie the OCV curve's knees."""
