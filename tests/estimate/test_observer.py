@@ -492,12 +492,14 @@ def test_the_reanchor_of_an_old_checkpoint_corrects_its_soc() -> None:
 
 
 # ----------------------------------------------------------------------------- hysteresis map
-def test_rests_teach_the_hysteresis_half_gap_per_soc_region() -> None:
+def test_three_days_of_rests_do_not_mislead_the_hysteresis_map() -> None:
     """Issue 11 item 6: the true M is 1.6x the table at empty and 0.4x at full. After three
-    days of rests the learnt M at 20 % SOC (the second drive's rest, h = -1) has moved from
-    the table towards the truth, at no cost to the regions the rests did not see. (It moved
-    further, 17.7 mV, while a swarm that finished on a window of rest could set R2 on its lower
-    bound at that rest: the slow branch's relaxation was then learnt as M.)"""
+    days of rests the learnt M at 20 % SOC (the second drive's rest, h = -1) is no further from
+    the truth than the table, and the map stays physical and near its prior where the rests did
+    not teach it. (It moved towards the truth, to 17.7 mV, while a swarm that finished on a
+    window of rest could set R2 on its bound at that rest, and to 15.8 mV until the offset became
+    a consider state under load: SOC's uncertainty after a drive now keeps the offset's, and the
+    map is taught only where SOC is known better than M; README.)"""
     rec = generate(MultidayOptions(n_days=3, hysteresis_tilt=0.6))
     bank = build_bank(rec.cell, 1, tuning=TUN)
     bank.update_block(_block(rec))
@@ -506,7 +508,7 @@ def test_rests_teach_the_hysteresis_half_gap_per_soc_region() -> None:
     z = np.array([0.2])
     table, learnt = float(obs.model.ocv.hysteresis_M(z)[0]), float(obs.hysteresis_m(z)[0])
     truth = table * (1.0 + 0.6 * (1.0 - 2.0 * 0.2))
-    assert abs(learnt - truth) < 0.9 * abs(table - truth), (table, learnt, truth)
+    assert abs(learnt - truth) <= abs(table - truth), (table, learnt, truth)
     # the map stays physical and near its prior where it was not taught
     m_all = obs.hysteresis_m(np.linspace(0.0, 1.0, 101))
     assert np.all(np.isfinite(m_all)) and np.all(m_all >= 0.0)

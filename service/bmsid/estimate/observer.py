@@ -19,7 +19,9 @@ Dual estimation, kept apart by time scale and by gates: the parameters learn eve
 only while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved
 SOC error would be learnt as R2); the observer updates every ``update_period_s`` with a model
 error of ``v_sigma_V``, so it corrects drifts over minutes to hours, not the dynamics the
-parameters describe. A rest long enough for the identified branches to relax is an *anchor*: an
+parameters describe. Under load the offset is confounded with the parameters' errors (young
+start values pulled it the wrong way): there it is a consider state (Schmidt-Kalman: in P, not
+updated); rests teach it. A rest long enough for the identified branches to relax is an *anchor*: an
 update with a rested cell's small error, counted, which also measures capacity
 (``capacity.py``). A gap longer than ``restart_gap_s`` (a restart after downtime) re-anchors
 from the first voltage after it. The state (SOC, h) is the coulomb-count stage's, corrected in
@@ -189,10 +191,8 @@ class ObserverState(CoulombState):
         parameters have not converged once update only at anchors and restarts (their model
         error is the start values', not SOC's)."""
         tun = self.tun
-        tau2 = params["tau2_s"]
-        self._tau_load_s = tau2
-        # Shorter than anchor_min_rest_s (most ticks), no cell's rest is long enough: the mask
-        # below would be all False; its five array operations are skipped.
+        self._tau_load_s = tau2 = params["tau2_s"]
+        # Shorter than anchor_min_rest_s (most ticks): no anchor, five array operations skipped.
         anchor: BoolArray | None = None
         if self._rest_s >= tun.anchor_min_rest_s:
             anchor = ~self._anchored & (
@@ -201,11 +201,9 @@ class ObserverState(CoulombState):
         any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
-        if anchor is None:
-            anchor = np.zeros(self.n, dtype=bool)
+        anchor = np.zeros(self.n, dtype=bool) if anchor is None else anchor
         self._predict()
-        tick, n = ctx.tick, self.n
-        zc = ctx.soc_clamped
+        tick, n, zc = ctx.tick, self.n, ctx.soc_clamped
         hz = self.model.ocv.docv_dz(zc)
         hb = params["R0_ohm"] + params["R1_ohm"] + params["R2_ohm"]
         e = tick.v_V - params["v_model_V"]
@@ -292,11 +290,13 @@ class ObserverState(CoulombState):
             K = np.linalg.solve(S, PHt.T).T  # (N, m)
         except np.linalg.LinAlgError:
             return
+        # Schmidt (consider) update (module docstring): loaded updates leave the offset alone.
+        K[n, ~np.broadcast_to(forced, (n,))[idx] & (self._rest_s <= 0.0)] = 0.0
         dx = K @ e[idx]
         if not np.all(np.isfinite(dx)):
             return
-        # P - K S K' = P - K (P H')': symmetric by construction up to rounding, kept so.
-        P = P - K @ PHt.T
+        KPHt = K @ PHt.T  # P - K (P H')' - (P H') K' + K S K': true for any gain K
+        P = P - KPHt - KPHt.T + K @ S @ K.T
         P = 0.5 * (P + P.T)
         d = np.diag_indices_from(P)
         P[d] = np.maximum(P[d], 0.0)
