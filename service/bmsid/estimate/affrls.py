@@ -89,14 +89,14 @@ def swarm_covariance(
     ``restart``: everything restarts at ``p0`` but R0 with ``keep_r0``, which keeps its window
     variance (capped at ``p0``: restarted, R0 jumped by up to 14 % after each swarm on the
     constant synthetic cell; a cell without hysteresis restarts it too, which tracks the
-    physics-based records' SOC-dependent R0 better). Carrying the
-    fit's covariance saturates the filter between swarms (the paper's "filter saturation": the
-    window's R1/R2 correlations hold the branches where the window left them); restarted, the
-    RLS tracks them again. Measured (README, issue 11): every real-cell row better (CALCE 0 degC
-    DST 9.48 -> 6.53 mV), the multi-day records' R0+R1+R2 too. Without ``restart`` the fit's
-    covariance is kept, its trace capped at ``trace_max``. Coordinates the RLS does not fit (the
-    hysteresis scale without ``fit_scale``, the OCV offset unless identified) get ``p0``; a
-    covariance that is not finite or not positive restarts in full.
+    physics-based records' SOC-dependent R0 better). Carrying the fit's covariance saturates
+    the filter between swarms (the paper's "filter saturation": the window's R1/R2 correlations
+    hold the branches where the window left them); restarted, the RLS tracks them again.
+    Measured (README, issue 11): every real-cell row better (CALCE 0 degC DST 9.48 -> 6.53 mV),
+    the multi-day records' R0+R1+R2 too. Without ``restart`` the fit's covariance is kept, its
+    trace capped at ``trace_max``. Coordinates the RLS does not fit (the hysteresis scale
+    without ``fit_scale``, the OCV offset unless identified) get ``p0``; a covariance that is
+    not finite or not positive restarts in full.
     """
     p0 = tuning.p0
     P = P_fit.copy()

@@ -21,12 +21,11 @@ SOC error would be learnt as R2); the observer updates every ``update_period_s``
 error of ``v_sigma_V``, so it corrects drifts over minutes to hours, not the dynamics the
 parameters describe. Under load the offset is confounded with the parameters' errors (young
 start values pulled it the wrong way): there it is a consider state (Schmidt-Kalman: in P, not
-updated); rests teach it. A rest long enough for the identified branches to relax is an *anchor*: an
-update with a rested cell's small error, counted, which also measures capacity
+updated); rests teach it. A rest long enough for the identified branches to relax is an
+*anchor*: an update with a rested cell's small error, counted, which also measures capacity
 (``capacity.py``). A gap longer than ``restart_gap_s`` (a restart after downtime) re-anchors
 from the first voltage after it. The state (SOC, h) is the coulomb-count stage's, corrected in
-place; the covariance predictions are accumulated between updates, which keeps the per-tick cost
-at a few scalar operations.
+place; covariance predictions accumulate between updates: a few scalar operations a tick.
 """
 
 from __future__ import annotations

@@ -219,5 +219,5 @@ class OcvModel:
         z_to = self.soc_from_ocv(v_V)
         dz = z_to - z
         far = np.abs(dz) > 1e-3
-        slope = np.where(far, (self.ocv(z_to) - self.ocv(z)) / np.where(far, dz, 1.0), 0.0)
-        return np.asarray(np.where(far, slope, self.docv_dz(z)), dtype=np.float64), z_to
+        secant = (self.ocv(z_to) - self.ocv(z)) / np.where(far, dz, 1.0)
+        return np.asarray(np.where(far, secant, self.docv_dz(z)), dtype=np.float64), z_to
