@@ -221,10 +221,7 @@ class FusionStage:
         tun, sched = self.tuning, self.schedule
         due = sched.due(t)
         if due:
-            # One step (a charge starting) holds the time constants only together with the
-            # hysteresis swing and the OCV slope that follow it: a swarm needs many steps.
-            steps = self.buffer.n_steps(tun.window_s, self._period_s, self._step_A)
-            for c in due if steps >= tun.swarm_min_steps else ():
+            for c in due if self._window_has_steps() else ():
                 # Learnable data in the window, s: ticks in the OCV knees or without a voltage
                 # carry no weight in the fits, so they do not count towards min_window_s.
                 span = self.buffer.n_valid(c) * self._period_s
@@ -240,6 +237,12 @@ class FusionStage:
             if cs.swarm.done:
                 self._apply_swarm(c, cs)
                 sched.running[c] = None
+
+    def _window_has_steps(self) -> bool:
+        """The window holds ``swarm_min_steps`` current steps: one (a charge starting) ties the
+        taus to the hysteresis swing and OCV slope after it, a rest to nothing (variances ~1e9)."""
+        t = self.tuning
+        return self.buffer.n_steps(t.window_s, self._period_s, self._step_A) >= t.swarm_min_steps
 
     def _window(self, c: int) -> tuple[Window, FloatArray]:
         tun = self.tuning
@@ -313,9 +316,8 @@ class FusionStage:
         taus = np.clip(np.sort(np.exp(cs.swarm.gbest)), *self._tau_box(c))  # exp(log) may miss
         if not np.isfinite(cs.swarm.gbest_f):
             return
-        # Judged on the data up to now, not the snapshot: a swarm started as a drive ended can
-        # finish on a window of rest, which determines nothing (fit variances ~1e9 p0).
-        if self.buffer.n_steps(tun.window_s, self._period_s, self._step_A) < tun.swarm_min_steps:
+        # judged on the data up to now: a swarm started as a drive ended can end on a rest
+        if not self._window_has_steps():
             self.counters["swarms_rejected"] += 1
             return
         window, valid = self._window(c)
