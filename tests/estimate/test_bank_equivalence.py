@@ -9,10 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bmsid.config.cell import paper_cell
 from bmsid.config.engine import build_bank
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning, Variant
+from bmsid.samples import SampleBlock
 from bmsid.synthetic import paper_dst_case
+from bmsid.synthetic.multiday import MultidayOptions, generate
 
 N_CELLS = 96
 # Short windows: every cell runs (staggered) swarms within the 240 samples.
@@ -48,3 +51,19 @@ def test_bank_of_96_equals_96_single_estimators(variant: Variant) -> None:
     for name in names:
         np.testing.assert_allclose(got_bank[name], got_single[name], rtol=1e-9, err_msg=name)
     assert bank.counters.get("swarms", 0) > 0 or variant != "hy-affrls-lpso"
+
+
+def test_the_estimates_do_not_depend_on_the_clocks_origin() -> None:
+    """A gateway's sample clock is Unix time (SocketCAN timestamps), a test's starts at 0: the
+    engine must compute the same from both. (The capacity fusion once added the fade of the
+    years since 1970 to its prior at the first update: capacity and SOC jumped, and R0 followed.)
+    """
+    rec = generate(MultidayOptions(n_days=1, duration_s=3 * 3600, current_offset_A=0.3))
+    outs = []
+    for t0_s in (0.0, 1.7e9):
+        block = SampleBlock.from_arrays(rec.t_s + t0_s, rec.current_A, rec.voltage_V[:, None])
+        outs.append(build_bank(paper_cell(), 1).update_block(block))
+    cap = outs[0]["capacity_Ah"][:, 0]
+    assert cap[-1] != cap[0]  # the record reaches a capacity fusion
+    for name in ("soc", "capacity_Ah", "current_offset_A", "R0_ohm", "R2_ohm", "tau2_s"):
+        np.testing.assert_allclose(outs[1][name], outs[0][name], rtol=1e-9, err_msg=name)

@@ -11,6 +11,7 @@ state random-walks with age, so the estimate follows fade.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -54,7 +55,9 @@ class CapacityTracker:
         self.anchor_var = np.zeros(self.n)
         self.anchor_q_Ah = np.zeros(self.n)  # throughput at the last anchor
         self.anchor_t_s = np.zeros(self.n)
-        self.t_s = 0.0  # time of the last fusion, s (fade is added since then)
+        # time of the last fusion, s (fade is added since then); NaN until the first anchor: a
+        # sample clock is Unix time on a gateway, and fade since 1970 would void the prior
+        self.t_s = math.nan
         self.counters: dict[str, int] = {"capacity_updates": 0, "capacity_rejected": 0}
 
     def count(self, dq_Ah: float | FloatArray) -> None:
@@ -66,6 +69,8 @@ class CapacityTracker:
     ) -> None:
         """An anchor of ``cells`` at ``t_s`` with OCV-derived SOC ``z`` (variance ``z_var``);
         ``offset_var_A2`` is the current offset's variance (A^2) over the interval."""
+        if math.isnan(self.t_s):
+            self.t_s = t_s  # the prior stands for the capacity at the first anchor
         prev = cells & np.isfinite(self.anchor_z)
         dz = self.anchor_z - z
         use = prev & (np.abs(np.nan_to_num(dz)) >= self.min_dsoc)
