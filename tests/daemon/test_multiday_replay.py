@@ -17,7 +17,8 @@ Checked on the published cell and pack messages, against the truth at each messa
 * SOC within 2 points at the end of every day and on every message after the first hour;
 * the current offset within 0.05 A of 0.3 A from the end of day 1 on;
 * the capacity within 3 % of the truth from the end of day 3 on;
-* R0 within 10 % of the truth on the last published message;
+* R0 within 5 % of the truth at the end of every day (the value held after the evening charge:
+  a capacity prior voided by the Unix-time clock once put it 4.6-8.2 % high from day 4 on);
 * no DIVERGED quality, every number finite (JSON null would be a NaN), every message valid
   against its schema, ``seq`` contiguous from 0 in publication order, nothing dropped.
 
@@ -70,7 +71,7 @@ STALL_S = 60.0
 SOC_TOL = 0.02  # fraction: 2 SOC points
 OFFSET_TOL_A = 0.05
 CAPACITY_TOL = 0.03
-R0_TOL = 0.10
+R0_TOL = 0.05
 OFFSET_FROM_DAY = 1
 CAPACITY_FROM_DAY = 3
 
@@ -326,8 +327,6 @@ def test_a_week_through_the_live_daemon_publishes_the_truth(
             abs(f.capacity_Ah / f.capacity_true_Ah - 1.0) <= CAPACITY_TOL
         ):
             problems.append(f"day {f.day}: capacity {f.capacity_Ah:.3f} Ah")
-    last = cells[-1]
-    r0_true = float(rec.truth.R0_ohm[_k(last["t_s"])])
-    if not abs(last["R0_ohm"] / r0_true - 1.0) <= R0_TOL:
-        problems.append(f"last R0 {last['R0_ohm']:.6g} ohm, truth {r0_true:.6g}")
+        if not abs(f.R0_ohm / f.R0_true_ohm - 1.0) <= R0_TOL:
+            problems.append(f"day {f.day}: R0 {f.R0_ohm:.6g} ohm, truth {f.R0_true_ohm:.6g}")
     assert not problems, "\n".join(problems)
