@@ -5,7 +5,9 @@
 
 Measures: single-cell ``hy-affrls`` samples/s; ``hy-affrls-lpso`` wall time over the 8250-sample
 DST run (the paper: ~20 s in MATLAB); a 96-cell bank's cell-samples/s without the swarm; the
-worst and the 99.9th-percentile single ``update`` call of a 96-cell bank with the swarm active.
+worst and the 99.9th-percentile single ``update`` call of a 96-cell bank with the swarm active;
+and what the SOC observer costs (issue 11: at most 30 % of the bank's throughput): the same runs
+with ``observer.enabled`` off, alternated with on in this one process, best of two each.
 Throughputs feed the run as one ``SampleBlock`` (``update_block``, as the daemon and offline
 identification do); the per-call figures come from a second, sample-by-sample run. The fused
 variant runs twice, with the compiled swarm window fits and with their numpy reference
@@ -21,7 +23,8 @@ import numpy as np
 
 from bmsid.config.engine import build_bank
 from bmsid.estimate import varpro_kernel
-from bmsid.estimate.tuning import Variant
+from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
 
@@ -30,9 +33,9 @@ def _block(run: SyntheticRun) -> SampleBlock:
     return SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
 
 
-def _run_block(run: SyntheticRun, variant: Variant) -> float:
+def _run_block(run: SyntheticRun, variant: Variant, tuning: EstimatorTuning | None = None) -> float:
     """Wall time, s, of the whole run fed as one block (the daemon's and offline path)."""
-    bank = build_bank(run.cell, run.voltages_V.shape[1], variant, soc0=0.98)
+    bank = build_bank(run.cell, run.voltages_V.shape[1], variant, tuning, soc0=0.98)
     block = _block(run)
     t0 = time.perf_counter()
     bank.update_block(block)
@@ -89,6 +92,27 @@ def main() -> None:
     print("| benchmark | compiled window fits | numpy reference |\n|---|---|---|")
     for name, compiled, ref in rows:
         print(f"| {name} | {compiled} | {ref} |")
+    print()
+    _observer_cost(single, pack, n_single, n_bank)
+
+
+def _observer_cost(single: SyntheticRun, pack: SyntheticRun, n_single: int, n_bank: int) -> None:
+    """The observer's share of the throughput: on and off alternated, best of two each."""
+    off = EstimatorTuning(observer=ObserverTuning(enabled=False))
+    print("| benchmark | observer on | observer off | observer's cost |\n|---|---|---|---|")
+    cases: tuple[tuple[str, SyntheticRun, Variant, int], ...] = (
+        ("single cell `hy-affrls`", single, "hy-affrls", n_single),
+        ("single cell `hy-affrls-lpso`", single, "hy-affrls-lpso", n_single),
+        ("96-cell bank `hy-affrls-lpso`", pack, "hy-affrls-lpso", 96 * n_bank),
+    )
+    for name, run, variant, n in cases:
+        best = {True: np.inf, False: np.inf}
+        for _ in range(2):
+            for on in (True, False):
+                best[on] = min(best[on], _run_block(run, variant, None if on else off))
+        rate_on, rate_off = n / best[True], n / best[False]
+        print(f"| {name} | {rate_on:,.0f} /s | {rate_off:,.0f} /s | "
+              f"{100 * (1 - rate_on / rate_off):.0f} % |")  # fmt: skip
 
 
 if __name__ == "__main__":
