@@ -111,4 +111,7 @@ class CapacityTracker:
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         load_arrays(self, st, self._ARRAYS, self.name)
-        self.t_s = float(st["t_s"])
+        t_s = float(st["t_s"])
+        # 0.0 was "no fusion yet" before NaN was (checkpoints older than the fix of the prior's
+        # fade on Unix-time clocks): read as NaN, or its first fusion voids the prior
+        self.t_s = math.nan if t_s == 0.0 else t_s
