@@ -246,6 +246,10 @@ def _check_input(
             excitation_C=tuning.excitation_C, excitation_window_s=tuning.excitation_window_s,
             gap_s=tuning.gap_s,
         )  # fmt: skip
+        if args.soc0 is None and cell.soc_init.policy == "ocv_at_rest":
+            findings += plausibility.check_start_relaxation(
+                t, i, v, cell.capacity_Ah, cell.soc_init.rest_current_C
+            )
     return cell, note, findings
 
 
