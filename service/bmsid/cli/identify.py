@@ -247,8 +247,9 @@ def _check_input(
             gap_s=tuning.gap_s,
         )  # fmt: skip
         if args.soc0 is None and cell.soc_init.policy == "ocv_at_rest":
+            r0 = cell.initial_parameters().R0_ohm
             findings += plausibility.check_start_relaxation(
-                t, i, v, cell.capacity_Ah, cell.soc_init.rest_current_C
+                t, i, v, cell.capacity_Ah, r0, cell.soc_init.rest_current_C
             )
     return cell, note, findings
 

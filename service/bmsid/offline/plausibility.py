@@ -426,6 +426,7 @@ def check_start_relaxation(
     current_A: FloatArray,
     voltages_V: FloatArray,
     capacity_Ah: float,
+    r0_ohm: float,
     rest_current_C: float = 0.01,
 ) -> list[Finding]:
     """A warning when SOC will be read from a first voltage that is still relaxing: the record
@@ -434,11 +435,11 @@ def check_start_relaxation(
     know from one voltage). ``voltages_V`` (samples, cells).
 
     The rest is the leading run of samples within the engine's rest limit (``rest_current_C``
-    x capacity) whose current moves the voltage by at most half of ``RELAX_MIN_V`` through the
-    capacity rule's R0 (0.1 ohm Ah / capacity): a small current ramping up is not relaxation."""
+    x capacity) whose current moves the voltage by at most half of ``RELAX_MIN_V`` through
+    ``r0_ohm`` (the cell's start R0): a small current ramping up is not relaxation."""
     t = np.asarray(t_s, dtype=np.float64)
     v = np.asarray(voltages_V, dtype=np.float64).reshape(t.shape[0], -1)
-    rest_limit_A = min(rest_current_C * capacity_Ah, 0.5 * RELAX_MIN_V * capacity_Ah / 0.1)
+    rest_limit_A = min(rest_current_C * capacity_Ah, 0.5 * RELAX_MIN_V / max(r0_ohm, 1e-9))
     busy = np.flatnonzero(~(np.abs(np.asarray(current_A, dtype=np.float64)) <= rest_limit_A))
     n_rest = int(busy[0]) if busy.size else t.shape[0]
     if n_rest < 3:
@@ -456,14 +457,14 @@ def check_start_relaxation(
     noise = np.maximum(np.sqrt((res**2).sum(axis=0) / dof), RELAX_NOISE_FLOOR_V)
     t_stat = np.abs(rate) * np.sqrt(tc @ tc) / noise
     span_s = float(np.ptp(tt[ok]))
-    moved = np.abs(rate) * span_s
-    worst = int(np.argmax(np.abs(rate)))
-    if not (
-        abs(rate[worst]) >= RELAX_MIN_RATE_V_S
-        and moved[worst] >= RELAX_MIN_V
-        and t_stat[worst] >= RELAX_T_MIN
-    ):
+    relaxing = (
+        (np.abs(rate) >= RELAX_MIN_RATE_V_S)
+        & (np.abs(rate) * span_s >= RELAX_MIN_V)
+        & (t_stat >= RELAX_T_MIN)
+    )
+    if not np.count_nonzero(relaxing):
         return []
+    worst = int(np.argmax(np.where(relaxing, np.abs(rate), -1.0)))
     way = "rising: a discharge" if rate[worst] > 0 else "falling: a charge"
     return [
         Finding(
