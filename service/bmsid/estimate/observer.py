@@ -100,9 +100,9 @@ class ObserverState(CoulombState):
         self._widen = False
         self._learn_gate = np.ones(n, dtype=bool)
         self._start_var = np.zeros(n)
-        self.counters.update(
-            {"observer_updates": 0, "observer_gated": 0, "anchors": 0, "reanchors": 0}
-        )
+        self.counters |= {"observer_updates": 0, "observer_gated": 0, "anchors": 0, "reanchors": 0}
+        self.counters |= self.capacity.counters  # one dict: the bank reports and restores it
+        self.capacity.counters = self.counters
 
     # ------------------------------------------------------------------ per tick
     def step(self, ctx: TickContext) -> None:
