@@ -5,7 +5,10 @@ measured on each record. Scored on SOC 95..15 % by a coulomb count from the know
 (``--score-soc0``), and on the whole record.
 
 - A123 LFP 25 C DYN50 (starts at rest, full): ``hy-affrls-lpso`` <= 10 mV in the window and
-  >= 30 % below ``non-hy-affrls``; nothing given, SOC from the OCV at rest.
+  >= 30 % below ``non-hy-affrls``; nothing given, SOC from the OCV at rest. The comparison is
+  the paper's: both variants run again with SOC from the coulomb count (the observer off, as
+  ``tests/offline/test_accuracy_real_and_physics.py`` judges it); with the observer on, the plain
+  model's SOC absorbs part of the hysteresis, and that gain is printed beside it.
 - CALCE INR18650-20R DST, BJDST, FUDS, US06 at 0, 25, 45 C, started at 80 % (81.9 % at 0 C,
   the data README's charge counters, passed as ``--soc0``): <= 6 mV at 25 and 45 C, <= 12 mV at
   0 C.
@@ -35,6 +38,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.offline.identify import IdentifySpec, bound_findings, identify_file
 from bmsid.offline.inputs import load_config, parse_tuning
@@ -51,6 +55,8 @@ CALCE_SOC0 = {0: 0.819, 25: 0.8, 45: 0.8}
 CALCE_MAX_RMSE_V = {0: 12e-3, 25: 6e-3, 45: 6e-3}
 A123_MAX_RMSE_V = 10e-3
 A123_MIN_GAIN = 0.30
+#: The A123 record again, SOC by the coulomb count (the observer off): the paper's comparison.
+A123_PAPER = "A123 DYN50 25C, SOC counted"
 PHYSICS_MAX_RMSE_V = 10e-3
 VARIANTS: tuple[Variant, ...] = ("non-hy-affrls", "hy-affrls", "hy-affrls-lpso")
 
@@ -106,8 +112,8 @@ def cases(args: argparse.Namespace) -> list[Case]:
                 path = PHYSICS / f"dfn_nmc_{prof}_{temp}C.csv.gz"
                 out += [Case(f"physics {prof.upper()} {temp}C", path, cfg, None, None, v)
                         for v in VARIANTS]  # fmt: skip
-    out += [Case("A123 DYN50 25C", A123_FILE, CELLS / "a123_lfp_25C.toml", None, 1.0, v)
-            for v in variants]  # fmt: skip
+    out += [Case(label, A123_FILE, CELLS / "a123_lfp_25C.toml", None, 1.0, v)
+            for label in ("A123 DYN50 25C", A123_PAPER) for v in variants]  # fmt: skip
     if not args.quick:
         for temp, z0 in CALCE_SOC0.items():
             cfg = CELLS / f"calce_inr18650_20r_{temp}C.toml"
@@ -130,8 +136,10 @@ def main() -> int:
         print(f"no real data at {REAL}; set BMSID_REAL_DATA")
         return 2
     todo = cases(args)
+    paper = tuning.model_copy(update={"observer": ObserverTuning(enabled=False)})
+    tunings = [paper if c.label == A123_PAPER else tuning for c in todo]
     with ProcessPoolExecutor(args.jobs) as ex:
-        rows = list(ex.map(run, todo, [tuning] * len(todo)))
+        rows = list(ex.map(run, todo, tunings))
     by = {(r.case.label, r.case.variant): r for r in rows}
     failures = 0
     print("| record | variant | RMSE SOC 95-15 % (mV) | whole (mV) | first 10 % | after 10 % "
@@ -154,10 +162,18 @@ def main() -> int:
                 hy.after_startup_V, base.after_startup_V
             )
             what = f"lpso {1e3 * lp.after_startup_V:.2f} mV after 10 % (<= 10, best)"
+        elif label == A123_PAPER:
+            continue  # judged with the A123 row below
         elif label.startswith("A123"):
-            gain = 1.0 - lp.window_V / base.window_V
+            gain_on = 1.0 - lp.window_V / base.window_V
+            p_lp, p_base = by[(A123_PAPER, "hy-affrls-lpso")], by[(A123_PAPER, "non-hy-affrls")]
+            gain = 1.0 - p_lp.window_V / p_base.window_V
             ok = lp.window_V <= A123_MAX_RMSE_V and gain >= A123_MIN_GAIN
-            what = f"lpso {1e3 * lp.window_V:.2f} mV (<= 10), {100 * gain:.0f} % below non-hy"
+            what = (
+                f"lpso {1e3 * lp.window_V:.2f} mV (<= 10); SOC counted {1e3 * p_lp.window_V:.2f}"
+                f" vs non-hy {1e3 * p_base.window_V:.2f} mV, {100 * gain:.0f} % below (>= 30;"
+                f" observer on: {100 * gain_on:.0f} %)"
+            )
         else:
             lim = CALCE_MAX_RMSE_V[int(label.split()[-1][:-1])]
             ok = lp.window_V <= lim
