@@ -48,6 +48,7 @@ from tqdm import tqdm
 from bmsid.cli.identify_fleet import add_fleet_options, run_fleet
 from bmsid.cli.outputs import output_dir
 from bmsid.config.cell import CellConfig
+from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
@@ -225,9 +226,12 @@ def _check_input(
     if args.capacity_ah is not None:
         capacity_from = "option"
     elif args.cell_config is None and not plausibility.first_error(findings):
-        est = plausibility.derive_capacity(t, i, v, tuning.gap_s)
+        coeffs = _ocv_coeffs(args.ocv_coeffs)
+        ocv = ocv_model(cell)
+        est = plausibility.derive_capacity(
+            t, i, v, tuning.gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
+        )
         if est is not None:
-            coeffs = _ocv_coeffs(args.ocv_coeffs)
             cell, note = cell_config(None, round(est.capacity_Ah, 3), coeffs)
             note = f"{note} ({est.text()})"
             capacity_from = "record"

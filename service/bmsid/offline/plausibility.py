@@ -27,7 +27,7 @@ Evidence used:
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -75,6 +75,13 @@ FULL_NMC_V, EMPTY_NMC_V = 4.1, 3.0
 FULL_LFP_V, LFP_MAX_V, EMPTY_LFP_V = 3.40, 3.65, 2.7
 LFP_PLATEAU_SPAN_V = 0.15
 REST_SHARE = 0.05
+# A capacity read off a discharge from part-charged: its start SOC at least this (the charge is
+# divided by it), the start under at most this share of the peak current, IR-corrected by the
+# first step of at least STEP_SHARE of the peak within STEP_SEARCH_S.
+PARTIAL_START_SOC_MIN = 0.3
+LOADED_START_SHARE = 0.1
+STEP_SHARE = 0.2
+STEP_SEARCH_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -514,14 +521,24 @@ def check_soc_range(soc: FloatArray, capacity_Ah: float, start: str) -> list[Fin
 
 @dataclass(frozen=True)
 class CapacityEstimate:
-    """A capacity read off a full-to-empty discharge in the record (Ah, a lower bound)."""
+    """A capacity read off a discharge to the cut-off in the record (Ah, a lower bound: the
+    cut-off comes under load). ``start_soc``: the SOC the discharge started from (fraction; 1
+    from full, else read off the assumed OCV at the rest it started from)."""
 
     capacity_Ah: float
     v_full_V: float
     v_empty_V: float
     chemistry: Literal["NMC", "LFP"]
+    start_soc: float = 1.0
 
     def text(self) -> str:
+        if self.start_soc < 1.0:
+            return (
+                f"a discharge in the record from a rest at {self.v_full_V:.3f} V "
+                f"({100 * self.start_soc:.0f} % on the assumed OCV) to the cut-off "
+                f"({self.v_empty_V:.3f} V, {self.chemistry}-like) moves "
+                f"{self.capacity_Ah * self.start_soc:.3g} Ah"
+            )
         return (
             f"a full-to-empty discharge in the record ({self.v_full_V:.3f} V at rest to "
             f"{self.v_empty_V:.3f} V, {self.chemistry}-like) moves {self.capacity_Ah:.3g} Ah"
@@ -529,14 +546,22 @@ class CapacityEstimate:
 
 
 def derive_capacity(
-    t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, gap_s: float = GAP_S
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    gap_s: float = GAP_S,
+    soc_at_rest: Callable[[float], float] | None = None,
 ) -> CapacityEstimate | None:
-    """The capacity (Ah) when the record discharges a cell from full to empty, else None.
+    """The capacity (Ah) when the record discharges a cell from full, or from a rest that
+    ``soc_at_rest`` (the assumed OCV curve's inverse, V -> fraction) puts at >= 30 % SOC, to
+    empty; else None.
 
     Full: at rest (|I| below ``REST_SHARE`` of the peak) at >= 4.1 V, or on an LFP-like flat
     plateau (3.40-3.65 V at rest, the whole record below 3.7 V, the resting voltage in the middle
-    of the discharge within 0.15 V). Empty: the weakest cell at or below the cut-off (3.0 V;
-    LFP 2.7 V) at the end of the discharge. Packs use the cell mean (full) and minimum (empty).
+    of the discharge within 0.15 V). A partial start: at rest above 3.65 V (NMC-like: an LFP
+    plateau tells no SOC), the charge divided by its SOC. Empty: the weakest cell at or below
+    the cut-off (3.0 V; LFP 2.7 V) at the end of the discharge. Packs use the cell mean (full)
+    and minimum (empty).
     """
     t = np.asarray(t_s, dtype=np.float64)
     i = np.asarray(current_A, dtype=np.float64)
@@ -550,12 +575,14 @@ def derive_capacity(
         return None
     peak = float(np.max(np.abs(i)))
     a, b = ex.start, ex.end
-    if abs(i[a]) > REST_SHARE * peak:
-        return None
     v_full = float(np.mean(v[a]))
     v_empty = float(np.min(v[b]))
+    if abs(i[a]) > REST_SHARE * peak:
+        return _partial_start(t, i, v, ex, soc_at_rest, peak)
     if v_full >= FULL_NMC_V and v_empty <= EMPTY_NMC_V:
         return CapacityEstimate(ex.charge_Ah, v_full, v_empty, "NMC")
+    if LFP_MAX_V < v_full < FULL_NMC_V:
+        return _partial_start(t, i, v, ex, soc_at_rest, peak)
     if not (FULL_LFP_V <= v_full <= LFP_MAX_V and float(np.max(v)) <= LFP_MAX_V + 0.05):
         return None
     if v_empty > EMPTY_LFP_V:
@@ -569,6 +596,54 @@ def derive_capacity(
     if hi - lo > LFP_PLATEAU_SPAN_V:
         return None
     return CapacityEstimate(ex.charge_Ah, v_full, v_empty, "LFP")
+
+
+def _partial_start(
+    t: FloatArray,
+    i: FloatArray,
+    v: FloatArray,
+    ex: Excursion,
+    soc_at_rest: Callable[[float], float] | None,
+    peak_A: float,
+) -> CapacityEstimate | None:
+    """:func:`derive_capacity` for a discharge to the cut-off that starts part-charged (NMC-like),
+    at rest or under a small load (<= ``LOADED_START_SHARE`` of the peak; its voltage then
+    IR-corrected with the resistance of the record's first current step, dV/dI)."""
+    a, b = ex.start, ex.end
+    v_start, v_empty = float(np.mean(v[a])), float(np.min(v[b]))
+    if soc_at_rest is None or v_empty > EMPTY_NMC_V:
+        return None
+    if abs(i[a]) > REST_SHARE * peak_A:
+        if abs(i[a]) > LOADED_START_SHARE * peak_A:
+            return None
+        r_ohm = first_step_resistance(t[a:b], i[a:b], np.mean(v[a:b], axis=1), peak_A)
+        if r_ohm is None:
+            return None
+        v_start += r_ohm * float(i[a])
+    if not LFP_MAX_V < v_start < FULL_NMC_V:
+        return None
+    z = float(soc_at_rest(v_start))
+    if not (math.isfinite(z) and z >= PARTIAL_START_SOC_MIN):
+        return None
+    return CapacityEstimate(ex.charge_Ah / z, v_start, v_empty, "NMC", z)
+
+
+def first_step_resistance(
+    t_s: FloatArray, current_A: FloatArray, voltage_V: FloatArray, peak_A: float
+) -> float | None:
+    """dV/dI (ohm) over the first current step of at least ``STEP_SHARE`` of the peak between
+    consecutive samples within ``STEP_SEARCH_S`` of the start; None without one, or when it is
+    not a positive, finite resistance."""
+    within = np.flatnonzero(t_s - t_s[0] <= STEP_SEARCH_S)
+    if within.size < 2:
+        return None
+    di = np.diff(current_A[: within[-1] + 1])
+    steps = np.flatnonzero(np.abs(di) >= STEP_SHARE * peak_A)
+    if steps.size == 0:
+        return None
+    k = int(steps[0])
+    r = -(voltage_V[k + 1] - voltage_V[k]) / di[k]
+    return float(r) if math.isfinite(r) and r > 0 else None
 
 
 def assumed_cell(
