@@ -2,10 +2,12 @@
 
 A short coordinator over stages (``estimate/stage.py``)::
 
-    SampleBlock --> TickAssembler --> tick --> state stage --> parameter stage --> EstimateBlock
-    (samples)       (ticks.py: bins,           (state.py:      (arx_rls.py or
-                     gaps, time jumps,          SOC, h, OCV)    fusion.py + swarms.py)
-                     coulomb steps)
+    SampleBlock --> TickAssembler --> tick --> state stage --> parameter stage --> guard
+    (samples)       (ticks.py: bins,           (state.py,      (arx_rls.py or      (guard.py)
+                     gaps, time jumps,          observer.py:    fusion.py +            |
+                     coulomb steps)             SOC, h, OCV)    swarms.py)             v
+                                                              EstimateBlock <-- average
+                                                                          (publish_average.py)
 
 Variants (the paper's three) are compositions of stages, :data:`VARIANT_STAGES`:
 
@@ -36,6 +38,7 @@ from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.fusion import FusionStage
 from bmsid.estimate.guard import PublishGuard
 from bmsid.estimate.observer import ObserverState
+from bmsid.estimate.publish_average import PublishAverage
 from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, per_cell_limit
 from bmsid.estimate.state import CoulombState, without_data
 from bmsid.estimate.ticks import Tick, TickAssembler
@@ -112,6 +115,7 @@ class EstimatorBank:
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
         self._excitation_limit_A = per_cell_limit(self.tuning.excitation_C, model)
         self.guard = PublishGuard.for_model(model, self.tuning)
+        self.average = PublishAverage(n, self.tuning.publish_average_tau1)
         # copied each tick: a seventh of np.full's cost
         self._q_converged = np.full(n, _CONVERGED, dtype=np.int64)
 
@@ -194,6 +198,7 @@ class EstimatorBank:
         self.state.reset(m)
         self.params.reset(m)
         self.guard.reset(m)
+        self.average.reset(m)
 
     # ------------------------------------------------------------------ one tick
     def _run_tick(self, tick: Tick) -> tuple[dict[str, FloatArray], npt.NDArray[np.int64]]:
@@ -221,6 +226,7 @@ class EstimatorBank:
         q[self.params.clamped] = _OUT_OF_BOUNDS
         q[~self.params.converged] = _CONVERGING
         cells, q, reinit = self.guard.apply(tick.t_s, cells, q, self.params.clamped, ctx.learn)
+        cells = self.average.apply(cells, q, tick.dt_s)
         # np.count_nonzero: a fifth of ndarray.any()'s cost on these short masks
         if np.count_nonzero(self.state.no_data):  # no valid reading since the (re)start
             cells, q = without_data(cells, q, self.state.no_data)
@@ -241,6 +247,7 @@ class EstimatorBank:
             "state": self.state.state_dict(),
             "params": self.params.state_dict(),
             "guard": self.guard.state_dict(),
+            "average": self.average.state_dict(),
             "counters": self.counters,
         }
 
@@ -261,6 +268,8 @@ class EstimatorBank:
         self.params.load_state_dict(st["params"])
         if "guard" in st:  # checkpoints from before the guard start it fresh
             self.guard.load_state_dict(st["guard"])
+        if "average" in st:  # from before the average: published raw at the next tick
+            self.average.load_state_dict(st["average"])
         counters = st.get("counters", {})
         for stage in (self.ticks, self.state, self.params, self.guard):
             for k in stage.counters:
