@@ -97,5 +97,4 @@ class PublishAverage:
         return {"avg": self.avg.copy(), "restart": self.restart.copy()}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        load_arrays(self, {"avg": st["avg"], "_restart": st["restart"]}, ("avg", "_restart"),
-                    self.name)  # fmt: skip
+        load_arrays(self, st, ("avg", "restart"), self.name)
