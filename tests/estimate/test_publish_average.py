@@ -117,3 +117,29 @@ def test_the_average_survives_a_checkpoint() -> None:
     rest = second.update_block(SampleBlock.from_arrays(t[1500:], i[1500:], v[1500:]))
     for k in ("R1_ohm", "R2_ohm", "tau1_s", "C2_F"):
         assert np.array_equal(rest[k], ref[k][-rest.n_ticks :]), k
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(
+            st.lists(st.floats(1e-4, 1e4), min_size=4, max_size=4),
+            st.floats(0.0, 100.0),
+            st.sampled_from([int(Quality.CONVERGED), int(Quality.CONVERGING)]),
+        ),
+        min_size=1,
+        max_size=8,
+    )
+)
+def test_one_cell_averages_as_a_bank_does(
+    steps: list[tuple[list[float], float, int]],
+) -> None:
+    """The one-cell path (Python floats) gives the bits of the array path, step by step."""
+    one, two = PublishAverage(1, 1.0), PublishAverage(2, 1.0)
+    for values, dt, q in steps:
+        c1 = {k: np.array([x]) for k, x in zip(AVERAGED, values, strict=True)}
+        c2 = {k: np.array([x, x]) for k, x in zip(AVERAGED, values, strict=True)}
+        o1 = one.apply(c1, np.array([q]), dt)
+        o2 = two.apply(c2, np.array([q, q]), dt)
+        for k in (*AVERAGED, "C1_F", "C2_F"):
+            assert o1[k][0] == o2[k][0] == o2[k][1], k
