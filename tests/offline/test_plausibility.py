@@ -177,7 +177,7 @@ def _soc_at_rest(v_V: float) -> float:
 
 @pytest.mark.parametrize("i_start_A", [0.0, 0.15])
 def test_capacity_is_read_off_a_discharge_from_part_charged(i_start_A: float) -> None:
-    """From 80 % at rest, or under 7.5 % of the peak (IR-corrected by the first step), to the
+    """From 80 % at rest, or under 7.5 % of the peak (IR-corrected by the steps' -dV/dI), to the
     cut-off: the charge over the start SOC the assumed OCV reads (a lower bound: the cut-off
     comes under load). Without the OCV, or from below 30 %, nothing is read."""
     t, i, v = part_charged_discharge(0.8, i_start_A)
@@ -203,23 +203,6 @@ def test_a_part_charged_record_runs_with_its_capacity_without_a_config(
     # non-hy-affrls on 1C to the cut-off: 36 mV with the 1.92 Ah read (a lower bound), 18 mV
     # with the true 2 Ah, 222 mV with the assumed cell's 70 Ah (all measured)
     assert m["rmse_V"] < 0.05
-
-
-@settings(max_examples=50, deadline=None)
-@given(
-    r_ohm=st.floats(1e-3, 1.0),
-    i0=st.floats(0.0, 0.5),
-    step=st.floats(0.25, 5.0),
-    k=st.integers(1, 50),
-)
-def test_the_first_step_gives_the_resistance(r_ohm: float, i0: float, step: float, k: int) -> None:
-    """A purely resistive record: dV/dI at its first step of >= 20 % of the peak is R."""
-    t = np.arange(120, dtype=np.float64)
-    i = np.where(t < k, i0, i0 + step)
-    v = 3.8 - r_ohm * i
-    got = pl.first_step_resistance(t, i, v, float(np.max(np.abs(i))))
-    assert got == pytest.approx(r_ohm, rel=1e-6)
-    assert pl.first_step_resistance(t, np.full(120, i0), v, 1.0) is None  # no step
 
 
 # ----------------------------------------------------------------------------- time in ms

@@ -34,6 +34,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.estimate.startvalues import step_resistances
+
 FloatArray = npt.NDArray[np.float64]
 Level = Literal["error", "warning"]
 
@@ -76,12 +78,9 @@ FULL_LFP_V, LFP_MAX_V, EMPTY_LFP_V = 3.40, 3.65, 2.7
 LFP_PLATEAU_SPAN_V = 0.15
 REST_SHARE = 0.05
 # A capacity read off a discharge from part-charged: its start SOC at least this (the charge is
-# divided by it), the start under at most this share of the peak current, IR-corrected by the
-# first step of at least STEP_SHARE of the peak within STEP_SEARCH_S.
+# divided by it), the start under at most this share of the peak current.
 PARTIAL_START_SOC_MIN = 0.3
 LOADED_START_SHARE = 0.1
-STEP_SHARE = 0.2
-STEP_SEARCH_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -608,7 +607,8 @@ def _partial_start(
 ) -> CapacityEstimate | None:
     """:func:`derive_capacity` for a discharge to the cut-off that starts part-charged (NMC-like),
     at rest or under a small load (<= ``LOADED_START_SHARE`` of the peak; its voltage then
-    IR-corrected with the resistance of the record's first current step, dV/dI)."""
+    IR-corrected with the median -dV/dI of the record's current steps,
+    ``startvalues.step_resistances``)."""
     a, b = ex.start, ex.end
     v_start, v_empty = float(np.mean(v[a])), float(np.min(v[b]))
     if soc_at_rest is None or v_empty > EMPTY_NMC_V:
@@ -616,34 +616,17 @@ def _partial_start(
     if abs(i[a]) > REST_SHARE * peak_A:
         if abs(i[a]) > LOADED_START_SHARE * peak_A:
             return None
-        r_ohm = first_step_resistance(t[a:b], i[a:b], np.mean(v[a:b], axis=1), peak_A)
-        if r_ohm is None:
+        # R0 as the start values measure it: the median -dV/dI over the record's current steps
+        r_ohm = step_resistances(t[a:b], i[a:b], np.mean(v[a:b], axis=1))
+        if r_ohm.size == 0:
             return None
-        v_start += r_ohm * float(i[a])
+        v_start += float(np.median(r_ohm)) * float(i[a])
     if not LFP_MAX_V < v_start < FULL_NMC_V:
         return None
     z = float(soc_at_rest(v_start))
     if not (math.isfinite(z) and z >= PARTIAL_START_SOC_MIN):
         return None
     return CapacityEstimate(ex.charge_Ah / z, v_start, v_empty, "NMC", z)
-
-
-def first_step_resistance(
-    t_s: FloatArray, current_A: FloatArray, voltage_V: FloatArray, peak_A: float
-) -> float | None:
-    """dV/dI (ohm) over the first current step of at least ``STEP_SHARE`` of the peak between
-    consecutive samples within ``STEP_SEARCH_S`` of the start; None without one, or when it is
-    not a positive, finite resistance."""
-    within = np.flatnonzero(t_s - t_s[0] <= STEP_SEARCH_S)
-    if within.size < 2:
-        return None
-    di = np.diff(current_A[: within[-1] + 1])
-    steps = np.flatnonzero(np.abs(di) >= STEP_SHARE * peak_A)
-    if steps.size == 0:
-        return None
-    k = int(steps[0])
-    r = -(voltage_V[k + 1] - voltage_V[k]) / di[k]
-    return float(r) if math.isfinite(r) and r > 0 else None
 
 
 def assumed_cell(
