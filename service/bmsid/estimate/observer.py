@@ -38,8 +38,10 @@ import numpy as np
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covariance
+from bmsid.estimate.observer_ekf import IndexArray, joint_update
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
+from bmsid.estimate.start_relaxation import StartRelaxation, relaxation_tau_s, widened_variance
 from bmsid.estimate.state import CoulombState, _uniform, start_soc_sigma
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.ticks import Tick
@@ -100,7 +102,10 @@ class ObserverState(CoulombState):
         self._widen = False
         self._learn_gate = np.ones(n, dtype=bool)
         self._start_var = np.zeros(n)
+        tau_relax_s = relaxation_tau_s(model.start("tau1_s"), model.start("tau2_s"))
+        self._relax = StartRelaxation(n, tau_relax_s, tuning.anchor_min_rest_s)
         self.counters |= {"observer_updates": 0, "observer_gated": 0, "anchors": 0, "reanchors": 0}
+        self.counters["start_relaxations"] = 0
         self.counters |= self.capacity.counters  # one dict: the bank reports and restores it
         self.capacity.counters = self.counters
 
@@ -119,6 +124,9 @@ class ObserverState(CoulombState):
         limit = self._rest_limit_A
         if not np.count_nonzero(self._learn_gate):
             limit += 2.0 * math.sqrt(max(float(self.P[self.n, self.n]), 0.0))
+        extra_V = self._relax.feed(tick.t_s, tick.v_V, tick.ok, i_abs < limit)
+        if extra_V is not None and np.count_nonzero(extra_V):
+            self._widen_start(extra_V)
         if i_abs < limit:
             self._rest_s += tick.dt_s
         elif self._rest_s:
@@ -264,42 +272,20 @@ class ObserverState(CoulombState):
         self._since_s = 0.0
 
     def _update(
-        self, idx: np.ndarray[Any, np.dtype[np.intp]], hz: FloatArray, hb: FloatArray,
-        G: FloatArray, e: FloatArray, r: FloatArray, forced: BoolArray | bool,
+        self, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray, e: FloatArray,
+        r: FloatArray, forced: BoolArray | bool,
     ) -> None:  # fmt: skip
-        """Joint EKF update of the cells ``idx`` (``G``: dv/dd, (n, K)); cells not ``forced``
-        (anchor, restart) are gated on their innovation."""
-        n, P = self.n, self.P
-        if idx.size == 0:
+        """Joint EKF update of the cells ``idx`` (``observer_ekf.joint_update``); the offset
+        is a consider state under load (module docstring)."""
+        n = self.n
+        step = joint_update(
+            self.P, n, idx, hz, hb, G, e, r, np.broadcast_to(forced, (n,)),
+            self.tun.gate_sigmas, consider_offset=self._rest_s <= 0.0,
+        )  # fmt: skip
+        self.counters["observer_gated"] += step.n_gated
+        if step.dx is None or step.P is None:
             return
-        # H = [diag(hz) | hb | G] is sparse: P H' and H P H' in O(N m), not dense products.
-        Gi = G[idx]
-        PHt = P[:, idx] * hz[idx] + np.outer(P[:, n], hb[idx]) + P[:, n + 1 :] @ Gi.T  # (N, m)
-        S = hz[idx, None] * PHt[idx, :] + hb[idx, None] * PHt[n, :] + Gi @ PHt[n + 1 :, :]
-        S[np.diag_indices_from(S)] += r[idx]
-        inside = (e[idx] ** 2 <= self.tun.gate_sigmas**2 * np.diag(S)) | np.broadcast_to(
-            forced, (n,)
-        )[idx]
-        self.counters["observer_gated"] += int((~inside).sum())
-        if not inside.all():
-            idx, PHt, S = idx[inside], PHt[:, inside], S[np.ix_(inside, inside)]
-        if idx.size == 0:
-            return
-        try:
-            K = np.linalg.solve(S, PHt.T).T  # (N, m)
-        except np.linalg.LinAlgError:
-            return
-        # Schmidt (consider) update (module docstring): loaded updates leave the offset alone.
-        K[n, ~np.broadcast_to(forced, (n,))[idx] & (self._rest_s <= 0.0)] = 0.0
-        dx = K @ e[idx]
-        if not np.all(np.isfinite(dx)):
-            return
-        KPHt = K @ PHt.T  # P - K (P H')' - (P H') K' + K S K': true for any gain K
-        P = P - KPHt - KPHt.T + K @ S @ K.T
-        P = 0.5 * (P + P.T)
-        d = np.diag_indices_from(P)
-        P[d] = np.maximum(P[d], 0.0)
-        self.P = P
+        dx, self.P = step.dx, step.P
         self.z = np.clip(self.z + dx[:n], 0.0, 1.0)
         self.b = float(np.clip(self.b + dx[n], -self._b_max, self._b_max))
         if self.d.shape[0]:
@@ -329,8 +315,19 @@ class ObserverState(CoulombState):
         self.P[:n, n:] *= keep[:, None]
         self.P[n:, :n] *= keep
         self.P[np.arange(n), np.arange(n)] = sigma**2
+        if self.soc_init_method == "ocv_at_rest":
+            self._relax.begin(tick.t_s, cells)
         self._gate_learning()
         return cells
+
+    def _widen_start(self, extra_V: FloatArray) -> None:
+        """The first rest showed a start still relaxing (``start_relaxation.py``): SOC is as
+        much less certain as ``extra_V`` (V) of OCV; its learning waits for the observer."""
+        ocv, d = self.model.ocv, np.arange(self.n)
+        slope = ocv.docv_dz(np.clip(self.z, ocv.soc_min, ocv.soc_max))
+        self.P[d, d] = widened_variance(self.P[d, d], extra_V, slope, self.tun.start_soc_sigma_max)
+        self.counters["start_relaxations"] += int(np.count_nonzero(extra_V))
+        self._gate_learning()
 
     def _gate_learning(self) -> None:
         """Cells whose SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV."""
@@ -376,6 +373,7 @@ class ObserverState(CoulombState):
             **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS_MAP},
             "reanchor": self._reanchor,
             "capacity": self.capacity.state_dict(),
+            "start_relaxation": self._relax.state_dict(),
         }
         return st
 
@@ -396,4 +394,6 @@ class ObserverState(CoulombState):
             setattr(self, k, float(obs[k.lstrip("_")]))
         self._reanchor = bool(obs["reanchor"])
         self.capacity.load_state_dict(obs["capacity"])
+        if "start_relaxation" in obs:  # absent from checkpoints before it: nothing watched
+            self._relax.load_state_dict(obs["start_relaxation"])
         self._use_capacity()

@@ -34,6 +34,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.estimate.start_relaxation import NOISE_FLOOR_V, slope_from_sums
 from bmsid.estimate.startvalues import step_resistances
 
 FloatArray = npt.NDArray[np.float64]
@@ -422,7 +423,7 @@ def check_excitation(
 RELAX_MIN_RATE_V_S = 1e-4
 RELAX_MIN_V = 1e-3
 RELAX_T_MIN = 5.0
-RELAX_NOISE_FLOOR_V = 0.29e-3
+RELAX_NOISE_FLOOR_V = NOISE_FLOOR_V
 #: The leading rest is looked at over at most this long, s.
 RELAX_LOOK_S = 120.0
 
@@ -455,13 +456,14 @@ def check_start_relaxation(
     ok = np.isfinite(tt) & np.isfinite(vv).all(axis=1)
     if np.count_nonzero(ok) < 3 or not np.ptp(tt[ok]) > 0:
         return []
-    tc = tt[ok] - tt[ok].mean()
-    dv = vv[ok] - vv[ok].mean(axis=0)
-    rate = (tc @ dv) / (tc @ tc)  # V/s per cell, least squares
-    res = dv - tc[:, None] * rate[None, :]
-    dof = max(tc.shape[0] - 2, 1)
-    noise = np.maximum(np.sqrt((res**2).sum(axis=0) / dof), RELAX_NOISE_FLOOR_V)
-    t_stat = np.abs(rate) * np.sqrt(tc @ tc) / noise
+    tc = (tt[ok] - tt[ok][0])[:, None]
+    dv = vv[ok] - vv[ok][0]
+    rate, se = slope_from_sums(  # V/s per cell, least squares, as the engine's start watch
+        np.full(dv.shape[1], float(tc.shape[0])), np.full(dv.shape[1], float(tc.sum())),
+        dv.sum(axis=0), np.full(dv.shape[1], float((tc**2).sum())), (tc * dv).sum(axis=0),
+        (dv**2).sum(axis=0), RELAX_NOISE_FLOOR_V,
+    )  # fmt: skip
+    t_stat = np.abs(rate) / se
     span_s = float(np.ptp(tt[ok]))
     relaxing = (
         (np.abs(rate) >= RELAX_MIN_RATE_V_S)
