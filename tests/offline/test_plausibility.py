@@ -186,6 +186,8 @@ def test_capacity_is_read_off_a_discharge_from_part_charged(i_start_A: float) ->
     assert est.start_soc == pytest.approx(0.8, abs=0.02)
     assert 0.95 * 2.0 <= est.capacity_Ah <= 2.0
     assert "(80 % on the assumed OCV) to the cut-off" in est.text()
+    said = "(IR-corrected from under 0.15 A)" if i_start_A else "from a rest at "
+    assert said in est.text()
     assert pl.derive_capacity(t, i, v) is None  # no OCV to read the start with
     t, i, v = part_charged_discharge(0.25, i_start_A)
     assert pl.derive_capacity(t, i, v, soc_at_rest=_soc_at_rest) is None

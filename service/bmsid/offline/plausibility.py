@@ -524,18 +524,25 @@ def check_soc_range(soc: FloatArray, capacity_Ah: float, start: str) -> list[Fin
 class CapacityEstimate:
     """A capacity read off a discharge to the cut-off in the record (Ah, a lower bound: the
     cut-off comes under load). ``start_soc``: the SOC the discharge started from (fraction; 1
-    from full, else read off the assumed OCV at the rest it started from)."""
+    from full, else read off the assumed OCV at the rest it started from, or at ``v_full_V``
+    IR-corrected from under a small load of ``start_load_A``)."""
 
     capacity_Ah: float
     v_full_V: float
     v_empty_V: float
     chemistry: Literal["NMC", "LFP"]
     start_soc: float = 1.0
+    start_load_A: float = 0.0
 
     def text(self) -> str:
         if self.start_soc < 1.0:
+            at = (
+                f"from {self.v_full_V:.3f} V (IR-corrected from under {self.start_load_A:.3g} A)"
+                if self.start_load_A
+                else f"from a rest at {self.v_full_V:.3f} V"
+            )
             return (
-                f"a discharge in the record from a rest at {self.v_full_V:.3f} V "
+                f"a discharge in the record {at} "
                 f"({100 * self.start_soc:.0f} % on the assumed OCV) to the cut-off "
                 f"({self.v_empty_V:.3f} V, {self.chemistry}-like) moves "
                 f"{self.capacity_Ah * self.start_soc:.3g} Ah"
@@ -615,9 +622,11 @@ def _partial_start(
     v_start, v_empty = float(np.mean(v[a])), float(np.min(v[b]))
     if soc_at_rest is None or v_empty > EMPTY_NMC_V:
         return None
+    load_A = 0.0
     if abs(i[a]) > REST_SHARE * peak_A:
         if abs(i[a]) > LOADED_START_SHARE * peak_A:
             return None
+        load_A = float(i[a])
         # R0 as the start values measure it: the median -dV/dI over the record's current steps
         r_ohm = step_resistances(t[a:b], i[a:b], np.mean(v[a:b], axis=1))
         if r_ohm.size == 0:
@@ -628,7 +637,7 @@ def _partial_start(
     z = float(soc_at_rest(v_start))
     if not (math.isfinite(z) and z >= PARTIAL_START_SOC_MIN):
         return None
-    return CapacityEstimate(ex.charge_Ah / z, v_start, v_empty, "NMC", z)
+    return CapacityEstimate(ex.charge_Ah / z, v_start, v_empty, "NMC", z, load_A)
 
 
 def assumed_cell(
