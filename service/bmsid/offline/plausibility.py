@@ -647,12 +647,14 @@ def assumed_cell(
     capacity_from: Literal["cell", "option", "record"] = "cell",
     chemistry: str = "NMC",
     record_chemistry: str | None = None,
+    ocv_from_record: str | None = None,
 ) -> Finding:
     """The loud line for a run without a cell config: which cell and capacity are assumed.
 
     ``capacity_from``: the assumed cell's own capacity, ``--capacity-ah``, or the record (a
     full-to-empty discharge, :func:`derive_capacity`, whose ``record_chemistry`` is named when
-    it differs from the assumed cell's ``chemistry``: its OCV cannot fit).
+    it differs from the assumed cell's ``chemistry``: its OCV cannot fit). ``ocv_from_record``:
+    the description of a pseudo-OCV read off the record in its place (``pseudo_ocv.py``).
     """
     source = {
         "cell": f"its {capacity_Ah:g} Ah",
@@ -662,6 +664,15 @@ def assumed_cell(
     mismatch = ""
     if record_chemistry is not None and record_chemistry != chemistry:
         mismatch = f" (the record looks {record_chemistry}-like: the {chemistry} OCV cannot fit it)"
+    if ocv_from_record is not None:
+        return Finding(
+            "warning",
+            "no_cell_config",
+            f"no --cell-config and the record looks {record_chemistry}-like, which the paper's "
+            f"{chemistry} cell cannot fit: {ocv_from_record}, with {source}; its parameters "
+            "carry the record's polarisation: a config from the cell's OCV test (bmsid fit-ocv) "
+            "gives a true OCV",
+        )
     return Finding(
         "warning",
         "no_cell_config",
