@@ -2,7 +2,8 @@
 (offline/pseudo_ocv.py, cli/identify.py).
 
 The record: an LFP cell (the shipped A123 config's fit-ocv curve, a repository file, not the
-measured data) on DST at 3C peak (0.37C mean) from a rest at full to the cut-off, 1 s, 1 mV of noise.
+measured data) on DST at 3C peak (0.37C mean) from a rest at full to the cut-off, 1 s, 1 mV of
+noise.
 """
 
 from __future__ import annotations
