@@ -97,3 +97,30 @@ def test_without_a_config_an_lfp_record_runs_on_its_own_pseudo_ocv(tmp_path: Pat
     nmc, _ = _rmse(tmp_path, "nmc", "--cell-config", str(nmc_cfg))
     assert own <= 0.02, f"pseudo-OCV run {1e3 * own:.1f} mV"
     assert own <= 0.5 * nmc, f"pseudo-OCV {1e3 * own:.1f} mV vs NMC curve {1e3 * nmc:.1f} mV"
+
+
+def test_a_fleet_without_a_config_reads_each_inputs_cell_as_a_single_run(tmp_path: Path) -> None:
+    """An LFP record and a part-charged NMC discharge in one fleet run, no config: each input's
+    metrics.json names the cell read off it, as ``bmsid identify`` of that file alone does."""
+    from test_plausibility import part_charged_discharge
+
+    t, i, v = lfp_record()
+    write_tester_csv(TesterData(t, i, v[:, None], ["voltage_V"]), tmp_path / "lfp.csv")
+    t, i, v = part_charged_discharge(0.8)
+    write_tester_csv(TesterData(t, i, v[:, None], ["voltage_V"]), tmp_path / "nmc.csv")
+    files = [str(tmp_path / "lfp.csv"), str(tmp_path / "nmc.csv")]
+    fast = ["--algorithm", "non-hy-affrls", "-q"]
+    fleet_out = str(tmp_path / "fleet")
+    assert main(["identify", *files, "--out", fleet_out, "--workers", "1", *fast]) == 0
+    fleet_notes = {
+        p.parent.name: json.loads(p.read_text())["cell_config"]
+        for p in (tmp_path / "fleet").glob("*/metrics.json")
+    }
+    assert len(fleet_notes) == 2
+    for f in files:
+        out = tmp_path / ("one_" + Path(f).stem)
+        assert main(["identify", f, "--out", str(out), *fast]) == 0
+        single = json.loads((out / "metrics.json").read_text())["cell_config"]
+        assert single in fleet_notes.values(), (single, fleet_notes)
+    texts = " | ".join(fleet_notes.values())
+    assert "pseudo-OCV" in texts and "on the assumed OCV) to the cut-off" in texts

@@ -47,8 +47,7 @@ from tqdm import tqdm
 
 from bmsid.cli.identify_fleet import add_fleet_options, run_fleet
 from bmsid.cli.outputs import output_dir
-from bmsid.config.cell import CellConfig, HysteresisTable, paper_cell
-from bmsid.config.engine import ocv_model
+from bmsid.config.cell import CellConfig, paper_cell
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
@@ -78,8 +77,8 @@ from bmsid.offline.outputs import (
     soc_init_text,
     summary_line,
 )
-from bmsid.offline.plausibility import Finding, FloatArray
-from bmsid.offline.pseudo_ocv import pseudo_ocv
+from bmsid.offline.plausibility import Finding
+from bmsid.offline.record_cell import cell_from_record
 from bmsid.offline.scoring import metrics_document
 from bmsid.samples import SampleBlock
 
@@ -213,26 +212,6 @@ def _time_fix(args: argparse.Namespace) -> str:
     return f"--columns t_s={source}*0.001"
 
 
-def _with_pseudo_ocv(
-    cell: CellConfig,
-    est: plausibility.CapacityEstimate,
-    t: FloatArray,
-    i: FloatArray,
-    v: FloatArray,
-    gap_s: float,
-) -> tuple[CellConfig, str | None]:
-    """The assumed cell with the OCV read off the record (``offline/pseudo_ocv.py``) in place
-    of one of another chemistry, no hysteresis; unchanged (None) when none can be read."""
-    v_full = est.v_full_V if est.start_soc >= 1.0 else None  # a part-charged start is not full
-    ps = pseudo_ocv(t, i, v, est.capacity_Ah, est.start_soc, gap_s, (est.v_empty_V, v_full))
-    if ps is None:
-        return cell, None
-    flat = HysteresisTable(soc=[0.0, 1.0], M_V=[0.0, 0.0], gamma=cell.hysteresis.gamma)
-    update = {"ocv": ps.curve, "hysteresis": flat, "chemistry": est.chemistry, "bounds": None,
-              "name": f"record-{est.chemistry}"}  # fmt: skip
-    return CellConfig.model_validate({**cell.model_dump(), **update}), ps.text()
-
-
 def _check_input(
     args: argparse.Namespace, head: SampleBlock, cell: CellConfig, tuning: EstimatorTuning
 ) -> tuple[CellConfig, str | None, list[Finding]]:
@@ -248,20 +227,10 @@ def _check_input(
     if args.capacity_ah is not None:
         capacity_from = "option"
     elif args.cell_config is None and not plausibility.first_error(findings):
-        coeffs = _ocv_coeffs(args.ocv_coeffs)
-        ocv = ocv_model(cell)
-        est = plausibility.derive_capacity(
-            t, i, v, tuning.gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
-        )
-        if est is not None:
-            assumed_chemistry = cell.chemistry
-            cell, note = cell_config(None, round(est.capacity_Ah, 3), coeffs)
-            note = f"{note} ({est.text()})"
-            capacity_from = "record"
-            record_chemistry = est.chemistry
-            if coeffs is None and est.chemistry != assumed_chemistry:
-                cell, pseudo_text = _with_pseudo_ocv(cell, est, t, i, v, tuning.gap_s)
-                note = note if pseudo_text is None else f"{note}; {pseudo_text}"
+        found = cell_from_record(t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs))
+        if found is not None:
+            cell, note, capacity_from = found.cell, found.note, "record"
+            record_chemistry, pseudo_text = found.record_chemistry, found.pseudo_ocv_text
     if args.cell_config is None:
         assumed = plausibility.assumed_cell(
             cell.name, cell.capacity_Ah, capacity_from=capacity_from,

@@ -106,7 +106,18 @@ def run_fleet(
     spec = fleet_spec(args, ocv_coeffs)
     root = output_dir(Path(args.out)).resolve()  # before any work, not after
     inputs = fleet.fleet_inputs(arguments)
-    tasks = [fleet.FleetTask(i, str(root / i.name), spec_for(spec, i.path)) for i in inputs]
+    from_record = None
+    cells_text = f"the cell config for all: {spec.output.metadata['cell_config']}"
+    if args.cell_config is None and args.capacity_ah is None:
+        coeffs = None if ocv_coeffs is None else tuple(float(c) for c in ocv_coeffs)
+        from_record = fleet.CellFromRecord(coeffs, args.score_soc0)
+        cells_text = (
+            "no --cell-config: the paper's cell, with the capacity (and an LFP-like record's "
+            "OCV) read off each input where it tells them (its metrics.json: cell_config)"
+        )
+    tasks = [
+        fleet.FleetTask(i, str(root / i.name), spec_for(spec, i.path), from_record) for i in inputs
+    ]
     if args.scheduler is not None:
         where = f"the Dask cluster at {args.scheduler}"
         results = fleet.run_dask(tasks, args.scheduler)
@@ -114,8 +125,7 @@ def run_fleet(
         workers = args.workers or fleet.default_workers(len(tasks))
         where = f"{workers} local worker process(es)"
         results = fleet.run_local(tasks, workers)
-    print(f"{len(tasks)} input(s) on {where}, outputs under {root}/; the cell config for all: "
-          f"{spec.output.metadata['cell_config']}")  # fmt: skip
+    print(f"{len(tasks)} input(s) on {where}, outputs under {root}/; {cells_text}")
     done: dict[str, fleet.InputSummary] = {}
     with tqdm(
         total=len(tasks), desc="inputs", unit="input", disable=None, leave=False, file=sys.stderr

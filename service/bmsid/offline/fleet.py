@@ -35,8 +35,12 @@ from pathlib import Path
 import numpy as np
 
 from bmsid.errors import UserError
+from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import Quality
 from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.offline.inputs import open_input, with_score_reference
+from bmsid.offline.plausibility import check_head_samples
+from bmsid.offline.record_cell import cell_from_record
 from bmsid.offline.scoring import IdentifyResult
 
 #: What a directory argument contributes (searched recursively).
@@ -165,12 +169,41 @@ class InputSummary:
 
 
 @dataclass(frozen=True)
+class CellFromRecord:
+    """A fleet run without a cell config: each input's cell is read off its own head, as
+    ``bmsid identify`` of one file does (``record_cell.cell_from_record``: the capacity, an LFP
+    record's OCV), with ``ocv_coeffs`` (``--ocv-coeffs``) and the ``--score-soc0`` reference
+    (fraction) counted with that input's capacity."""
+
+    ocv_coeffs: tuple[float, ...] | None = None
+    score_soc0: float | None = None
+
+
+@dataclass(frozen=True)
 class FleetTask:
-    """One input to identify into ``out_dir`` (absolute) with ``spec``; picklable."""
+    """One input to identify into ``out_dir`` (absolute) with ``spec``; picklable.
+    ``from_record``: the cell is read off the input first (None: ``spec.cell`` for all)."""
 
     input: FleetInput
     out_dir: str
     spec: IdentifySpec
+    from_record: CellFromRecord | None = None
+
+
+def spec_from_record(path: str, spec: IdentifySpec, how: CellFromRecord) -> IdentifySpec:
+    """``spec`` with the cell its input's head tells (unchanged where it tells none)."""
+    source = open_input(
+        path, charge_positive=spec.charge_positive, mapping=spec.mapping, n_cells=spec.n_cells,
+        channel=spec.channel, columns=spec.columns,
+    )  # fmt: skip
+    head = source.head(check_head_samples(source.n_cells))
+    gap_s = (spec.tuning or EstimatorTuning()).gap_s
+    found = cell_from_record(head.t_s, head.current_A, head.cell_voltages_V, gap_s, how.ocv_coeffs)
+    if found is None:
+        return spec
+    window = with_score_reference(spec.window, found.cell, how.score_soc0, gap_s)
+    meta = {**spec.output.metadata, "cell_config": found.note}
+    return replace(spec, cell=found.cell, window=window, output=replace(spec.output, metadata=meta))
 
 
 def cell_summaries(result: IdentifyResult, spec: IdentifySpec) -> tuple[CellSummary, ...]:
@@ -227,6 +260,8 @@ def identify_task(task: FleetTask) -> InputSummary:
     long record's parameter table applies), so a worker's memory does not grow with the record."""
     spec = replace(task.spec, keep_trace=False)
     try:
+        if task.from_record is not None:
+            spec = spec_from_record(task.input.path, spec, task.from_record)
         with _ONE_AT_A_TIME:
             wall, cpu = time.perf_counter(), time.process_time()
             result = identify_file(task.input.path, spec, Path(task.out_dir))

@@ -1,0 +1,80 @@
+"""The cell a run without a cell config uses: the paper's cell, with what the record itself
+tells of the cell in its place.
+
+* its capacity (Ah), when the record discharges the cell to the cut-off
+  (``plausibility.derive_capacity``: from full, or from a part-charged rest or small load whose
+  SOC the assumed OCV reads);
+* its OCV, when the record reads LFP-like and the paper's NMC curve cannot follow it
+  (``pseudo_ocv.py``: the IR-corrected voltage against the count, Eq. 4), with no hysteresis
+  and bounds derived from the record.
+
+``bmsid identify`` of one file and each input of a fleet run (``fleet.py``) call
+:func:`cell_from_record` on the record's head (its first samples), so the two agree.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from bmsid.config.cell import CellConfig, HysteresisTable
+from bmsid.config.engine import ocv_model
+from bmsid.offline import plausibility
+from bmsid.offline.inputs import cell_config
+from bmsid.offline.plausibility import CapacityEstimate, FloatArray
+from bmsid.offline.pseudo_ocv import pseudo_ocv
+
+
+@dataclass(frozen=True)
+class RecordCell:
+    """The cell read off a record: the config, the note on where it came from (the run's first
+    line, ``metrics.json``'s ``cell_config``), the chemistry the record reads as, and the
+    description of an OCV read off it (None: the assumed cell's curve)."""
+
+    cell: CellConfig
+    note: str
+    record_chemistry: str
+    pseudo_ocv_text: str | None
+
+
+def cell_from_record(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    gap_s: float,
+    ocv_coeffs: Sequence[float] | None = None,
+) -> RecordCell | None:
+    """The paper's cell (with ``ocv_coeffs``, ``--ocv-coeffs``, if given) with the capacity and,
+    for an LFP-like record without ``ocv_coeffs``, the OCV read off the record (see the module
+    docstring); None when the record tells no capacity. ``voltages_V``: (samples, cells)."""
+    assumed, _ = cell_config(None, None, ocv_coeffs)
+    ocv = ocv_model(assumed)
+    est = plausibility.derive_capacity(
+        t_s, current_A, voltages_V, gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
+    )
+    if est is None:
+        return None
+    cell, note = cell_config(None, round(est.capacity_Ah, 3), ocv_coeffs)
+    note = f"{note} ({est.text()})"
+    text = None
+    if ocv_coeffs is None and est.chemistry != assumed.chemistry:
+        cell, text = with_pseudo_ocv(cell, est, t_s, current_A, voltages_V, gap_s)
+        note = note if text is None else f"{note}; {text}"
+    return RecordCell(cell, note, est.chemistry, text)
+
+
+def with_pseudo_ocv(
+    cell: CellConfig, est: CapacityEstimate, t: FloatArray, i: FloatArray, v: FloatArray,
+    gap_s: float,
+) -> tuple[CellConfig, str | None]:  # fmt: skip
+    """``cell`` with the OCV read off the record (``pseudo_ocv.py``), no hysteresis and bounds
+    from the record (the paper cell's wide defaults let a 70 Ah cell's slow branch take 0.4 ohm
+    on the A123 record: 51 mV instead of 9); unchanged (None) when none can be read."""
+    v_full = est.v_full_V if est.start_soc >= 1.0 else None  # a part-charged start is not full
+    ps = pseudo_ocv(t, i, v, est.capacity_Ah, est.start_soc, gap_s, (est.v_empty_V, v_full))
+    if ps is None:
+        return cell, None
+    flat = HysteresisTable(soc=[0.0, 1.0], M_V=[0.0, 0.0], gamma=cell.hysteresis.gamma)
+    update = {"ocv": ps.curve, "hysteresis": flat, "chemistry": est.chemistry, "bounds": None,
+              "name": f"record-{est.chemistry}"}  # fmt: skip
+    return CellConfig.model_validate({**cell.model_dump(), **update}), ps.text()
