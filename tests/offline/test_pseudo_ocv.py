@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bmsid.cli.main import main
 from bmsid.config.cell import load_cell_config, paper_cell, save_cell_config
@@ -124,3 +126,37 @@ def test_a_fleet_without_a_config_reads_each_inputs_cell_as_a_single_run(tmp_pat
         assert single in fleet_notes.values(), (single, fleet_notes)
     texts = " | ".join(fleet_notes.values())
     assert "pseudo-OCV" in texts and "on the assumed OCV) to the cut-off" in texts
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(10, 400),
+    seed=st.integers(0, 2**32 - 1),
+    nan_share=st.sampled_from([0.0, 0.01, 0.2]),
+    start_soc=st.floats(0.0, 1.2),
+    discharge=st.booleans(),
+)
+def test_any_record_gives_none_or_a_rising_curve(
+    n: int, seed: int, nan_share: float, start_soc: float, discharge: bool
+) -> None:
+    """Random currents and voltages (or a noisy discharge through the paper's curve), NaN
+    among them: never an exception, and a curve only when it rises over its SOC range, which
+    lies within [0.05, 0.95]."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.5, 20.0 if discharge else 60.0, n))
+    if discharge:  # ~1C steps of a 1 Ah cell, so the record spans most of the capacity
+        i = np.where(rng.random(n) < 0.3, 0.0, rng.uniform(0.5, 2.0, n))
+        z = np.clip(1.0 - np.cumsum(i * np.diff(t, prepend=t[0])) / 3600.0, 0.01, 0.99)
+        v = eval_ocv(paper_cell().ocv.mean, z) - 0.05 * i + rng.normal(0.0, 0.003, n)
+    else:
+        i = rng.normal(1.0, 3.0, n)
+        v = 3.3 - 0.001 * np.cumsum(i) + rng.normal(0.0, 0.01, n)
+    i[rng.random(n) < nan_share] = np.nan
+    v[rng.random(n) < nan_share] = np.nan
+    ps = pseudo_ocv(t, i, v, 1.0, start_soc, gap_s=30.0)
+    if ps is None:
+        return
+    c = ps.curve
+    assert 0.05 <= c.soc_min < c.soc_max <= 0.95
+    assert np.all(eval_docv_dz(c.mean, np.linspace(c.soc_min, c.soc_max, 101)) > 0)
+    assert np.isfinite(ps.rmse_V) and np.isfinite(ps.r0_ohm) and ps.r0_ohm > 0
