@@ -654,7 +654,8 @@ def assumed_cell(
     ``capacity_from``: the assumed cell's own capacity, ``--capacity-ah``, or the record (a
     full-to-empty discharge, :func:`derive_capacity`, whose ``record_chemistry`` is named when
     it differs from the assumed cell's ``chemistry``: its OCV cannot fit). ``ocv_from_record``:
-    the description of a pseudo-OCV read off the record in its place (``pseudo_ocv.py``).
+    the description of a pseudo-OCV read off the record in its place (``pseudo_ocv.py``; the
+    first line prints it, the warning names it).
     """
     source = {
         "cell": f"its {capacity_Ah:g} Ah",
@@ -669,9 +670,9 @@ def assumed_cell(
             "warning",
             "no_cell_config",
             f"no --cell-config and the record looks {record_chemistry}-like, which the paper's "
-            f"{chemistry} cell cannot fit: {ocv_from_record}, with {source}; its parameters "
-            "carry the record's polarisation: a config from the cell's OCV test (bmsid fit-ocv) "
-            "gives a true OCV",
+            f"{chemistry} cell cannot fit: a pseudo-OCV read off the record (first line) with "
+            f"{source}; it carries the record's polarisation: a config from the cell's OCV test "
+            "(bmsid fit-ocv) gives a true OCV",
         )
     return Finding(
         "warning",

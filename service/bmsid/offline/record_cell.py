@@ -59,7 +59,8 @@ def cell_from_record(
     text = None
     if ocv_coeffs is None and est.chemistry != assumed.chemistry:
         cell, text = with_pseudo_ocv(cell, est, t_s, current_A, voltages_V, gap_s)
-        note = note if text is None else f"{note}; {text}"
+        if text is not None:  # the paper's curve and hysteresis are gone: say what is left
+            note = f"no --cell-config: capacity {cell.capacity_Ah:g} Ah ({est.text()}); {text}"
     return RecordCell(cell, note, est.chemistry, text)
 
 
