@@ -37,8 +37,8 @@ import numpy as np
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import Quality
-from bmsid.offline.identify import IdentifySpec, identify_file
-from bmsid.offline.inputs import open_input, with_score_reference
+from bmsid.offline.identify import IdentifySpec, identify_file, open_spec_input
+from bmsid.offline.inputs import InputSource, with_score_reference
 from bmsid.offline.plausibility import check_head_samples
 from bmsid.offline.record_cell import cell_from_record
 from bmsid.offline.scoring import IdentifyResult
@@ -190,12 +190,8 @@ class FleetTask:
     from_record: CellFromRecord | None = None
 
 
-def spec_from_record(path: str, spec: IdentifySpec, how: CellFromRecord) -> IdentifySpec:
+def spec_from_record(source: InputSource, spec: IdentifySpec, how: CellFromRecord) -> IdentifySpec:
     """``spec`` with the cell its input's head tells (unchanged where it tells none)."""
-    source = open_input(
-        path, charge_positive=spec.charge_positive, mapping=spec.mapping, n_cells=spec.n_cells,
-        channel=spec.channel, columns=spec.columns,
-    )  # fmt: skip
     head = source.head(check_head_samples(source.n_cells))
     gap_s = (spec.tuning or EstimatorTuning()).gap_s
     found = cell_from_record(head.t_s, head.current_A, head.cell_voltages_V, gap_s, how.ocv_coeffs)
@@ -260,11 +256,12 @@ def identify_task(task: FleetTask) -> InputSummary:
     long record's parameter table applies), so a worker's memory does not grow with the record."""
     spec = replace(task.spec, keep_trace=False)
     try:
-        if task.from_record is not None:
-            spec = spec_from_record(task.input.path, spec, task.from_record)
         with _ONE_AT_A_TIME:
             wall, cpu = time.perf_counter(), time.process_time()
-            result = identify_file(task.input.path, spec, Path(task.out_dir))
+            source = open_spec_input(task.input.path, spec)  # read once, head and run
+            if task.from_record is not None:
+                spec = spec_from_record(source, spec, task.from_record)
+            result = identify_file(task.input.path, spec, Path(task.out_dir), source=source)
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         if result.n_ticks == 0:
             raise UserError("no identification tick (too short or no valid time)")

@@ -422,22 +422,30 @@ def _output_document(output: OutputSpec, every: float | None, announced: bool) -
     }  # fmt: skip
 
 
+def open_spec_input(path: str | Path, spec: IdentifySpec) -> InputSource:
+    """The recording at ``path`` opened with ``spec``'s input options (sign, mapping, cells,
+    channel, columns)."""
+    return open_input(
+        path, charge_positive=spec.charge_positive, mapping=spec.mapping, n_cells=spec.n_cells,
+        channel=spec.channel, columns=spec.columns,
+    )  # fmt: skip
+
+
 def identify_file(
     path: str | Path,
     spec: IdentifySpec,
     out: Path | None = None,
     progress: Progress | None = None,
+    source: InputSource | None = None,
 ) -> IdentifyResult:
     """Identify the recording at ``path`` (tester CSV or candump ``.log``, see
-    :func:`~bmsid.offline.inputs.open_input`); see :func:`identify_source`.
+    :func:`~bmsid.offline.inputs.open_input`); see :func:`identify_source`. ``source``: the
+    recording already opened (:func:`open_spec_input`), so it is not read twice.
 
     ``metrics.json`` records ``input`` (``path`` as given) unless ``spec.output.metadata`` sets
     it. Raises ``UserError`` for an unreadable input or output directory.
     """
-    source = open_input(
-        path, charge_positive=spec.charge_positive, mapping=spec.mapping, n_cells=spec.n_cells,
-        channel=spec.channel, columns=spec.columns,
-    )  # fmt: skip
+    source = open_spec_input(path, spec) if source is None else source
     meta = {"input": str(path), **spec.output.metadata}
     spec = replace(spec, output=replace(spec.output, metadata=meta))
     return identify_source(source, spec, out, progress)
