@@ -101,6 +101,15 @@ def step_resistances(
     return np.asarray(r[np.isfinite(r) & (r > 0)], dtype=np.float64)
 
 
+def median_step_resistance(
+    t_s: FloatArray, current_A: FloatArray, voltage_V: FloatArray
+) -> float | None:
+    """R0 (ohm) as the start values measure it: the median of :func:`step_resistances` over one
+    voltage series (a cell, or a pack's mean); None when the series holds no current step."""
+    r = step_resistances(t_s, current_A, voltage_V)
+    return float(np.median(r)) if r.size else None
+
+
 def start_values_from_record(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray
 ) -> StartValues | None:

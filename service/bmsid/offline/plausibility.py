@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.start_relaxation import NOISE_FLOOR_V, slope_from_sums
-from bmsid.estimate.startvalues import step_resistances
+from bmsid.estimate.startvalues import median_step_resistance
 
 FloatArray = npt.NDArray[np.float64]
 Level = Literal["error", "warning"]
@@ -617,7 +617,7 @@ def _partial_start(
     """:func:`derive_capacity` for a discharge to the cut-off that starts part-charged (NMC-like),
     at rest or under a small load (<= ``LOADED_START_SHARE`` of the peak; its voltage then
     IR-corrected with the median -dV/dI of the record's current steps,
-    ``startvalues.step_resistances``)."""
+    ``startvalues.median_step_resistance``)."""
     a, b = ex.start, ex.end
     v_start, v_empty = float(np.mean(v[a])), float(np.min(v[b]))
     if soc_at_rest is None or v_empty > EMPTY_NMC_V:
@@ -627,11 +627,10 @@ def _partial_start(
         if abs(i[a]) > LOADED_START_SHARE * peak_A:
             return None
         load_A = float(i[a])
-        # R0 as the start values measure it: the median -dV/dI over the record's current steps
-        r_ohm = step_resistances(t[a:b], i[a:b], np.mean(v[a:b], axis=1))
-        if r_ohm.size == 0:
+        r_ohm = median_step_resistance(t[a:b], i[a:b], np.mean(v[a:b], axis=1))
+        if r_ohm is None:
             return None
-        v_start += float(np.median(r_ohm)) * float(i[a])
+        v_start += r_ohm * float(i[a])
     if not LFP_MAX_V < v_start < FULL_NMC_V:
         return None
     z = float(soc_at_rest(v_start))

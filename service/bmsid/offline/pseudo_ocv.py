@@ -24,7 +24,7 @@ import numpy as np
 
 from bmsid.config.cell import OcvCurve
 from bmsid.errors import UserError
-from bmsid.estimate.startvalues import step_resistances
+from bmsid.estimate.startvalues import median_step_resistance
 from bmsid.model.ocv import eval_docv_dz
 from bmsid.offline.ocv_fit import fit_eq4
 from bmsid.offline.plausibility import FloatArray, coulomb_Ah, max_excursion
@@ -81,10 +81,9 @@ def pseudo_ocv(
     if ex.direction != "discharge":
         return None
     seg = slice(ex.start, ex.end + 1)
-    r0 = step_resistances(t[seg], i[seg], v[seg])
-    if r0.size == 0:
+    r0_ohm = median_step_resistance(t[seg], i[seg], v[seg])
+    if r0_ohm is None:
         return None
-    r0_ohm = float(np.median(r0))
     z = start_soc - (q[seg] - q[ex.start]) / capacity_Ah
     v_eq = v[seg] + r0_ohm * i[seg]
     lo = max(float(np.min(z)), SOC_EDGE)
