@@ -207,9 +207,15 @@ class EstimatorBank:
         self.state.step(ctx)
         # Converged cells learn only while excited (a constant-current charge or a rest holds
         # nothing to learn R0 from, and a slow OCV error would drift into it) and while the
-        # observer is sure enough of SOC (a SOC error would be learnt as R2).
+        # observer is sure enough of SOC (a SOC error would be learnt as R2), unless a
+        # parameter sits on a bound: nothing there is worth protecting, and with no rest to
+        # anchor SOC the gate may stay shut for hours (a start mid-drive froze tau2 on its
+        # bound for the whole record: 20.7 mV instead of 1.3).
         excited = is_excited(tick, self._excitation_limit_A)
-        may_learn = self.state.learn_gate & excited
+        gate = self.state.learn_gate
+        if np.count_nonzero(self.guard.bound_bits):
+            gate = gate | (self.guard.bound_bits > 0)
+        may_learn = gate & excited
         if may_learn is not True:
             ctx.learn = ctx.learn & (may_learn | ~self.params.converged)
         self.params.step(ctx)
