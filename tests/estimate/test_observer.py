@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bmsid.config.cell import CellConfig, SocInit
+from bmsid.config.cell import CellConfig, SocInit, paper_cell
 from bmsid.config.engine import build_bank, ocv_model
 from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.capacity import REJECT_REL, CapacityTracker
@@ -26,7 +26,9 @@ from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock, Quality
 from bmsid.model.simulator import simulate
+from bmsid.profiles import dst_current
 from bmsid.samples import SampleBlock
+from bmsid.synthetic import TRUTH
 from bmsid.synthetic.multiday import (
     DayPlan,
     MultidayOptions,
@@ -124,10 +126,6 @@ def test_a_start_mid_drive_without_rests_does_not_freeze_the_parameters_on_a_bou
     a bound is not worth protecting from a SOC error: the cell learns on, and the model tracks
     (before: held on the bound from 450 s to the end, RMSE 20.7 mV against 1.7 mV with the
     start given)."""
-    from bmsid.config.cell import paper_cell  # noqa: PLC0415
-    from bmsid.profiles import dst_current  # noqa: PLC0415
-    from bmsid.synthetic import TRUTH  # noqa: PLC0415
-
     cell = paper_cell(M_V=0.015, gamma=30.0)
     t = np.arange(3600, dtype=np.float64)
     i = dst_current(t + 16.0, 140.0)
