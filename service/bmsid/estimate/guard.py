@@ -281,10 +281,9 @@ class PublishGuard:
             self.good = published
         else:
             self.good = params
-        if np.count_nonzero(soc_bad):
-            out["soc"] = self.good_soc = np.where(soc_bad, self.good_soc, soc)
-        else:
-            self.good_soc = soc.copy()
+        # a count up to the margin past 0 or 1 is no divergence, but is published as 0 or 1
+        good = np.where(soc_bad, self.good_soc, soc) if np.count_nonzero(soc_bad) else soc
+        out["soc"] = self.good_soc = np.minimum(np.maximum(good, 0.0), 1.0)
         return out, q, reinit
 
     def _data_dt(self, t_s: float) -> float:
