@@ -255,7 +255,7 @@ class PublishGuard:
         if self._near is not None:
             w = params[_WATCHED_ROWS]
             # converging cells too: a value learnt on a bound before convergence would become
-            # the "last good" one (their quality stays CONVERGING: no finding yet)
+            # the "last good" one (the bank flags them after the average, bank._run_tick)
             sits = (w <= self._near[0]) | (w >= self._near[1])
             self.bound_bits = (sits * _BIT_VALUES).sum(axis=0)
             if np.count_nonzero(sits):
