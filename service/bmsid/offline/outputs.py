@@ -211,7 +211,7 @@ def summary_line(doc: Mapping[str, Any]) -> str:
     text = (
         f"{doc['algorithm']}: RMSE {1e3 * o['rmse_V']:.2f} mV over all {o['n_samples']} ticks "
         f"(max {1e3 * o['max_abs_error_V']:.1f} mV, MAPE {o['mape_pct']:.3f} %); "
-        f"first {first} {1e3 * s['rmse_V']:.2f} mV, after it {1e3 * a['rmse_V']:.2f} mV"
+        f"first {first} {_rmse_mv(s)}, after it {_rmse_mv(a)}"
     )
     w = doc["evaluation_window"]
     if doc["rmse_V"] is None:
@@ -222,3 +222,8 @@ def summary_line(doc: Mapping[str, Any]) -> str:
             f"{doc['n_samples']} ticks (max {1e3 * doc['max_abs_error_V']:.1f} mV)"
         )
     return f"{text}; run time {doc['runtime_s']:.1f} s"
+
+
+def _rmse_mv(part: Mapping[str, Any]) -> str:
+    """A part's RMSE in mV, or why there is none (a part without a scored tick has null)."""
+    return "no tick" if part["rmse_V"] is None else f"{1e3 * part['rmse_V']:.2f} mV"
