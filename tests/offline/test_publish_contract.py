@@ -5,9 +5,11 @@ even while the cell is converging, and a record too short to identify says so.""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_identify_cli import TRUTH, write_csv
 
 from bmsid.cli.main import main
@@ -40,3 +42,28 @@ def test_a_converging_cell_on_a_bound_is_flagged_out_of_bounds(tmp_path: Path) -
     assert all(int(r["quality"]) in flagged for r in on)
     # and the converging ticks off the bound keep their code
     assert any(int(r["quality"]) == Quality.CONVERGING for r in rows)
+
+
+def test_a_one_row_record_is_refused_as_too_short(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = tmp_path / "one.csv"
+    src.write_text("t_s,current_A,voltage_V\n0.0,0.0,3.95\n", encoding="utf-8")
+    assert main(["identify", str(src), "--out", str(tmp_path / "o")]) != 0
+    said = capsys.readouterr()
+    text = said.out + said.err
+    assert "too little data to identify anything" in text and "RMSE" not in text
+    assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_a_record_too_short_for_a_start_up_part_reports_without_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Three ticks: the first 10 % holds none, its RMSE is null and printed as such."""
+    cols = {k: v[:3] for k, v in cc_discharge(60).items()}
+    assert main(["identify", str(write_csv(tmp_path / "three.csv", cols)),
+                 "--out", str(tmp_path / "o")]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "first 10 % no tick" in out and "nan" not in out.lower()
+    doc = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert doc["startup"]["n_samples"] == 0 and doc["startup"]["rmse_V"] is None
