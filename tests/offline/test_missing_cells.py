@@ -20,6 +20,7 @@ from test_identify_cli import synthetic_columns, write_csv
 from bmsid.cli.main import main
 from bmsid.estimate.fields import CELL_FIELDS, FIELD_NAMES
 from bmsid.estimate.types import EstimateBlock, Quality
+from bmsid.offline.record_cell import cell_from_record
 from bmsid.offline.writers import ParamsCsvWriter
 
 NAN_TOKEN = re.compile(r"(?i)\bnan\b|\binf\b")
@@ -111,3 +112,20 @@ def test_csv_writes_an_empty_cell_exactly_where_a_value_is_missing(data: st.Data
             assert (r[s.out_key] == "") == (not np.isfinite(x)), (s.out_key, x, r[s.out_key])
             if np.isfinite(x):
                 assert float(r[s.out_key]) == pytest.approx(float(s.fmt % x))
+
+
+@pytest.mark.parametrize("dead_V", [0.0, 1.0])
+def test_a_dead_tap_tells_no_capacity(dead_V: float) -> None:
+    """A cell reading 0 V (or 1 V) from the start is no discharge to the cut-off: the record's
+    cell (no config) is what the live cells alone make of it."""
+    # twelve live cells: one dead tap pulls the pack's resting mean into the part-charged range
+    cols = synthetic_columns(1200, n_cells=12, seed=7)
+    t, i = cols["t_s"], cols["current_A"]
+    live = np.column_stack([v for k, v in cols.items() if k.startswith("v_cell_")])
+    dead = np.column_stack([live, np.full(t.size, dead_V)])
+    alone = cell_from_record(t, i, live, 30.0)
+    found = cell_from_record(t, i, dead, 30.0)
+    assert (found is None) == (alone is None)
+    if found is not None and alone is not None:
+        assert found.cell.capacity_Ah == alone.cell.capacity_Ah
+    assert cell_from_record(t, i, np.full((t.size, 1), dead_V), 30.0) is None
