@@ -19,8 +19,13 @@ class VoltageMetrics:
     rmse_V: float
     mape_pct: float
 
-    def as_dict(self) -> dict[str, float | int]:
-        return asdict(self)
+    def as_dict(self) -> dict[str, float | int | None]:
+        """The fields for metrics.json; with no sample the errors are null, not a 0 that reads
+        as a perfect fit (a ``no_data`` cell, a record without a model voltage)."""
+        d: dict[str, float | int | None] = dict(asdict(self))
+        if self.n_samples == 0:
+            d.update(max_abs_error_V=None, rmse_V=None, mape_pct=None)
+        return d
 
 
 def voltage_metrics(v_meas_V: FloatArray, v_model_V: FloatArray) -> VoltageMetrics:

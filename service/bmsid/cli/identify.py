@@ -58,6 +58,7 @@ from bmsid.offline.identify import (
     identify_source,
     params_interval,
     scan_record,
+    too_short,
 )
 from bmsid.offline.inputs import (
     cell_config,
@@ -308,6 +309,8 @@ def run(args: argparse.Namespace) -> int:
     error = plausibility.first_error(findings)
     if error is not None:
         raise UserError(f"{args.input}: {error.message}")
+    if (short := too_short(scan.n_ticks, scan.n_samples)) is not None:
+        raise UserError(f"{args.input}: {short}")  # before any output is written
     # The checks travel with the source (``input_report``), for metrics.json.
     source.findings = (*source.findings, *checks)
     every, announced = params_interval(output, scan)

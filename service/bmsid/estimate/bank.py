@@ -233,6 +233,12 @@ class EstimatorBank:
         q[~self.params.converged] = _CONVERGING
         cells, q, reinit = self.guard.apply(tick.t_s, cells, q, self.params.clamped, ctx.learn)
         cells = self.average.apply(cells, q, tick.dt_s)
+        # A converging cell on a bound is a finding too (a bound never shows silently: quality
+        # OUT_OF_BOUNDS where on_bound names it; its branch is held by the guard), flagged only
+        # after the average, which publishes converging cells raw.
+        flag = (q == _CONVERGING) & (self.guard.bound_bits > 0)
+        if np.count_nonzero(flag):
+            q[flag] = _OUT_OF_BOUNDS
         # np.count_nonzero: a fifth of ndarray.any()'s cost on these short masks
         if np.count_nonzero(self.state.no_data):  # no valid reading since the (re)start
             cells, q = without_data(cells, q, self.state.no_data)

@@ -100,6 +100,8 @@ _BIT_VALUES = (1 << np.arange(len(WATCHED), dtype=np.int64))[:, None]
 #: Per :data:`HELD` row, its branch (0 R0, 1 R1 C1 tau1, 2 R2 C2 tau2; 3 none: the OCV offset
 #: is held only with the whole cell).
 _BRANCH_OF_HELD = np.array([0, 1, 1, 2, 2, 1, 2, 3])
+_TAUS = [HELD.index("tau1_s"), HELD.index("tau2_s")]
+_RC_ROWS = ((_BRANCH_OF_HELD == 1) | (_BRANCH_OF_HELD == 2))[:, None]
 #: A parameter within this share of a bound counts as on it (a clamp leaves it exactly there;
 #: the RLS map and the swarm can settle just inside).
 ON_BOUND_REL = 0.01
@@ -253,7 +255,7 @@ class PublishGuard:
         if self._near is not None:
             w = params[_WATCHED_ROWS]
             # converging cells too: a value learnt on a bound before convergence would become
-            # the "last good" one (their quality stays CONVERGING: no finding yet)
+            # the "last good" one (the bank flags them after the average, bank._run_tick)
             sits = (w <= self._near[0]) | (w >= self._near[1])
             self.bound_bits = (sits * _BIT_VALUES).sum(axis=0)
             if np.count_nonzero(sits):
@@ -263,6 +265,12 @@ class PublishGuard:
                 q[(self.bound_bits > 0) & ~self.episode & ~converging] = _OUT_OF_BOUNDS
         if mask is None and clamped:
             mask = np.broadcast_to(held, params.shape)
+        # branch 1 stays the fast one: a branch held while the other moves can cross it (tau2
+        # held by its lower bound, tau1 rising past it), so both RC branches are held then
+        taus = params[_TAUS] if mask is None else np.where(mask, self.good, params)[_TAUS]
+        crossed = ~(taus[0] < taus[1])  # NaN included
+        if np.count_nonzero(crossed):
+            mask = (held if mask is None else mask) | (crossed & _RC_ROWS)
         out = dict(cells)
         out["on_bound"] = self.bound_bits.astype(np.float64)
         if mask is not None:
@@ -273,10 +281,9 @@ class PublishGuard:
             self.good = published
         else:
             self.good = params
-        if np.count_nonzero(soc_bad):
-            out["soc"] = self.good_soc = np.where(soc_bad, self.good_soc, soc)
-        else:
-            self.good_soc = soc.copy()
+        # a count up to the margin past 0 or 1 is no divergence, but is published as 0 or 1
+        good = np.where(soc_bad, self.good_soc, soc) if np.count_nonzero(soc_bad) else soc
+        out["soc"] = self.good_soc = np.minimum(np.maximum(good, 0.0), 1.0)
         return out, q, reinit
 
     def _data_dt(self, t_s: float) -> float:

@@ -251,7 +251,7 @@ class RunAccumulator:
             self.sums.add(4 + k, ok & (parts.band == k), err, rel)
         _extend(self.score_soc, score_soc)
         _extend(self.est_soc, np.asarray(block["soc"], dtype=np.float64))
-        bits = np.asarray(block["on_bound"], dtype=np.int64)
+        bits = _bits(block["on_bound"])
         for j, name in enumerate(WATCHED):
             self.on_bound[j] += int(np.count_nonzero((bits >> j) & 1))
             if self.bounds is None:
@@ -271,7 +271,7 @@ class RunAccumulator:
                  for j, n in enumerate(WATCHED)}  # fmt: skip
         at_end: dict[str, list[str]] = {}
         if self.last is not None:
-            bits = np.asarray(self.last["on_bound"], dtype=np.int64)[0]
+            bits = _bits(self.last["on_bound"])[0]
             for j, name in enumerate(WATCHED):
                 ended = [cell_names[int(c)] for c in np.flatnonzero((bits >> j) & 1)]
                 if ended:
@@ -294,6 +294,13 @@ class RunAccumulator:
             "soc_min": float(self.score_soc[0]),
             "soc_max": float(self.score_soc[1]),
         }
+
+
+def _bits(on_bound: FloatArray) -> npt.NDArray[np.int64]:
+    """The ``on_bound`` codes as integers, a ``no_data`` cell's NaN as no bit (a NaN cast to
+    int64 is undefined)."""
+    x = np.asarray(on_bound, dtype=np.float64)
+    return np.where(np.isfinite(x), x, 0.0).astype(np.int64)
 
 
 def _mean_finite(x: FloatArray) -> float:

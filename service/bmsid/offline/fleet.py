@@ -37,7 +37,7 @@ import numpy as np
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import Quality
-from bmsid.offline.identify import IdentifySpec, identify_file, open_spec_input
+from bmsid.offline.identify import IdentifySpec, identify_file, open_spec_input, too_short
 from bmsid.offline.inputs import InputSource, with_score_reference
 from bmsid.offline.plausibility import check_head_samples
 from bmsid.offline.record_cell import cell_from_record
@@ -263,8 +263,8 @@ def identify_task(task: FleetTask) -> InputSummary:
                 spec = spec_from_record(source, spec, task.from_record)
             result = identify_file(task.input.path, spec, Path(task.out_dir), source=source)
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        if result.n_ticks == 0:
-            raise UserError("no identification tick (too short or no valid time)")
+        if (short := too_short(result.n_ticks, result.n_samples)) is not None:
+            raise UserError(short)
         cells = cell_summaries(result, spec)
     except Exception as exc:  # any failure is this input's, reported in one line
         return failed(task.input, exc)

@@ -66,6 +66,21 @@ FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[int], None]
 #: Called with each block of estimates as the bank completes it (e.g. a params.csv writer).
 EstimateSink = Callable[[EstimateBlock], None]
+#: Fewest identification ticks a record must give: a single tick has no dynamics (its model
+#: voltage is read off its own voltage through the OCV curve), so its "error" scores nothing.
+MIN_TICKS = 2
+
+
+def too_short(n_ticks: int, n_samples: int) -> str | None:
+    """Why a record of ``n_ticks`` identification ticks (from ``n_samples`` samples) is too
+    short to identify anything; None when it is not (:data:`MIN_TICKS`)."""
+    if n_ticks >= MIN_TICKS:
+        return None
+    return (
+        f"{n_samples} sample(s), {n_ticks} identification tick(s): too little data to identify "
+        f"anything (at least {MIN_TICKS} ticks: a single tick's model voltage is read off its "
+        "own voltage, so there is no model error to score)"
+    )
 
 
 @dataclass(frozen=True)

@@ -144,7 +144,8 @@ def soc_init_text(result: IdentifyResult) -> str:
     """One line: the initial SOC of the first cells (%) and how it was found."""
     first = result.first_tick()
     z0 = first["soc"][0] if first is not None else np.array([math.nan])
-    socs = ", ".join(f"{100 * z:.1f} %" for z in z0[:4]) + (" ..." if z0.size > 4 else "")
+    socs = ", ".join(f"{100 * z:.1f} %" if math.isfinite(z) else "no data" for z in z0[:4])
+    socs += " ..." if z0.size > 4 else ""
     how = {
         "given": "given by --soc0",
         "ocv_at_rest": "from the first voltage through the OCV curve (the cell was at rest)",
@@ -162,10 +163,12 @@ def observer_text(result: IdentifyResult) -> str | None:
     if tr is None or not np.isfinite(tr["soc_std"][-1]).any():
         return None
     q, q_sd = tr["capacity_Ah"][-1], tr["capacity_std_Ah"][-1]
-    caps = ", ".join(f"{a:.3g} +- {b:.2g} Ah" for a, b in zip(q[:4], q_sd[:4], strict=True))
+    caps = ", ".join(f"{a:.3g} +- {b:.2g} Ah" if math.isfinite(a) else "no data"
+                     for a, b in zip(q[:4], q_sd[:4], strict=True))  # fmt: skip
+    offset = tr["current_offset_A"][-1]  # one per pack; NaN in a no_data cell's column
     return (
-        f"SOC observer: current-sensor offset {tr['current_offset_A'][-1][0]:+.3g} A, "
-        f"SOC std {100 * float(np.max(tr['soc_std'][-1])):.2f} points, capacity {caps}"
+        f"SOC observer: current-sensor offset {float(np.nanmax(offset)):+.3g} A, "
+        f"SOC std {100 * float(np.nanmax(tr['soc_std'][-1])):.2f} points, capacity {caps}"
         + (" ..." if q.size > 4 else "")
     )
 
@@ -198,16 +201,29 @@ def summary_line(doc: Mapping[str, Any]) -> str:
     """One line of a metrics.json document: the whole record's errors (mV, %), the start-up's and
     the rest's RMSE (mV), the evaluation window's when one was asked for, and the run time (s)."""
     o, s, a = doc["overall"], doc["startup"], doc["after_startup"]
+    if not o["n_samples"]:
+        return (
+            f"{doc['algorithm']}: no RMSE: no tick of the {doc['n_ticks']} had a valid cell "
+            "voltage and a model voltage to compare (every cell no_data); nothing was "
+            f"identified; run time {doc['runtime_s']:.1f} s"
+        )
     first = f"{100 * doc['startup_fraction']:g} %"
     text = (
         f"{doc['algorithm']}: RMSE {1e3 * o['rmse_V']:.2f} mV over all {o['n_samples']} ticks "
         f"(max {1e3 * o['max_abs_error_V']:.1f} mV, MAPE {o['mape_pct']:.3f} %); "
-        f"first {first} {1e3 * s['rmse_V']:.2f} mV, after it {1e3 * a['rmse_V']:.2f} mV"
+        f"first {first} {_rmse_mv(s)}, after it {_rmse_mv(a)}"
     )
     w = doc["evaluation_window"]
-    if w["skip_fraction"] or w["soc_lo"] is not None or w["soc_hi"] is not None:
+    if doc["rmse_V"] is None:
+        text += f"; window ({w['description']}): no tick scored"
+    elif w["skip_fraction"] or w["soc_lo"] is not None or w["soc_hi"] is not None:
         text += (
             f"; window ({w['description']}) {1e3 * doc['rmse_V']:.2f} mV over "
             f"{doc['n_samples']} ticks (max {1e3 * doc['max_abs_error_V']:.1f} mV)"
         )
     return f"{text}; run time {doc['runtime_s']:.1f} s"
+
+
+def _rmse_mv(part: Mapping[str, Any]) -> str:
+    """A part's RMSE in mV, or why there is none (a part without a scored tick has null)."""
+    return "no tick" if part["rmse_V"] is None else f"{1e3 * part['rmse_V']:.2f} mV"

@@ -17,12 +17,19 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from bmsid.config.cell import CellConfig, HysteresisTable
 from bmsid.config.engine import ocv_model
 from bmsid.offline import plausibility
 from bmsid.offline.inputs import cell_config
 from bmsid.offline.plausibility import CapacityEstimate, FloatArray
 from bmsid.offline.pseudo_ocv import pseudo_ocv
+
+#: A cell reading below this anywhere is a dead tap or a dropout (0 V, 1 V), not a cell at its
+#: cut-off (the lowest measured: A123 LFP 1.99 V; the input gate's floor is 0.6 x the rested
+#: empty voltage, 1.33 V for LFP): such a column tells neither the cut-off nor the OCV.
+DEAD_TAP_V = 1.2
 
 
 @dataclass(frozen=True)
@@ -46,9 +53,17 @@ def cell_from_record(
 ) -> RecordCell | None:
     """The paper's cell (with ``ocv_coeffs``, ``--ocv-coeffs``, if given) with the capacity and,
     for an LFP-like record without ``ocv_coeffs``, the OCV read off the record (see the module
-    docstring); None when the record tells no capacity. ``voltages_V``: (samples, cells)."""
+    docstring); None when the record tells no capacity. ``voltages_V``: (samples, cells); a
+    cell that reads below :data:`DEAD_TAP_V` anywhere is left out (a 0 V tap read as a
+    discharge to the cut-off gave a whole pack 66.6 Ah instead of 70)."""
     assumed, _ = cell_config(None, None, ocv_coeffs)
     ocv = ocv_model(assumed)
+    v = np.asarray(voltages_V, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    live = ~np.any(v < DEAD_TAP_V, axis=0)  # NaN is left to derive_capacity
+    if not np.count_nonzero(live):
+        return None
+    voltages_V = v[:, live]
     est = plausibility.derive_capacity(
         t_s, current_A, voltages_V, gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
     )

@@ -465,6 +465,12 @@ def _parts(s: ScoreSet, n_ticks: int, n_startup: int) -> dict[str, Any]:
     }
 
 
+def _no_data(overall: VoltageMetrics) -> dict[str, str]:
+    """``status: no_data`` where no tick was scored (no valid reading of the cell: its quality
+    ``no_data``, its errors null); nothing otherwise."""
+    return {"status": "no_data"} if overall.n_samples == 0 else {}
+
+
 def scoring_soc_document(scorer: RunScorer) -> dict[str, Any]:
     """The ``scoring_soc`` entry of metrics.json: which SOC decided the window and the bands, and
     the range it covered (fractions; first and last ticks averaged over the cells)."""
@@ -500,12 +506,14 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     for c, name in enumerate(result.cell_names):
         cells[name] = {
             "algorithm": result.variant,
+            **_no_data(s.cells[c].overall),
             **s.cells[c].window.as_dict(),
             "runtime_s": result.runtime_s,
             **_parts(s.cells[c], n, n0),
         }
     return {
         "algorithm": result.variant,
+        **_no_data(s.overall),
         **s.window.as_dict(),
         "runtime_s": result.runtime_s,
         "evaluation_window": window.as_dict(),

@@ -7,7 +7,8 @@ per ``--every`` interval, :class:`TickDecimator`) and cell (for each tick, every
 appends each :class:`EstimateBlock` as it comes, so a run's memory does not grow with the length
 of its output. Parquet (pyarrow) holds the same columns in the same SI units: ``t_s`` and the
 fields as float64 (``on_bound`` and ``quality`` as int64, ``cell`` as text), written in row groups
-of at most :data:`ROW_GROUP_ROWS` rows as the run goes.
+of at most :data:`ROW_GROUP_ROWS` rows as the run goes. A missing value (NaN in the block: a
+refused reading, a ``no_data`` cell) is an empty cell in the CSV and null in Parquet.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ class ParamsCsvWriter:
 
     The columns are fixed when the writer is made (``CELL_FIELDS`` read then), so every row
     matches the header. Times are written with ``%.6f`` (s), fields with their ``fmt`` (SI units
-    of the table), quality as its integer code.
+    of the table), a missing (NaN) value as an empty cell, quality as its integer code.
     """
 
     def __init__(self, path: Path, cell_names: Sequence[str]) -> None:
@@ -77,8 +78,7 @@ class ParamsCsvWriter:
         t = np.char.mod("%.6f", block.t_s)[:, None]
         rows = np.char.add(np.char.add(t, ","), self._cells[None, :])
         for s in self._fields:
-            col = np.char.mod(s.fmt, np.asarray(block.cells[s.name], dtype=np.float64))
-            rows = np.char.add(np.char.add(rows, ","), col)
+            rows = np.char.add(np.char.add(rows, ","), _csv_column(s.fmt, block.cells[s.name]))
         rows = np.char.add(np.char.add(rows, ","), block.quality.astype(np.int64).astype(np.str_))
         self._fh.write("\n".join(rows.ravel().tolist()) + "\n")
 
@@ -97,6 +97,17 @@ class ParamsCsvWriter:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def _csv_column(fmt: str, values: FloatArray) -> StrArray:
+    """``values`` formatted with ``fmt``, a missing (non-finite) value as an empty cell: the
+    README's "null if missing"; ``%d`` of NaN would raise, ``%g`` writes a literal ``nan``."""
+    x = np.asarray(values, dtype=np.float64)
+    ok = np.isfinite(x)
+    if ok.all():
+        return np.char.mod(fmt, x)
+    out = np.char.mod(fmt, np.where(ok, x, 0.0))
+    return np.where(ok, out, "")
 
 
 class ParamsParquetWriter:
@@ -137,7 +148,10 @@ class ParamsParquetWriter:
         ]
         for s in self._fields:
             col = np.asarray(block.cells[s.name], dtype=np.float64).ravel()
-            arrays.append(pa.array(col.astype(np.int64) if s.fmt == "%d" else col))
+            missing = ~np.isfinite(col)  # null, as the CSV's empty cell (never NaN or a cast NaN)
+            if s.fmt == "%d":
+                col = np.where(missing, 0.0, col).astype(np.int64)
+            arrays.append(pa.array(col, mask=missing if missing.any() else None))
         arrays.append(pa.array(block.quality.astype(np.int64).ravel()))
         self._pending.append(pa.Table.from_arrays(arrays, schema=self._schema))
         self._rows += block.n_ticks * nc
