@@ -176,7 +176,8 @@ class EstimatorTuning(BaseModel):
     a noisy sample's innovation whole into R1 and R2 right after each swarm's restart)."""
     divergence_soc_margin: float = Field(0.01, ge=0.0, le=0.5)
     """SOC (fraction) may leave [0, 1] by this much before it is a divergence: a coulomb count
-    a per cent past full at the end of a charge is the capacity's error, not a lost state."""
+    a per cent past full at the end of a charge is the capacity's error, not a lost state.
+    Published SOC is clipped to [0, 1] (the count inside keeps its value)."""
 
     @property
     def fits_hysteresis_scale(self) -> bool:
