@@ -95,6 +95,36 @@ def test_stale_current_drops_the_cycle() -> None:
     assert f2s.counters["stale_current"] == 6
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    lost=st.lists(st.booleans(), min_size=240, max_size=240),
+    n_cells=st.sampled_from([1, 4, 8]),
+)
+def test_a_lost_current_frame_never_pairs_a_held_current_with_new_voltages(
+    lost: list[bool], n_cells: int
+) -> None:
+    """Frames of ticks 20..79 lost at random (current and voltage alike): every sample still
+    carries its own tick's current (a held one is a cycle old: across a step, a sample the
+    cell never produced)."""
+    _t, i, _ = synthetic(80, n_cells)
+    msgs = frames(OWN, n=80, n_cells=n_cells)
+    kept = [m for k, m in enumerate(msgs) if m.timestamp < 1020.0 or not lost[k % len(lost)]]
+    f2s = FrameToSamples(OWN, n_cells)
+    samples = run(f2s, kept) + f2s.flush()
+    for smp in samples:
+        tick = round(smp.t_s - 1000.0)
+        assert smp.current_A == pytest.approx(i[tick], abs=5e-4), f"tick {tick}"
+    assert f2s.counters["samples"] + f2s.counters["stale_current"] >= 20
+
+
+def test_a_current_sent_at_half_the_voltages_rate_is_held() -> None:
+    msgs = frames(OWN, n=60, n_cells=4)
+    slow = [m for m in msgs if m.arbitration_id != 0x100 or round(m.timestamp) % 2 == 0]
+    f2s = FrameToSamples(OWN, 4)
+    samples = run(f2s, slow)
+    assert len(samples) == 60 and f2s.counters["stale_current"] == 0
+
+
 def test_stale_open_cycle_is_closed_by_time() -> None:
     msgs = frames(OWN, n=1, n_cells=8)[:-1]
     f2s = FrameToSamples(OWN, 8, staleness_s=1.0)

@@ -12,9 +12,18 @@ and ``bmsid identify`` on a candump log both go through :class:`FrameToSamples`)
    cycle is older than ``staleness_s`` when a later frame arrives or :meth:`FrameToSamples.expire`
    is called, or (d) :meth:`FrameToSamples.flush` is called at the end of a log.
    A half-complete cycle is emitted with NaN for the missing cells and the flag ``incomplete``.
-4. A sample is only emitted with a current no older than ``staleness_s`` at the sample time;
-   otherwise the cycle is dropped and counted as ``stale_current`` (there is no NaN convention
-   for the current, and guessing one would corrupt the estimate).
+4. A sample is only emitted with a current no older than ``staleness_s`` at the sample time,
+   nor older than usual: once the bus has shown its rhythm (:data:`_RHYTHM_MIN` cycles), more
+   than :data:`LATE_PERIODS` of the current's frame period beyond the age the held current
+   usually has at a close (each the low quantile :data:`_USUAL_Q` of its last
+   :data:`_RHYTHM` values: lost frames lengthen intervals and ages, and up to half of them
+   lost leave that quantile alone). Older, its frame of this cycle was lost and the held
+   value is a cycle old; paired with this cycle's voltages across a current step it is a
+   sample the cell never produced (a 140 A step on a 1.2 mOhm cell: 170 mV; 20 % of the frames
+   of a 1 s log dropped at random gave 18.6 mV RMSE instead of 1.2). The rule holds for a
+   current sent with, before or after the voltages, and for one sent slower than them. Otherwise
+   the cycle is dropped and counted as ``stale_current`` (there is no NaN convention for the
+   current, and guessing one would corrupt the estimate).
 5. ``t_s`` is the (monotonic-guarded) timestamp of the last cell frame of the cycle. Wall-clock
    steps backwards are absorbed into an offset (counted as ``time_backwards``).
 6. Temperatures are held per sensor; NaN when never received or older than ``staleness_s``.
@@ -30,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -42,6 +52,14 @@ from bmsid.errors import UserError
 from bmsid.samples import Sample
 
 log = logging.getLogger(__name__)
+
+#: Rule 4: a held current this many of its frame periods older than its usual age at a close
+#: missed its frame (3/4: a lost frame adds a whole period; bus jitter is far less).
+LATE_PERIODS = 0.75
+#: Closes and current frames the usual age and the period are taken over (at least, at most) ...
+_RHYTHM_MIN, _RHYTHM = 8, 25
+#: ... as this quantile.
+_USUAL_Q = 0.2
 
 #: Counters of frames that were rejected (their sum is the daemon's ``decode_errors``).
 DECODE_ERROR_KINDS = (
@@ -90,6 +108,11 @@ class _Plan:
     temp_mux: str | None = None
 
 
+def _low(values: deque[float]) -> float:
+    """The :data:`_USUAL_Q` quantile of ``values`` (lower order statistic)."""
+    return sorted(values)[int(_USUAL_Q * (len(values) - 1))]
+
+
 def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float]:
     eps = abs(float(sig.scale)) * 1e-6
     lo = -math.inf if sig.minimum is None else float(sig.minimum) - eps
@@ -116,6 +139,8 @@ class FrameToSamples:
         # held current and temperatures
         self._current_A = math.nan
         self._current_t = -math.inf
+        self._current_dt: deque[float] = deque(maxlen=_RHYTHM)  # intervals of current frames
+        self._close_age: deque[float] = deque(maxlen=_RHYTHM)  # held current's age at closes
         self._temps = [math.nan] * self.n_temps
         self._temps_t = [-math.inf] * self.n_temps
         self._counter: int | None = None
@@ -268,6 +293,8 @@ class FrameToSamples:
         if plan.current is not None:
             i = self._value(values, plan.current, "current")
             if not math.isnan(i):
+                if 0.0 < t - self._current_t <= self.staleness_s:
+                    self._current_dt.append(t - self._current_t)
                 self._current_A, self._current_t = i, t
         if plan.temps:
             self._take_temps(plan, values, t)
@@ -326,16 +353,29 @@ class FrameToSamples:
         if self._n_seen == n:
             self._close(out)
 
+    def _late_limit_s(self) -> float:
+        """The oldest the held current may be at this close (rule 4), s."""
+        if len(self._close_age) < _RHYTHM_MIN or len(self._current_dt) < _RHYTHM_MIN:
+            return self.staleness_s
+        usual = _low(self._close_age) + LATE_PERIODS * _low(self._current_dt)
+        return min(self.staleness_s, usual)
+
     def _close(self, out: list[Sample]) -> None:
         t = self._t_last
+        if t - self._current_t <= self.staleness_s:
+            self._close_age.append(t - self._current_t)
         if self._n_seen < self.n_cells:
             self._flags.add("incomplete")
             self._note(
                 "incomplete_cycles",
                 f"cycle at t={t:.3f} s closed with {self._n_seen}/{self.n_cells} cells",
             )
-        if t - self._current_t > self.staleness_s:
+        age = t - self._current_t
+        if age > self.staleness_s:
             self._note("stale_current", f"no current within {self.staleness_s} s of t={t:.3f} s")
+        elif age > self._late_limit_s():
+            self._note("stale_current", f"the current frame of the cycle at t={t:.3f} s was lost "
+                       f"(the held one is {age:.3g} s old)")  # fmt: skip
         else:
             temps = None
             if self.n_temps:
