@@ -78,7 +78,7 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.plausibility import Finding
-from bmsid.offline.record_cell import cell_from_record
+from bmsid.offline.record_cell import accepted_readings, cell_from_record
 from bmsid.offline.scoring import metrics_document
 from bmsid.samples import SampleBlock
 
@@ -231,6 +231,12 @@ def _check_input(
         if found is not None:
             cell, note, capacity_from = found.cell, found.note, "record"
             record_chemistry, pseudo_text = found.record_chemistry, found.pseudo_ocv_text
+    if (
+        args.cell_config is None
+        and capacity_from == "cell"
+        and not plausibility.first_error(findings)
+    ):
+        findings.append(plausibility.capacity_not_read(cell.capacity_Ah))
     if args.cell_config is None:
         assumed = plausibility.assumed_cell(
             cell.name, cell.capacity_Ah, capacity_from=capacity_from,
@@ -239,6 +245,9 @@ def _check_input(
         )  # fmt: skip
         findings.insert(0, assumed)
     if not plausibility.first_error(findings):
+        # what the run's gates refuse (a current glitch, a dead channel) is no evidence here
+        i_ok, v = accepted_readings(t, i, v, cell, tuning.gap_s)
+        i = plausibility.held(i_ok, 0.0)
         findings += plausibility.check_consistency(
             t, i, v, capacity_Ah=cell.capacity_Ah,
             capacity_assumed=args.cell_config is None and capacity_from == "cell",
@@ -318,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
         )
     with progress_bar(scan.n_samples, args.algorithm) as bar:
         result = identify_source(source, spec, out, bar, scan)
-    print(soc_init_text(result))
+    print(soc_init_text(result, cell.soc_init.rest_current_C * cell.capacity_Ah))
     warning = ocv_range_warning(result, cell)
     if warning:
         print(warning)
