@@ -485,3 +485,19 @@ def test_of_our_real_records_only_the_one_opening_on_a_step_warns(real_data_dir:
         "calce_inr18650-20r_25C_US06_50soc.csv.gz",
         "calce_inr18650-20r_25C_US06_80soc.csv.gz",
     ], warned
+
+
+@pytest.mark.parametrize(("factor", "unit"), [(60.0, "minutes"), (3600.0, "hours")])
+def test_time_in_minutes_or_hours_is_refused_with_the_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], factor: float, unit: str
+) -> None:
+    """A median step cannot tell minutes (1 s samples read 0.017, as a 60 Hz log): the capacity
+    the record implies in that unit makes its currents hundreds of C, which no cell sustains."""
+    t, i, v = cell_record(7200, capacity_Ah=2.0, soc0=0.9)  # 2 h of DST: 90 % to 40 %
+    src = write(tmp_path / "slow.csv", t / factor, i, v)
+    rc, _, err = identify(capsys, src, tmp_path / "o", *FAST)
+    assert rc == 2
+    assert err.startswith(f"bmsid identify: error: {src}: t_s looks like {unit} (median step ")
+    assert err.endswith(f"give t_s in seconds, e.g. --columns t_s=t_s*{factor:g}")
+    rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--columns", f"t_s=t_s*{factor:g}")
+    assert rc == 0 and ", median dt 1 s, 0 gap(s) > 30 s;" in out[0]

@@ -51,6 +51,7 @@ from bmsid.config.cell import CellConfig, paper_cell
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
+from bmsid.gates import GateConfig
 from bmsid.offline import fleet, plausibility
 from bmsid.offline.identify import (
     IdentifySpec,
@@ -78,7 +79,11 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.plausibility import Finding
-from bmsid.offline.record_cell import accepted_readings, cell_from_record
+from bmsid.offline.record_cell import (
+    accepted_readings,
+    capacity_as_recorded,
+    cell_from_record,
+)
 from bmsid.offline.scoring import metrics_document
 from bmsid.samples import SampleBlock
 
@@ -205,11 +210,13 @@ def _ocv_coeffs(text: str | None) -> list[float] | None:
         raise UserError(f"--ocv-coeffs: not numbers: {text!r}") from None
 
 
-def _time_fix(args: argparse.Namespace) -> str:
-    """The option that would give t_s in seconds, for the time-unit message."""
+def _time_fix(args: argparse.Namespace, factor: float = 0.001) -> str:
+    """The option that would give t_s in seconds (the file's unit x ``factor``), for the
+    time-unit messages."""
     columns = parse_columns(args.columns) or {}
     source = columns["t_s"].source if "t_s" in columns else "t_s"
-    return f"--columns t_s={source}*0.001"
+    scale = factor * (columns["t_s"].scale if "t_s" in columns else 1.0)
+    return f"--columns t_s={source}*{scale:g}"
 
 
 def _check_input(
@@ -224,6 +231,15 @@ def _check_input(
     record_chemistry = None
     pseudo_text: str | None = None
     capacity_from: Literal["cell", "option", "record"] = "cell"
+    if (
+        args.capacity_ah is None
+        and args.cell_config is None
+        and not (plausibility.first_error(findings))
+    ):
+        findings += plausibility.check_time_compressed(
+            t, i, capacity_as_recorded(t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs)),
+            GateConfig().i_max_C, lambda factor: _time_fix(args, factor),
+        )  # fmt: skip
     if args.capacity_ah is not None:
         capacity_from = "option"
     elif args.cell_config is None and not plausibility.first_error(findings):

@@ -272,6 +272,50 @@ def check_time_unit(
     return []
 
 
+#: Time in minutes or hours: the capacity a record implies (the charge it moves over the SOC
+#: change its voltages read) makes its currents (95th percentile of |I|, robust to glitches)
+#: exceed this many C, the input gates' plausible C-rate (``GateConfig.i_max_C``); the factors
+#: tried are minutes and hours, the smaller one that brings the currents within it is named.
+SLOW_UNIT_FACTORS = ((60.0, "minutes"), (3600.0, "hours"))
+
+
+def check_time_compressed(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    est: CapacityEstimate | None,
+    i_max_C: float,
+    fix: Callable[[float], str],
+) -> list[Finding]:
+    """An error when ``t_s`` looks like minutes or hours: the capacity read off the record in
+    the file's unit (``est``; ``derive_capacity`` or ``capacity_from_soc_change``, which scale
+    with the time unit) puts its typical current beyond ``i_max_C`` C. A median step cannot tell
+    it (60 Hz CAN logs step by 17 ms, a minute record in minutes by 0.017); a cell that moves
+    80 % of its charge in three "seconds" can. Refused like milliseconds (a silently rescaled
+    time axis changes every time constant); ``fix(factor)`` is the option that converts."""
+    t = np.asarray(t_s, dtype=np.float64)
+    if est is None or t.size < 3 or not est.capacity_Ah > 0:
+        return []
+    i_typ = float(np.percentile(np.abs(np.asarray(current_A, dtype=np.float64)), 95))
+    c_rate = i_typ / est.capacity_Ah
+    if not c_rate > i_max_C:
+        return []
+    factor, unit = next(
+        ((f, u) for f, u in SLOW_UNIT_FACTORS if c_rate / f <= i_max_C), SLOW_UNIT_FACTORS[-1]
+    )
+    med = sample_period(t).median_dt_s
+    return [
+        Finding(
+            "error",
+            f"time_unit_{unit}",
+            f"t_s looks like {unit} (median step {med:.4g}): the record moves "
+            f"{est.capacity_Ah * est.start_soc:.3g} Ah over the SOC its voltages read in "
+            f"{float(np.ptp(t)):.4g} time units, a {est.capacity_Ah:.3g} Ah cell whose current "
+            f"(95th percentile {i_typ:.3g} A) would be {c_rate:.0f} C, beyond the {i_max_C:g} C "
+            f"any cell sustains: give t_s in seconds, e.g. {fix(factor)}",
+        )
+    ]
+
+
 # ----------------------------------------------------------------------------- current sign
 @dataclass(frozen=True)
 class SignEvidence:

@@ -67,6 +67,24 @@ def accepted_readings(
     return out.current_A, out.cell_voltages_V
 
 
+def capacity_as_recorded(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    gap_s: float,
+    ocv_coeffs: Sequence[float] | None = None,
+) -> CapacityEstimate | None:
+    """The capacity the record's own readings imply, ungated (for the time-unit check, before
+    any gate whose current limit would scale with it): a cut-off or the SOC change."""
+    assumed, _ = cell_config(None, None, ocv_coeffs)
+    ocv = ocv_model(assumed)
+    return plausibility.derive_capacity(
+        t_s, current_A, voltages_V, gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
+    ) or plausibility.capacity_from_soc_change(
+        t_s, current_A, voltages_V, ocv.soc_from_ocv, (ocv.soc_min, ocv.soc_max), gap_s
+    )
+
+
 def cell_from_record(
     t_s: FloatArray,
     current_A: FloatArray,
