@@ -501,3 +501,38 @@ def test_time_in_minutes_or_hours_is_refused_with_the_fix(
     assert err.endswith(f"give t_s in seconds, e.g. --columns t_s=t_s*{factor:g}")
     rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--columns", f"t_s=t_s*{factor:g}")
     assert rc == 0 and ", median dt 1 s, 0 gap(s) > 30 s;" in out[0]
+
+
+def test_gaps_are_counted_over_the_runs_gap_threshold(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """30.4 s steps are gaps over 30 s but none over --tuning gap_s=60 (it said 325 before)."""
+    t, i, v = cell_record(1800, capacity_Ah=70.0)
+    src = write(tmp_path / "slow.csv", t[::30] * (30.4 / 30.0), i[::30], v[::30])
+    cfg = cell_config_file(tmp_path / "cell.toml", 70.0)
+    rc, out, _ = identify(
+        capsys, src, tmp_path / "o", *FAST, "--cell-config", str(cfg), "--tuning", "gap_s=60"
+    )
+    assert rc == 0 and ", median dt 30.4 s, 0 gap(s) > 60 s;" in out[0]
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["input_checks"]["gap_s"] == 60 and m["input_checks"]["gaps_over_gap_s"] == 0
+
+
+def test_blank_readings_are_skipped_counted_and_the_run_goes_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(600, capacity_Ah=70.0)
+    src = write(tmp_path / "ok.csv", t, i, v)
+    lines = src.read_text().splitlines()
+    for k in (50, 51, 300):  # blank current, blank voltage, both
+        parts = lines[k].split(",")
+        parts[1 + (k % 2)] = ""
+        if k == 300:
+            parts[1] = parts[2] = ""
+        lines[k] = ",".join(parts)
+    src.write_text("\n".join(lines) + "\n")
+    cfg = cell_config_file(tmp_path / "cell.toml", 70.0)
+    rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--cell-config", str(cfg))
+    assert rc == 0
+    assert any(line.startswith("4 empty or NaN current/voltage/temperature value(s) read as")
+               for line in out)  # fmt: skip

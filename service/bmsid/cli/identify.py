@@ -297,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
         args.input, charge_positive=args.charge_positive, mapping=args.mapping,
         n_cells=args.n_cells, channel=args.channel, columns=columns,
     )  # fmt: skip
+    source.gap_s = tuning.gap_s  # its gaps are counted over the run's threshold
     # the record's head, for the checks only: not held through the run
     head = source.head(plausibility.check_head_samples(source.n_cells))
     cell, derived_note, checks = _check_input(args, head, cell, tuning)

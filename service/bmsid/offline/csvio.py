@@ -100,6 +100,9 @@ class TesterData:
     merged_repeats: int = 0
     #: File lines (1-based) where the clock restarted and was stitched on (see the module doc).
     time_restarts: tuple[int, ...] = ()
+    #: Empty or NaN cells of the current, voltage and temperature columns, read as NaN
+    #: (missing: the engine holds the previous current, leaves a cell out of its tick).
+    missing_values: int = 0
     __test__: ClassVar[bool] = False  # "Test..." name: not a pytest class
 
     @property
@@ -152,29 +155,48 @@ def _read_lines(path: Path) -> Iterator[str]:
         raise UserError(f"{path}: cannot read: {exc}".splitlines()[0]) from exc
 
 
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+([eE][+-]?\d+)?$")
+_MISSING_TEXT = ("", "nan")
+
+
 def _parse_column(
-    values: list[str], name: str, path: Path, first_line: int, required: bool
-) -> FloatArray | None:
-    """Column as float64; for a required column any bad cell is a UserError naming the lines."""
+    values: list[str], name: str, path: Path, first_line: int, required: bool,
+    missing_ok: bool = False,
+) -> FloatArray | None:  # fmt: skip
+    """Column as float64; for a required column any bad cell is a UserError naming the lines.
+    ``missing_ok``: an empty or NaN cell is NaN (missing, counted by the caller), only text
+    that is no number is an error."""
     try:
         arr = np.asarray(values, dtype=np.float64)
     except ValueError:
         arr = None
-    if arr is not None and bool(np.all(np.isfinite(arr))):
+    if arr is not None and bool(np.all(np.isfinite(arr) | (missing_ok & np.isnan(arr)))):
         return arr
     if not required:
         return None
     bad: list[int] = []
+    parsed = np.full(len(values), np.nan)
     for k, s in enumerate(values):
+        if missing_ok and s.strip().lower() in _MISSING_TEXT:
+            continue
         try:
-            ok = np.isfinite(float(s))
+            parsed[k] = x = float(s)
+            ok = bool(np.isfinite(x))
         except ValueError:
             ok = False
         if not ok:
             bad.append(first_line + k)
+    if not bad:
+        return parsed
+    comma = next((s for s in values if _DECIMAL_COMMA.match(s.strip())), None)
+    hint = (
+        f": {comma!r} looks like a decimal comma; export the file with a decimal point"
+        if comma is not None
+        else ""
+    )
+    what = "non-numeric or infinite" if missing_ok else "empty, NaN or non-numeric"
     raise UserError(
-        f"{path}: column {name!r} has empty, NaN or non-numeric values "
-        f"on line(s) {_lines_text(bad)}"
+        f"{path}: column {name!r} has {what} values on line(s) {_lines_text(bad)}{hint}"
     )
 
 
@@ -418,27 +440,33 @@ def iter_tester_csv(
         def cells_of(j: int, text: list[tuple[str, ...]] = columns_text) -> list[str]:
             return [s.strip().strip('"') for s in text[j]]
 
+        missing = 0
+
         def required(name: str, text: list[tuple[str, ...]] = columns_text,
                      first_line: int = row0 + 2) -> FloatArray:  # fmt: skip
+            nonlocal missing
             j = keys.index(name.lower())
-            arr = _parse_column(cells_of(j, text), header[j], p, first_line, True)
+            # a blank or NaN reading is a missing one (the time stamp must be there)
+            ok_missing = name.lower() != "t_s"
+            arr = _parse_column(cells_of(j, text), header[j], p, first_line, True, ok_missing)
             assert arr is not None
+            missing += int(np.count_nonzero(np.isnan(arr)))
             return arr * lay.scales[j] if j in lay.scales else arr
 
         t, restarts = cleaner.clean(required("t_s"), row0)
         current = required("current_A")
         if charge_positive:
             current = -current
-        if float(np.max(np.abs(current))) > MAX_PLAUSIBLE_CURRENT_A:
+        if float(np.nanmax(np.abs(current), initial=0.0)) > MAX_PLAUSIBLE_CURRENT_A:
             raise UserError(
-                f"{p}: |current_A| reaches {np.max(np.abs(current)):g} > "
+                f"{p}: |current_A| reaches {np.nanmax(np.abs(current)):g} > "
                 f"{MAX_PLAUSIBLE_CURRENT_A:g}: looks like milliamperes; give the current in A"
             )
         volts = np.column_stack([required(header[j]) for j in lay.cell_cols])
         if not checked_mv:
             checked_mv = True
             for c, j in enumerate(lay.cell_cols):
-                med = float(np.median(volts[:, c]))
+                med = float(np.nanmedian(volts[:, c])) if np.isfinite(volts[:, c]).any() else 0.0
                 if med > MAX_PLAUSIBLE_CELL_VOLTAGE_V:
                     raise UserError(
                         f"{p}: column {header[j]!r} has median {med:g}: looks like "
@@ -469,8 +497,9 @@ def iter_tester_csv(
         held = _take(piece, slice(piece.n_samples - 1, None))
         out = _take(_take(piece, slice(0, piece.n_samples - 1)), keep)
         out = TesterData(**{**out.__dict__, "merged_repeats": int(keep.size - keep.sum()),
-                            "time_restarts": tuple(restarts)})  # fmt: skip
-        if out.n_samples or out.merged_repeats or out.time_restarts:
+                            "time_restarts": tuple(restarts),
+                            "missing_values": missing})  # fmt: skip
+        if out.n_samples or out.merged_repeats or out.time_restarts or out.missing_values:
             yield out
     if held is None:
         raise UserError(f"{p}: header only, no data rows")
@@ -508,9 +537,11 @@ def read_tester_csv(
         data = _join(data, piece)
     merged = sum(piece.merged_repeats for piece in pieces)
     restarts = tuple(n for piece in pieces for n in piece.time_restarts)
+    missing = sum(piece.missing_values for piece in pieces)
     if merged:
         log.info("%s: merged %d rows with repeated timestamps", path, merged)
-    return TesterData(**{**data.__dict__, "merged_repeats": merged, "time_restarts": restarts})
+    return TesterData(**{**data.__dict__, "merged_repeats": merged, "time_restarts": restarts,
+                         "missing_values": missing})  # fmt: skip
 
 
 def write_tester_csv(data: TesterData, path: str | Path) -> None:
