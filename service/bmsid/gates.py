@@ -220,7 +220,6 @@ class GateState:
         return {
             "refused_per_cell": {k: v.tolist() for k, v in self.refused.items()},
             "current_refused": self.i_refused,
-            "temperature_refused": self.T_refused,
             "missing_cells": self.missing,
             "no_data_cells": self.no_data,
         }
