@@ -387,6 +387,7 @@ def iter_tester_csv(
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
     chunk_rows: int | None = None,
+    missing_ok: bool = False,
 ) -> Iterator[TesterData]:
     """A tester CSV (see the module docstring) as consecutive pieces of at most about
     ``chunk_rows`` rows (None: :func:`chunk_rows_for` its columns), read as they are needed:
@@ -397,7 +398,9 @@ def iter_tester_csv(
     What needs the whole column in :func:`read_tester_csv`'s checks is decided on the first
     piece here: the median voltage (millivolts?) and the median step (restarts); a bad row
     or a current that looks like milliamperes is an error in whichever piece it lies.
-    Errors as :func:`read_tester_csv`.
+    Errors as :func:`read_tester_csv`; ``missing_ok``: an empty or NaN current, voltage or
+    temperature cell is NaN (a missing reading, counted in ``missing_values``) instead of an
+    error (identification handles missing readings; an OCV fit does not).
     """
     if chunk_rows is not None and chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
@@ -447,7 +450,7 @@ def iter_tester_csv(
             nonlocal missing
             j = keys.index(name.lower())
             # a blank or NaN reading is a missing one (the time stamp must be there)
-            ok_missing = name.lower() != "t_s"
+            ok_missing = missing_ok and name.lower() != "t_s"
             arr = _parse_column(cells_of(j, text), header[j], p, first_line, True, ok_missing)
             assert arr is not None
             missing += int(np.count_nonzero(np.isnan(arr)))
@@ -511,6 +514,7 @@ def read_tester_csv(
     *,
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
+    missing_ok: bool = False,
 ) -> TesterData:
     """Load a tester CSV (see the module docstring) into memory: the pieces of
     :func:`iter_tester_csv` joined (an extra column is kept when numeric in every row).
@@ -524,6 +528,9 @@ def read_tester_csv(
     columns : mapping of canonical name to ColumnMap, or None
         Where ``t_s``, ``current_A``, ``voltage_V``, ``v_cell_NN`` or ``temperature_C`` come
         from in an export with other names (applied before the rules above), with a unit scale.
+    missing_ok : bool
+        An empty or NaN current, voltage or temperature is NaN, counted in ``missing_values``
+        (``bmsid identify``); False: an error, as every reading is needed (``bmsid fit-ocv``).
 
     Raises
     ------
@@ -531,7 +538,11 @@ def read_tester_csv(
         A missing/empty file, missing columns, bad rows, time that goes back (other than a
         restart of the clock), and values that look like mV or mA.
     """
-    pieces = list(iter_tester_csv(path, charge_positive=charge_positive, columns=columns))
+    pieces = list(
+        iter_tester_csv(
+            path, charge_positive=charge_positive, columns=columns, missing_ok=missing_ok
+        )
+    )
     data = pieces[0]
     for piece in pieces[1:]:
         data = _join(data, piece)

@@ -411,8 +411,9 @@ def read_csv_input(
 
     def pieces() -> Iterator[TesterData]:
         return iter_tester_csv(
-            path, charge_positive=charge_positive, columns=columns, chunk_rows=chunk_rows
-        )
+            path, charge_positive=charge_positive, columns=columns, chunk_rows=chunk_rows,
+            missing_ok=True,  # a blank reading is a missing one: the engine handles it
+        )  # fmt: skip
 
     return StreamedInput(str(path), names, pieces)
 
