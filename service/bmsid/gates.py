@@ -16,7 +16,12 @@ Per cell and sample, in this order (the first that fails is the reason counted):
   so a cell is never locked out by a stale reference.
 
 Per sample: ``i_window``, the pack current beyond ``+-i_max_A`` (default
-:attr:`GateConfig.i_max_C` x capacity).
+:attr:`GateConfig.i_max_C` x capacity); ``t_step``, a pack temperature further from the last
+accepted one than ``TEMP_STEP_FLOOR_K + TEMP_MAX_RATE_K_S`` x the time since it: a cell's
+thermal mass does not move tens of kelvin in a second (one -40 degC sample drove the Arrhenius
+law's R0 from 81 to 9 mOhm on a CALCE record). The refused reading is replaced by the last
+accepted one (held, as the temperature a tick needs); two successive readings that agree with
+each other but not with it replace it (a sensor wrong at its first reading is not held).
 
 :func:`gate_block` is pure (a block and a :class:`GateState` in, the gated block and the next
 state out), vectorised: a block whose cells all pass is checked in a handful of array
@@ -50,7 +55,13 @@ IntArray = npt.NDArray[np.int64]
 #: Why a cell's reading was refused (counted per cell).
 VOLTAGE_REASONS = ("v_window", "v_step")
 #: The totals in the daemon's flat counters (:meth:`GateState.counters`).
-GATE_COUNTERS = ("gated_v_window", "gated_v_step", "gated_i_window")
+GATE_COUNTERS = ("gated_v_window", "gated_v_step", "gated_i_window", "gated_t_step")
+#: Fastest plausible change of a pack temperature reading, K/s: an 18650 (45 g, ~1 J/(g K))
+#: dissipating I^2 R = 32 W at 20C (40 A, 20 mOhm) warms by 0.7 K/s; drive cycles stay far
+#: below 0.05 K/s. A faster reading is a sensor fault, not the cell.
+TEMP_MAX_RATE_K_S = 1.0
+#: ... plus this much at any step, K: an NTC channel's quantisation and noise (0.5-1 K).
+TEMP_STEP_FLOOR_K = 1.0
 
 
 class GateConfig(BaseModel):
@@ -158,6 +169,9 @@ class GateState:
         valid: cells that ever carried an accepted reading.
         refused: per reason of :data:`VOLTAGE_REASONS`, readings refused per cell.
         i_refused: samples whose current was refused (the pack's one sensor).
+        T_last_C, tT_last_s: last accepted pack temperature, degC, and its time, s (NaN: none).
+        T_refused: samples whose temperature was refused (``t_step``, held instead).
+        T_cand: the last refused temperature and its time (NaN: none since an accepted one).
     """
 
     v_last_V: FloatArray
@@ -166,6 +180,10 @@ class GateState:
     valid: BoolArray
     refused: dict[str, IntArray]
     i_refused: int = 0
+    T_last_C: float = float("nan")
+    tT_last_s: float = float("nan")
+    T_refused: int = 0
+    T_cand: tuple[float, float] = (float("nan"), float("nan"))
 
     @classmethod
     def fresh(cls, n_cells: int) -> GateState:
@@ -189,11 +207,12 @@ class GateState:
 
     def counters(self) -> dict[str, int]:
         """Totals over the cells, for the daemon's flat counters."""
-        v_window, v_step, i_window = GATE_COUNTERS
+        v_window, v_step, i_window, t_step = GATE_COUNTERS
         return {
             v_window: int(self.refused["v_window"].sum()),
             v_step: int(self.refused["v_step"].sum()),
             i_window: self.i_refused,
+            t_step: self.T_refused,
         }
 
     def report(self) -> dict[str, Any]:
@@ -251,9 +270,12 @@ def gate_block(
         "v_step": state.refused["v_step"] + (in_win & ~accepted).sum(axis=0),
     }
     gated_v = v if clean.all() else np.where(accepted, v, np.nan)
+    temp, T_last, tT_last, n_T, cand = gate_temperature(
+        block.temperature_C, t, state.T_last_C, state.tT_last_s, state.T_cand
+    )
     out = block
-    if n_i or not clean.all():
-        out = SampleBlock(t, current, gated_v, block.t_complete_mono, block.temperature_C)
+    if n_i or n_T or not clean.all():
+        out = SampleBlock(t, current, gated_v, block.t_complete_mono, temp)
     return out, GateState(
         v_last_V=v_last,
         t_last_s=t_last,
@@ -261,7 +283,60 @@ def gate_block(
         valid=state.valid | accepted.any(axis=0),
         refused=refused,
         i_refused=state.i_refused + n_i,
+        T_last_C=T_last,
+        tT_last_s=tT_last,
+        T_refused=state.T_refused + n_T,
+        T_cand=cand,
     )
+
+
+def gate_temperature(
+    temp_C: FloatArray | None,
+    t_s: FloatArray,
+    T_last_C: float,
+    tT_last_s: float,
+    cand: tuple[float, float] = (float("nan"), float("nan")),
+) -> tuple[FloatArray | None, float, float, int, tuple[float, float]]:
+    """A block's pack temperatures (degC, NaN: none) with each reading that moved faster than
+    the slew limit (module docstring) from the last accepted one replaced by it; the new last
+    accepted temperature and time, the readings refused and the last refused one (``cand``:
+    reading degC, time s, carried between blocks). Vectorised while every reading
+    passes; walked from the first refusal (the reference then changes)."""
+    if temp_C is None or temp_C.size == 0:
+        return temp_C, T_last_C, tT_last_s, 0, cand
+    fin = np.isfinite(temp_C)
+    if not fin.any():
+        return temp_C, T_last_C, tT_last_s, 0, cand
+    k_fin = np.flatnonzero(fin)
+    ref_T = np.concatenate(([T_last_C], temp_C[k_fin[:-1]]))
+    ref_t = np.concatenate(([tT_last_s], t_s[k_fin[:-1]]))
+    with np.errstate(invalid="ignore"):
+        allowed = TEMP_STEP_FLOOR_K + TEMP_MAX_RATE_K_S * np.abs(t_s[k_fin] - ref_t)
+        bad = np.abs(temp_C[k_fin] - ref_T) > allowed  # NaN reference (none yet): False
+    nan2 = (float("nan"), float("nan"))
+    if not bad.any():
+        return temp_C, float(temp_C[k_fin[-1]]), float(t_s[k_fin[-1]]), 0, nan2
+    out = temp_C.copy()
+    first = int(np.argmax(bad))
+    cand_T, cand_t = cand  # the last refused reading
+    if first:
+        T_last_C, tT_last_s = float(temp_C[k_fin[first - 1]]), float(t_s[k_fin[first - 1]])
+        cand_T, cand_t = nan2
+    n = 0
+    for k in k_fin[first:].tolist():
+        T, tk = float(temp_C[k]), float(t_s[k])
+        lim = TEMP_STEP_FLOOR_K + TEMP_MAX_RATE_K_S * abs(tk - tT_last_s)
+        lim_cand = TEMP_STEP_FLOOR_K + TEMP_MAX_RATE_K_S * abs(tk - cand_t)
+        # two successive readings that agree outvote the reference: it was the glitch (a
+        # sensor wrong at its first reading would otherwise hold its value for a minute)
+        if np.isnan(T_last_C) or abs(T - T_last_C) <= lim or abs(T - cand_T) <= lim_cand:
+            T_last_C, tT_last_s = T, tk
+            cand_T = cand_t = float("nan")
+        else:
+            out[k] = T_last_C
+            cand_T, cand_t = T, tk
+            n += 1
+    return out, T_last_C, tT_last_s, n, (cand_T, cand_t)
 
 
 def _walk(
@@ -313,6 +388,12 @@ class InputGate:
                     "for those samples, not estimated from them",
                     c, what[k], int(after.refused[k][c]), k,
                 )  # fmt: skip
+        if _decade(np.array([before.T_refused]), np.array([after.T_refused]))[0]:
+            log.warning(
+                "pack temperature moving faster than %g K/s (+%g K) refused (%d samples so "
+                "far, t_step): the last accepted temperature is held for those samples",
+                TEMP_MAX_RATE_K_S, TEMP_STEP_FLOOR_K, after.T_refused,
+            )  # fmt: skip
         if _decade(np.array([before.i_refused]), np.array([after.i_refused]))[0]:
             log.warning(
                 "pack current beyond +-%g A refused (%d samples so far, i_window): the "

@@ -175,7 +175,58 @@ def test_default_gates_refuse_nothing_of_a_healthy_record(record: str, config: s
     n = data.cell_voltages_V.shape[1]
     model = cell_model(load_cell_config(repo / config), n)
     gate = InputGate(GateConfig().for_model(model, gap_s=30.0), n)
-    block = SampleBlock.from_arrays(data.t_s, data.current_A, data.cell_voltages_V)
+    block = SampleBlock.from_arrays(
+        data.t_s, data.current_A, data.cell_voltages_V, data.temperature_C
+    )
     out = gate.apply(block)
-    assert gate.state.counters() == {"gated_v_window": 0, "gated_v_step": 0, "gated_i_window": 0}
+    assert gate.state.counters() == {
+        "gated_v_window": 0, "gated_v_step": 0, "gated_i_window": 0, "gated_t_step": 0,
+    }  # fmt: skip
     np.testing.assert_array_equal(out.cell_voltages_V, block.cell_voltages_V)
+
+
+def test_a_temperature_jump_no_cell_can_make_is_refused_and_held() -> None:
+    """-40 degC in 1 sample of 100 (a CALCE record: RMSE 58 mV, R0 9 mOhm instead of 81 through
+    the Arrhenius law): refused, the last accepted temperature held, counted; a real warming of
+    0.5 K/s passes, and a sensor wrong from its first reading is outvoted by the next two."""
+    n = 400
+    t = np.arange(n, dtype=float)
+    temp = 25.0 + 0.5 * t / 60.0  # 0.5 K/min
+    temp[100::100] = -40.0
+    block = SampleBlock.from_arrays(t, np.zeros(n), np.full((n, 1), 3.7), temp)
+    out, st = gate_block(block, LIMITS, GateState.fresh(1))
+    assert out.temperature_C is not None and st.T_refused == 3
+    np.testing.assert_allclose(out.temperature_C[100::100], temp[99:-1:100])
+    assert st.counters()["gated_t_step"] == 3  # a counter: the status schema takes new ones
+    fast = 25.0 + 0.5 * t  # 0.5 K/s, an abused cell: within 1 K/s
+    _, st = gate_block(SampleBlock.from_arrays(t, np.zeros(n), np.full((n, 1), 3.7), fast),
+                       LIMITS, GateState.fresh(1))  # fmt: skip
+    assert st.T_refused == 0
+    first = np.full(n, 25.0)
+    first[0] = -40.0
+    out, st = gate_block(SampleBlock.from_arrays(t, np.zeros(n), np.full((n, 1), 3.7), first),
+                         LIMITS, GateState.fresh(1))  # fmt: skip
+    assert st.T_refused == 1 and out.temperature_C is not None
+    np.testing.assert_array_equal(out.temperature_C[2:], 25.0)
+
+
+def test_the_temperature_gate_is_the_same_block_by_block() -> None:
+    """The state carries the reference across blocks: any split gives the same result."""
+    rng = np.random.default_rng(3)
+    n = 300
+    t = np.arange(n, dtype=float)
+    temp = 25.0 + np.cumsum(rng.normal(0, 0.05, n))
+    temp[rng.choice(n, 12, replace=False)] = rng.choice([-40.0, 120.0], 12)
+    temp[rng.choice(n, 20, replace=False)] = np.nan
+    v = np.full((n, 1), 3.7)
+    whole, st = gate_block(SampleBlock.from_arrays(t, np.zeros(n), v, temp), LIMITS,
+                           GateState.fresh(1))  # fmt: skip
+    parts, state = [], GateState.fresh(1)
+    for a, b in itertools.pairwise([0, 7, 8, 150, 151, 299, n]):
+        out, state = gate_block(SampleBlock.from_arrays(t[a:b], np.zeros(b - a), v[a:b],
+                                                        temp[a:b]), LIMITS, state)  # fmt: skip
+        assert out.temperature_C is not None
+        parts.append(out.temperature_C)
+    assert whole.temperature_C is not None
+    np.testing.assert_array_equal(np.concatenate(parts), whole.temperature_C)
+    assert state.T_refused == st.T_refused >= 12

@@ -88,8 +88,9 @@ def test_gzip_is_read(tmp_path: Path) -> None:
         ("t_s,current_A,voltage_V\n", "no data rows"),
         ("t_s,voltage_V\n0,3.3\n", "missing column(s) current_A"),
         ("t_s,current_A\n0,1\n", "missing column(s) voltage_V"),
-        ("t_s,current_A,voltage_V\n0,1,3.3\n1,nan,3.3\n2,1,\n3,1,3.3\n", "line(s) 3"),
+        ("t_s,current_A,voltage_V\n0,1,3.3\nnan,1,3.3\n,1,3.3\n3,1,3.3\n", "line(s) 3, 4"),
         ("t_s,current_A,voltage_V\n0,1,3.3\n1,1,3.3\n2,1,x\n", "'voltage_V' has empty"),
+        ("t_s;current_A;voltage_V\n0,0;1,5;3,3\n", "'0,0' looks like a decimal comma"),
         ("t_s,current_A,voltage_V\n0,1,3.3\n\n2,1,3.3\n", "line(s) 3 are empty"),
         ("t_s,current_A,voltage_V\n0,1,3.3\n2,1,3.3\n1.5,1,3.3\n", "not increasing at line 4"),
         ("t_s,current_A,voltage_V\n0,1,3300\n1,1,3301\n", "millivolts"),
@@ -105,8 +106,20 @@ def test_bad_files_raise_one_line(tmp_path: Path, text: str, expected: str) -> N
     assert "\n" not in msg
 
 
-def test_nan_lines_are_all_reported(tmp_path: Path) -> None:
-    rows = [f"{k},1,{'nan' if k in (3, 7) else '3.3'}" for k in range(10)]
+def test_missing_readings_are_nan_and_counted(tmp_path: Path) -> None:
+    """A blank or NaN current, voltage or temperature is a missing reading (the engine holds
+    the current, leaves the cell out of its tick), counted; the run goes on."""
+    rows = [f"{k},{'' if k == 2 else 1},{'nan' if k in (3, 7) else '3.3'},25" for k in range(10)]
+    p = _write(tmp_path / "m.csv", "t_s,current_A,voltage_V,temperature_C\n" + "\n".join(rows))
+    with pytest.raises(UserError, match="has empty, NaN or non-numeric"):
+        read_tester_csv(p)  # strict by default (an OCV fit needs every reading)
+    d = read_tester_csv(p, missing_ok=True)
+    assert d.n_samples == 10 and d.missing_values == 3
+    assert np.isnan(d.current_A[2]) and np.isnan(d.cell_voltages_V[[3, 7], 0]).all()
+
+
+def test_nan_time_lines_are_all_reported(tmp_path: Path) -> None:
+    rows = [f"{'nan' if k in (3, 7) else k},1,3.3" for k in range(10)]
     p = _write(tmp_path / "n.csv", "t_s,current_A,voltage_V\n" + "\n".join(rows) + "\n")
     with pytest.raises(UserError, match=r"line\(s\) 5, 9$"):
         read_tester_csv(p)

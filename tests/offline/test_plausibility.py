@@ -111,7 +111,12 @@ def test_no_cell_config_says_what_it_assumes(
     assert warnings(out) == [
         "WARNING: no --cell-config: assuming the paper's cell 'paper-70Ah-NMC' (Table 1 OCV, "
         "15 mV hysteresis) with its 70 Ah; another cell needs its own config (bmsid fit-ocv) "
-        "or at least --capacity-ah"
+        "or at least --capacity-ah",
+        # 20 minutes of DST move too little SOC to read the capacity off: said, not silent
+        "WARNING: the capacity could not be read off the record (no discharge to a cut-off, no "
+        "rests spanning 30 % of SOC on the assumed OCV): the assumed cell's 70 Ah is used, and "
+        "the SOC, the current-offset estimate and the capacity-relative thresholds all follow "
+        "it; give --capacity-ah",
     ]
 
 
@@ -123,6 +128,8 @@ def test_small_cell_without_config_is_told_about_the_relative_threshold(
     assert rc == 0
     w = warnings(out)
     assert w[0].startswith("WARNING: no --cell-config: assuming the paper's cell")
+    assert w[1].startswith("WARNING: the capacity could not be read off the record")
+    w = w[1:]
     assert w[1].startswith("WARNING: the record moves only ") and "of the assumed 70 Ah" in w[1]
     assert "a smaller cell? give --capacity-ah or --cell-config" in w[1]
     assert w[2].startswith("WARNING: only 0.0 % of the record is excited enough to identify")
@@ -478,3 +485,54 @@ def test_of_our_real_records_only_the_one_opening_on_a_step_warns(real_data_dir:
         "calce_inr18650-20r_25C_US06_50soc.csv.gz",
         "calce_inr18650-20r_25C_US06_80soc.csv.gz",
     ], warned
+
+
+@pytest.mark.parametrize(("factor", "unit"), [(60.0, "minutes"), (3600.0, "hours")])
+def test_time_in_minutes_or_hours_is_refused_with_the_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], factor: float, unit: str
+) -> None:
+    """A median step cannot tell minutes (1 s samples read 0.017, as a 60 Hz log): the capacity
+    the record implies in that unit makes its currents hundreds of C, which no cell sustains."""
+    t, i, v = cell_record(7200, capacity_Ah=2.0, soc0=0.9)  # 2 h of DST: 90 % to 40 %
+    src = write(tmp_path / "slow.csv", t / factor, i, v)
+    rc, _, err = identify(capsys, src, tmp_path / "o", *FAST)
+    assert rc == 2
+    assert err.startswith(f"bmsid identify: error: {src}: t_s looks like {unit} (median step ")
+    assert err.endswith(f"give t_s in seconds, e.g. --columns t_s=t_s*{factor:g}")
+    rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--columns", f"t_s=t_s*{factor:g}")
+    assert rc == 0 and ", median dt 1 s, 0 gap(s) > 30 s;" in out[0]
+
+
+def test_gaps_are_counted_over_the_runs_gap_threshold(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """30.4 s steps are gaps over 30 s but none over --tuning gap_s=60 (it said 325 before)."""
+    t, i, v = cell_record(1800, capacity_Ah=70.0)
+    src = write(tmp_path / "slow.csv", t[::30] * (30.4 / 30.0), i[::30], v[::30])
+    cfg = cell_config_file(tmp_path / "cell.toml", 70.0)
+    rc, out, _ = identify(
+        capsys, src, tmp_path / "o", *FAST, "--cell-config", str(cfg), "--tuning", "gap_s=60"
+    )
+    assert rc == 0 and ", median dt 30.4 s, 0 gap(s) > 60 s;" in out[0]
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["input_checks"]["gap_s"] == 60 and m["input_checks"]["gaps_over_gap_s"] == 0
+
+
+def test_blank_readings_are_skipped_counted_and_the_run_goes_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t, i, v = cell_record(600, capacity_Ah=70.0)
+    src = write(tmp_path / "ok.csv", t, i, v)
+    lines = src.read_text().splitlines()
+    for k in (50, 51, 300):  # blank current, blank voltage, both
+        parts = lines[k].split(",")
+        parts[1 + (k % 2)] = ""
+        if k == 300:
+            parts[1] = parts[2] = ""
+        lines[k] = ",".join(parts)
+    src.write_text("\n".join(lines) + "\n")
+    cfg = cell_config_file(tmp_path / "cell.toml", 70.0)
+    rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--cell-config", str(cfg))
+    assert rc == 0
+    assert any(line.startswith("4 empty or NaN current/voltage/temperature value(s) read as")
+               for line in out)  # fmt: skip

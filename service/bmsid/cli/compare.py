@@ -188,7 +188,9 @@ def run(args: argparse.Namespace) -> int:
     out = output_dir(Path(args.out))  # before hours of identification, not after
     # Read everything first: a bad file fails before hours of identification.
     data: list[LoadedInput] = [
-        LoadedInput.from_tester(read_tester_csv(p, charge_positive=args.charge_positive))
+        LoadedInput.from_tester(
+            read_tester_csv(p, charge_positive=args.charge_positive, missing_ok=True)
+        )
         for p in args.datasets
     ]
     labels = [

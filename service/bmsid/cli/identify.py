@@ -51,6 +51,7 @@ from bmsid.config.cell import CellConfig, paper_cell
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
+from bmsid.gates import GateConfig
 from bmsid.offline import fleet, plausibility
 from bmsid.offline.identify import (
     IdentifySpec,
@@ -79,7 +80,11 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.plausibility import Finding
-from bmsid.offline.record_cell import cell_from_record
+from bmsid.offline.record_cell import (
+    accepted_readings,
+    capacity_as_recorded,
+    cell_from_record,
+)
 from bmsid.offline.scoring import metrics_document
 from bmsid.samples import SampleBlock
 
@@ -206,11 +211,13 @@ def _ocv_coeffs(text: str | None) -> list[float] | None:
         raise UserError(f"--ocv-coeffs: not numbers: {text!r}") from None
 
 
-def _time_fix(args: argparse.Namespace) -> str:
-    """The option that would give t_s in seconds, for the time-unit message."""
+def _time_fix(args: argparse.Namespace, factor: float = 0.001) -> str:
+    """The option that would give t_s in seconds (the file's unit x ``factor``), for the
+    time-unit messages."""
     columns = parse_columns(args.columns) or {}
     source = columns["t_s"].source if "t_s" in columns else "t_s"
-    return f"--columns t_s={source}*0.001"
+    scale = factor * (columns["t_s"].scale if "t_s" in columns else 1.0)
+    return f"--columns t_s={source}*{scale:g}"
 
 
 def _check_input(
@@ -225,6 +232,15 @@ def _check_input(
     record_chemistry = None
     pseudo_text: str | None = None
     capacity_from: Literal["cell", "option", "record"] = "cell"
+    if (
+        args.capacity_ah is None
+        and args.cell_config is None
+        and not (plausibility.first_error(findings))
+    ):
+        findings += plausibility.check_time_compressed(
+            t, i, capacity_as_recorded(t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs)),
+            GateConfig().i_max_C, lambda factor: _time_fix(args, factor),
+        )  # fmt: skip
     if args.capacity_ah is not None:
         capacity_from = "option"
     elif args.cell_config is None and not plausibility.first_error(findings):
@@ -232,6 +248,12 @@ def _check_input(
         if found is not None:
             cell, note, capacity_from = found.cell, found.note, "record"
             record_chemistry, pseudo_text = found.record_chemistry, found.pseudo_ocv_text
+    if (
+        args.cell_config is None
+        and capacity_from == "cell"
+        and not plausibility.first_error(findings)
+    ):
+        findings.append(plausibility.capacity_not_read(cell.capacity_Ah))
     if args.cell_config is None:
         assumed = plausibility.assumed_cell(
             cell.name, cell.capacity_Ah, capacity_from=capacity_from,
@@ -240,6 +262,9 @@ def _check_input(
         )  # fmt: skip
         findings.insert(0, assumed)
     if not plausibility.first_error(findings):
+        # what the run's gates refuse (a current glitch, a dead channel) is no evidence here
+        i_ok, v = accepted_readings(t, i, v, cell, tuning.gap_s)
+        i = plausibility.held(i_ok, 0.0)
         findings += plausibility.check_consistency(
             t, i, v, capacity_Ah=cell.capacity_Ah,
             capacity_assumed=args.cell_config is None and capacity_from == "cell",
@@ -273,6 +298,7 @@ def run(args: argparse.Namespace) -> int:
         args.input, charge_positive=args.charge_positive, mapping=args.mapping,
         n_cells=args.n_cells, channel=args.channel, columns=columns,
     )  # fmt: skip
+    source.gap_s = tuning.gap_s  # its gaps are counted over the run's threshold
     # the record's head, for the checks only: not held through the run
     head = source.head(plausibility.check_head_samples(source.n_cells))
     cell, derived_note, checks = _check_input(args, head, cell, tuning)
@@ -321,7 +347,7 @@ def run(args: argparse.Namespace) -> int:
         )
     with progress_bar(scan.n_samples, args.algorithm) as bar:
         result = identify_source(source, spec, out, bar, scan)
-    print(soc_init_text(result))
+    print(soc_init_text(result, cell.soc_init.rest_current_C * cell.capacity_Ah))
     warning = ocv_range_warning(result, cell)
     if warning:
         print(warning)

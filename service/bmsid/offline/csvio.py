@@ -100,6 +100,9 @@ class TesterData:
     merged_repeats: int = 0
     #: File lines (1-based) where the clock restarted and was stitched on (see the module doc).
     time_restarts: tuple[int, ...] = ()
+    #: Empty or NaN cells of the current, voltage and temperature columns, read as NaN
+    #: (missing: the engine holds the previous current, leaves a cell out of its tick).
+    missing_values: int = 0
     __test__: ClassVar[bool] = False  # "Test..." name: not a pytest class
 
     @property
@@ -152,29 +155,48 @@ def _read_lines(path: Path) -> Iterator[str]:
         raise UserError(f"{path}: cannot read: {exc}".splitlines()[0]) from exc
 
 
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+([eE][+-]?\d+)?$")
+_MISSING_TEXT = ("", "nan")
+
+
 def _parse_column(
-    values: list[str], name: str, path: Path, first_line: int, required: bool
-) -> FloatArray | None:
-    """Column as float64; for a required column any bad cell is a UserError naming the lines."""
+    values: list[str], name: str, path: Path, first_line: int, required: bool,
+    missing_ok: bool = False,
+) -> FloatArray | None:  # fmt: skip
+    """Column as float64; for a required column any bad cell is a UserError naming the lines.
+    ``missing_ok``: an empty or NaN cell is NaN (missing, counted by the caller), only text
+    that is no number is an error."""
     try:
         arr = np.asarray(values, dtype=np.float64)
     except ValueError:
         arr = None
-    if arr is not None and bool(np.all(np.isfinite(arr))):
+    if arr is not None and bool(np.all(np.isfinite(arr) | (missing_ok & np.isnan(arr)))):
         return arr
     if not required:
         return None
     bad: list[int] = []
+    parsed = np.full(len(values), np.nan)
     for k, s in enumerate(values):
+        if missing_ok and s.strip().lower() in _MISSING_TEXT:
+            continue
         try:
-            ok = np.isfinite(float(s))
+            parsed[k] = x = float(s)
+            ok = bool(np.isfinite(x))
         except ValueError:
             ok = False
         if not ok:
             bad.append(first_line + k)
+    if not bad:
+        return parsed
+    comma = next((s for s in values if _DECIMAL_COMMA.match(s.strip())), None)
+    hint = (
+        f": {comma!r} looks like a decimal comma; export the file with a decimal point"
+        if comma is not None
+        else ""
+    )
+    what = "non-numeric or infinite" if missing_ok else "empty, NaN or non-numeric"
     raise UserError(
-        f"{path}: column {name!r} has empty, NaN or non-numeric values "
-        f"on line(s) {_lines_text(bad)}"
+        f"{path}: column {name!r} has {what} values on line(s) {_lines_text(bad)}{hint}"
     )
 
 
@@ -365,6 +387,7 @@ def iter_tester_csv(
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
     chunk_rows: int | None = None,
+    missing_ok: bool = False,
 ) -> Iterator[TesterData]:
     """A tester CSV (see the module docstring) as consecutive pieces of at most about
     ``chunk_rows`` rows (None: :func:`chunk_rows_for` its columns), read as they are needed:
@@ -375,7 +398,9 @@ def iter_tester_csv(
     What needs the whole column in :func:`read_tester_csv`'s checks is decided on the first
     piece here: the median voltage (millivolts?) and the median step (restarts); a bad row
     or a current that looks like milliamperes is an error in whichever piece it lies.
-    Errors as :func:`read_tester_csv`.
+    Errors as :func:`read_tester_csv`; ``missing_ok``: an empty or NaN current, voltage or
+    temperature cell is NaN (a missing reading, counted in ``missing_values``) instead of an
+    error (identification handles missing readings; an OCV fit does not).
     """
     if chunk_rows is not None and chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
@@ -418,27 +443,33 @@ def iter_tester_csv(
         def cells_of(j: int, text: list[tuple[str, ...]] = columns_text) -> list[str]:
             return [s.strip().strip('"') for s in text[j]]
 
+        missing = 0
+
         def required(name: str, text: list[tuple[str, ...]] = columns_text,
                      first_line: int = row0 + 2) -> FloatArray:  # fmt: skip
+            nonlocal missing
             j = keys.index(name.lower())
-            arr = _parse_column(cells_of(j, text), header[j], p, first_line, True)
+            # a blank or NaN reading is a missing one (the time stamp must be there)
+            ok_missing = missing_ok and name.lower() != "t_s"
+            arr = _parse_column(cells_of(j, text), header[j], p, first_line, True, ok_missing)
             assert arr is not None
+            missing += int(np.count_nonzero(np.isnan(arr)))
             return arr * lay.scales[j] if j in lay.scales else arr
 
         t, restarts = cleaner.clean(required("t_s"), row0)
         current = required("current_A")
         if charge_positive:
             current = -current
-        if float(np.max(np.abs(current))) > MAX_PLAUSIBLE_CURRENT_A:
+        if float(np.nanmax(np.abs(current), initial=0.0)) > MAX_PLAUSIBLE_CURRENT_A:
             raise UserError(
-                f"{p}: |current_A| reaches {np.max(np.abs(current)):g} > "
+                f"{p}: |current_A| reaches {np.nanmax(np.abs(current)):g} > "
                 f"{MAX_PLAUSIBLE_CURRENT_A:g}: looks like milliamperes; give the current in A"
             )
         volts = np.column_stack([required(header[j]) for j in lay.cell_cols])
         if not checked_mv:
             checked_mv = True
             for c, j in enumerate(lay.cell_cols):
-                med = float(np.median(volts[:, c]))
+                med = float(np.nanmedian(volts[:, c])) if np.isfinite(volts[:, c]).any() else 0.0
                 if med > MAX_PLAUSIBLE_CELL_VOLTAGE_V:
                     raise UserError(
                         f"{p}: column {header[j]!r} has median {med:g}: looks like "
@@ -469,8 +500,9 @@ def iter_tester_csv(
         held = _take(piece, slice(piece.n_samples - 1, None))
         out = _take(_take(piece, slice(0, piece.n_samples - 1)), keep)
         out = TesterData(**{**out.__dict__, "merged_repeats": int(keep.size - keep.sum()),
-                            "time_restarts": tuple(restarts)})  # fmt: skip
-        if out.n_samples or out.merged_repeats or out.time_restarts:
+                            "time_restarts": tuple(restarts),
+                            "missing_values": missing})  # fmt: skip
+        if out.n_samples or out.merged_repeats or out.time_restarts or out.missing_values:
             yield out
     if held is None:
         raise UserError(f"{p}: header only, no data rows")
@@ -482,6 +514,7 @@ def read_tester_csv(
     *,
     charge_positive: bool = False,
     columns: Mapping[str, ColumnMap] | None = None,
+    missing_ok: bool = False,
 ) -> TesterData:
     """Load a tester CSV (see the module docstring) into memory: the pieces of
     :func:`iter_tester_csv` joined (an extra column is kept when numeric in every row).
@@ -495,6 +528,9 @@ def read_tester_csv(
     columns : mapping of canonical name to ColumnMap, or None
         Where ``t_s``, ``current_A``, ``voltage_V``, ``v_cell_NN`` or ``temperature_C`` come
         from in an export with other names (applied before the rules above), with a unit scale.
+    missing_ok : bool
+        An empty or NaN current, voltage or temperature is NaN, counted in ``missing_values``
+        (``bmsid identify``); False: an error, as every reading is needed (``bmsid fit-ocv``).
 
     Raises
     ------
@@ -502,15 +538,21 @@ def read_tester_csv(
         A missing/empty file, missing columns, bad rows, time that goes back (other than a
         restart of the clock), and values that look like mV or mA.
     """
-    pieces = list(iter_tester_csv(path, charge_positive=charge_positive, columns=columns))
+    pieces = list(
+        iter_tester_csv(
+            path, charge_positive=charge_positive, columns=columns, missing_ok=missing_ok
+        )
+    )
     data = pieces[0]
     for piece in pieces[1:]:
         data = _join(data, piece)
     merged = sum(piece.merged_repeats for piece in pieces)
     restarts = tuple(n for piece in pieces for n in piece.time_restarts)
+    missing = sum(piece.missing_values for piece in pieces)
     if merged:
         log.info("%s: merged %d rows with repeated timestamps", path, merged)
-    return TesterData(**{**data.__dict__, "merged_repeats": merged, "time_restarts": restarts})
+    return TesterData(**{**data.__dict__, "merged_repeats": merged, "time_restarts": restarts,
+                         "missing_values": missing})  # fmt: skip
 
 
 def write_tester_csv(data: TesterData, path: str | Path) -> None:

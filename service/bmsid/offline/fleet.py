@@ -194,7 +194,9 @@ def spec_from_record(source: InputSource, spec: IdentifySpec, how: CellFromRecor
     """``spec`` with the cell its input's head tells (unchanged where it tells none)."""
     head = source.head(check_head_samples(source.n_cells))
     gap_s = (spec.tuning or EstimatorTuning()).gap_s
-    found = cell_from_record(head.t_s, head.current_A, head.cell_voltages_V, gap_s, how.ocv_coeffs)
+    found = cell_from_record(
+        head.t_s, head.current_A, head.cell_voltages_V, gap_s, how.ocv_coeffs, spec.gates
+    )
     if found is None:
         return spec
     window = with_score_reference(spec.window, found.cell, how.score_soc0, gap_s)

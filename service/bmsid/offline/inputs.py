@@ -114,7 +114,9 @@ def _input_report(
         "merged_repeats": merged,
         "time_restarts": list(restarts),
         "median_dt_s": None if math.isnan(period.median_dt_s) else period.median_dt_s,
-        "gaps_over_30s": period.n_gaps,
+        "gaps_over_30s": period.n_gaps if period.gap_s == GAP_S else None,
+        "gap_s": period.gap_s,
+        "gaps_over_gap_s": period.n_gaps,
         "channel": channel,
         "cells_in_log": cells,
         "notes": list(notes),
@@ -166,7 +168,8 @@ class LoadedInput:
     @property
     def input_report(self) -> dict[str, Any]:
         """JSON-ready: ``merged_repeats``, ``time_restarts`` (lines), ``median_dt_s`` (None
-        when undefined), ``gaps_over_30s``, ``channel``, ``cells_in_log``, ``notes`` and
+        when undefined), ``gaps_over_30s`` (None when counted over another ``gap_s``),
+        ``gap_s`` and ``gaps_over_gap_s``, ``channel``, ``cells_in_log``, ``notes`` and
         ``findings`` (level, code, message)."""
         return _input_report(
             sample_period(self.samples.t_s), self.merged_repeats, self.time_restarts,
@@ -263,6 +266,9 @@ class StreamedInput:
         self.log_summary = log_summary
         self.channel = channel
         self._scanned: tuple[int, SamplePeriod, int, tuple[int, ...]] | None = None
+        self._missing = 0  # empty or NaN readings a CSV reader read as missing (a full pass)
+        #: Steps longer than this (s) are counted as gaps (the engine's ``gap_s``).
+        self.gap_s = GAP_S
 
     @property
     def n_cells(self) -> int:
@@ -272,10 +278,14 @@ class StreamedInput:
     def n_samples(self) -> int | None:
         return None if self._scanned is None else self._scanned[0]
 
-    def period(self, gap_s: float = GAP_S) -> SamplePeriod:
-        """Median step (first piece) and gaps over ``GAP_S`` (whole record); after a pass."""
+    def period(self, gap_s: float | None = None) -> SamplePeriod:
+        """Median step (first piece) and the steps longer than ``gap_s`` (None: ``self.gap_s``)
+        over the whole record; reads the record again when it was counted with another
+        threshold."""
+        if gap_s is not None and gap_s != self.gap_s:
+            self.gap_s, self._scanned = gap_s, None
         scanned = self._complete()
-        return SamplePeriod(scanned[1].median_dt_s, scanned[1].n_gaps, gap_s)
+        return scanned[1]
 
     @property
     def merged_repeats(self) -> int:
@@ -291,7 +301,14 @@ class StreamedInput:
     @property
     def notes(self) -> tuple[str, ...]:
         merged = 0 if self._scanned is None else self._scanned[2]
-        return self._notes + ((_merged_note(merged),) if merged else ())
+        out = self._notes + ((_merged_note(merged),) if merged else ())
+        if self._missing:
+            out += (
+                f"{self._missing} empty or NaN current/voltage/temperature value(s) read as "
+                "missing: a missing current holds the previous one, a missing voltage leaves "
+                "its cell out of that tick (counted as nan_current / nan_voltage)",
+            )
+        return out
 
     @property
     def all_findings(self) -> tuple[Finding, ...]:
@@ -318,7 +335,7 @@ class StreamedInput:
     def blocks(self, size: int = DEFAULT_BLOCK_SIZE) -> Iterator[SampleBlock]:
         if size < 1:
             raise ValueError(f"block size must be >= 1, got {size}")
-        n = gaps = merged = 0
+        n = gaps = merged = missing = 0
         restarts: list[int] = []
         median = math.nan
         t_prev = math.nan
@@ -326,6 +343,7 @@ class StreamedInput:
         for raw in self._pieces():
             if isinstance(raw, TesterData):
                 merged += raw.merged_repeats
+                missing += raw.missing_values
                 restarts += raw.time_restarts
                 piece = SampleBlock.from_arrays(
                     raw.t_s, raw.current_A, raw.cell_voltages_V, raw.temperature_C
@@ -335,7 +353,7 @@ class StreamedInput:
             if len(piece) == 0:
                 continue
             dt = np.diff(np.concatenate(([t_prev], piece.t_s)))[0 if n else 1 :]
-            gaps += int(np.count_nonzero(dt > GAP_S))
+            gaps += int(np.count_nonzero(dt > self.gap_s))
             if math.isnan(median):
                 median = sample_period(piece.t_s).median_dt_s
             t_prev = float(piece.t_s[-1])
@@ -348,7 +366,8 @@ class StreamedInput:
             rest = piece.slice(full, len(piece)) if full < len(piece) else None
         if rest is not None:
             yield rest
-        self._scanned = (n, SamplePeriod(median, gaps), merged, tuple(restarts))
+        self._scanned = (n, SamplePeriod(median, gaps, self.gap_s), merged, tuple(restarts))
+        self._missing = missing
 
     def head(self, n: int) -> SampleBlock:
         got: list[SampleBlock] = []
@@ -392,8 +411,9 @@ def read_csv_input(
 
     def pieces() -> Iterator[TesterData]:
         return iter_tester_csv(
-            path, charge_positive=charge_positive, columns=columns, chunk_rows=chunk_rows
-        )
+            path, charge_positive=charge_positive, columns=columns, chunk_rows=chunk_rows,
+            missing_ok=True,  # a blank reading is a missing one: the engine handles it
+        )  # fmt: skip
 
     return StreamedInput(str(path), names, pieces)
 

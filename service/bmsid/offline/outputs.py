@@ -140,15 +140,22 @@ def write_plots(
 
 
 # ----------------------------------------------------------------------------- report lines
-def soc_init_text(result: IdentifyResult) -> str:
-    """One line: the initial SOC of the first cells (%) and how it was found."""
+def soc_init_text(result: IdentifyResult, rest_limit_A: float | None = None) -> str:
+    """One line: the initial SOC of the first cells (%) and how it was found; ``rest_limit_A``
+    (the cell's ``soc_init.rest_current_C`` x capacity, A) is named when given: "at rest" means
+    within it, which an assumed capacity far too large makes true of a real load."""
     first = result.first_tick()
     z0 = first["soc"][0] if first is not None else np.array([math.nan])
     socs = ", ".join(f"{100 * z:.1f} %" if math.isfinite(z) else "no data" for z in z0[:4])
     socs += " ..." if z0.size > 4 else ""
+    rest = (
+        "the cell was at rest"
+        if rest_limit_A is None
+        else f"the first current within the rest limit, |I| <= {rest_limit_A:.3g} A"
+    )
     how = {
         "given": "given by --soc0",
-        "ocv_at_rest": "from the first voltage through the OCV curve (the cell was at rest)",
+        "ocv_at_rest": f"from the first voltage through the OCV curve ({rest})",
         "ocv_ir_corrected": "from the first voltage plus R0 x current through the OCV curve "
         "(a current flowed; the SOC observer refines it)",
         "config": "the config's soc0 (soc_init.policy fixed)",

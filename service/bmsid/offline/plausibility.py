@@ -81,7 +81,15 @@ REST_SHARE = 0.05
 # A capacity read off a discharge from part-charged: its start SOC at least this (the charge is
 # divided by it), the start under at most this share of the peak current.
 PARTIAL_START_SOC_MIN = 0.3
-LOADED_START_SHARE = 0.1
+#: A loaded start is IR-corrected (v + R0 I) when the correction moves the SOC the OCV reads by
+#: at most this (fraction): R0 is measured within a few tens of percent, so the start SOC stays
+#: within a few points (a CALCE DST record opening at C/4 corrects by 3 points).
+LOADED_START_SOC_SHIFT = 0.1
+# Capacity from the SOC change (no cut-off in the record): at least SOC_CHANGE_MIN_POINTS rest
+# ends spanning SOC_CHANGE_MIN_SPAN of SOC (fraction) on the assumed OCV, each read off strictly
+# inside the curve's range (a voltage beyond its ends is clamped to them and tells no SOC).
+SOC_CHANGE_MIN_POINTS = 3
+SOC_CHANGE_MIN_SPAN = 0.3
 
 
 @dataclass(frozen=True)
@@ -147,11 +155,36 @@ def coulomb_Ah(t_s: FloatArray, current_A: FloatArray, gap_s: float | None = GAP
     longer than ``gap_s`` the cell is taken to rest (None: no gap rule).
     """
     t = np.asarray(t_s, dtype=np.float64)
-    i = np.asarray(current_A, dtype=np.float64)
+    i = held(np.asarray(current_A, dtype=np.float64), 0.0)
     dt = np.clip(np.diff(t), 0.0, None)
     if gap_s is not None:
         dt = np.where(dt > gap_s, 0.0, dt)
     return np.concatenate([[0.0], np.cumsum(i[:-1] * dt)]) / 3600.0
+
+
+def held(x: FloatArray, before: float = math.nan) -> FloatArray:
+    """``x`` (n,) with each NaN replaced by the last finite value before it (``before`` ahead
+    of the first): a refused or missing current is held, as the engine holds it (``ticks.py``;
+    it starts from 0 A), and a refused voltage stays the last accepted one."""
+    x = np.asarray(x, dtype=np.float64)
+    ok = np.isfinite(x)
+    if ok.all():
+        return x
+    last = np.maximum.accumulate(np.where(ok, np.arange(x.shape[0]), -1))
+    return np.where(last >= 0, x[np.maximum(last, 0)], before)
+
+
+def cell_mean_min(voltages_V: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per sample the mean and the minimum (V) over the cells with a finite reading (a refused
+    or dead channel, NaN, is left out, never read as a cut-off); a sample without any holds the
+    previous sample's values (NaN before the first)."""
+    v = np.asarray(voltages_V, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    fin = np.isfinite(v)
+    n = fin.sum(axis=1)
+    mean = np.where(n > 0, np.where(fin, v, 0.0).sum(axis=1) / np.maximum(n, 1), np.nan)
+    low = np.where(fin, v, np.inf).min(axis=1)
+    return held(mean), held(np.where(n > 0, low, np.nan))
 
 
 @dataclass(frozen=True)
@@ -237,6 +270,50 @@ def check_time_unit(
             )
         ]
     return []
+
+
+#: Time in minutes or hours: the capacity a record implies (the charge it moves over the SOC
+#: change its voltages read) makes its currents (95th percentile of |I|, robust to glitches)
+#: exceed this many C, the input gates' plausible C-rate (``GateConfig.i_max_C``); the factors
+#: tried are minutes and hours, the smaller one that brings the currents within it is named.
+SLOW_UNIT_FACTORS = ((60.0, "minutes"), (3600.0, "hours"))
+
+
+def check_time_compressed(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    est: CapacityEstimate | None,
+    i_max_C: float,
+    fix: Callable[[float], str],
+) -> list[Finding]:
+    """An error when ``t_s`` looks like minutes or hours: the capacity read off the record in
+    the file's unit (``est``; ``derive_capacity`` or ``capacity_from_soc_change``, which scale
+    with the time unit) puts its typical current beyond ``i_max_C`` C. A median step cannot tell
+    it (60 Hz CAN logs step by 17 ms, a minute record in minutes by 0.017); a cell that moves
+    80 % of its charge in three "seconds" can. Refused like milliseconds (a silently rescaled
+    time axis changes every time constant); ``fix(factor)`` is the option that converts."""
+    t = np.asarray(t_s, dtype=np.float64)
+    if est is None or t.size < 3 or not est.capacity_Ah > 0:
+        return []
+    i_typ = float(np.percentile(np.abs(np.asarray(current_A, dtype=np.float64)), 95))
+    c_rate = i_typ / est.capacity_Ah
+    if not c_rate > i_max_C:
+        return []
+    factor, unit = next(
+        ((f, u) for f, u in SLOW_UNIT_FACTORS if c_rate / f <= i_max_C), SLOW_UNIT_FACTORS[-1]
+    )
+    med = sample_period(t).median_dt_s
+    return [
+        Finding(
+            "error",
+            f"time_unit_{unit}",
+            f"t_s looks like {unit} (median step {med:.4g}): the record moves "
+            f"{est.capacity_Ah * est.start_soc:.3g} Ah over the SOC its voltages read in "
+            f"{float(np.ptp(t)):.4g} time units, a {est.capacity_Ah:.3g} Ah cell whose current "
+            f"(95th percentile {i_typ:.3g} A) would be {c_rate:.0f} C, beyond the {i_max_C:g} C "
+            f"any cell sustains: give t_s in seconds, e.g. {fix(factor)}",
+        )
+    ]
 
 
 # ----------------------------------------------------------------------------- current sign
@@ -533,8 +610,26 @@ class CapacityEstimate:
     chemistry: Literal["NMC", "LFP"]
     start_soc: float = 1.0
     start_load_A: float = 0.0
+    #: A capacity from the SOC change (:func:`capacity_from_soc_change`): the rest ends used,
+    #: the SOC span they cover (fraction) and the polarisation fitted at them (V); 0: none.
+    n_rests: int = 0
+    soc_span: float = 0.0
+    polarisation_V: float = 0.0
 
     def text(self) -> str:
+        if self.n_rests:
+            at = (
+                f"IR-corrected from under {self.start_load_A:.3g} A"
+                if self.start_load_A
+                else "at rest"
+            )
+            return (
+                f"no cut-off in the record: the charge moved over the SOC change on the assumed "
+                f"OCV, from {100 * self.start_soc:.0f} % ({self.v_full_V:.3f} V {at}) through "
+                f"{self.n_rests} rests spanning {100 * self.soc_span:.0f} % of SOC (their "
+                f"voltages {1e3 * self.polarisation_V:+.0f} mV of polarisation fitted): an "
+                "estimate, give --capacity-ah when the capacity is known"
+            )
         if self.start_soc < 1.0:
             at = (
                 f"from {self.v_full_V:.3f} V (IR-corrected from under {self.start_load_A:.3g} A)"
@@ -569,13 +664,13 @@ def derive_capacity(
     of the discharge within 0.15 V). A partial start: at rest above 3.65 V (NMC-like: an LFP
     plateau tells no SOC), the charge divided by its SOC. Empty: the weakest cell at or below
     the cut-off (3.0 V; LFP 2.7 V) at the end of the discharge. Packs use the cell mean (full)
-    and minimum (empty).
+    and minimum (empty) over the cells with a reading: NaN (a reading the input gates refused,
+    ``record_cell.accepted_readings``) is left out, and a NaN current is held (``held``).
     """
     t = np.asarray(t_s, dtype=np.float64)
-    i = np.asarray(current_A, dtype=np.float64)
-    v = np.asarray(voltages_V, dtype=np.float64)
-    v = v[:, None] if v.ndim == 1 else v
-    if t.size < 10 or not np.all(np.isfinite(v)):
+    i = held(np.asarray(current_A, dtype=np.float64), 0.0)
+    v_mean, v_min = cell_mean_min(voltages_V)
+    if t.size < 10 or not np.isfinite(v_mean).any():
         return None
     q = coulomb_Ah(t, i, gap_s)
     ex = max_excursion(q)
@@ -583,20 +678,21 @@ def derive_capacity(
         return None
     peak = float(np.max(np.abs(i)))
     a, b = ex.start, ex.end
-    v_full = float(np.mean(v[a]))
-    v_empty = float(np.min(v[b]))
+    v_full = float(v_mean[a])
+    v_empty = float(v_min[b])
     if abs(i[a]) > REST_SHARE * peak:
-        return _partial_start(t, i, v, ex, soc_at_rest, peak)
+        return _partial_start(t, i, v_mean, v_min, ex, soc_at_rest, peak)
     if v_full >= FULL_NMC_V and v_empty <= EMPTY_NMC_V:
         return CapacityEstimate(ex.charge_Ah, v_full, v_empty, "NMC")
     if LFP_MAX_V < v_full < FULL_NMC_V:
-        return _partial_start(t, i, v, ex, soc_at_rest, peak)
-    if not (FULL_LFP_V <= v_full <= LFP_MAX_V and float(np.max(v)) <= LFP_MAX_V + 0.05):
+        return _partial_start(t, i, v_mean, v_min, ex, soc_at_rest, peak)
+    v_top = float(np.nanmax(np.asarray(voltages_V, dtype=np.float64)))
+    if not (FULL_LFP_V <= v_full <= LFP_MAX_V and v_top <= LFP_MAX_V + 0.05):
         return None
     if v_empty > EMPTY_LFP_V:
         return None
     seg = slice(a, b + 1)
-    qs, vs, rest = q[seg] - q[a], np.mean(v[seg], axis=1), np.abs(i[seg]) <= REST_SHARE * peak
+    qs, vs, rest = q[seg] - q[a], v_mean[seg], np.abs(i[seg]) <= REST_SHARE * peak
     middle = rest & (qs >= 0.2 * ex.charge_Ah) & (qs <= 0.8 * ex.charge_Ah)
     if np.count_nonzero(middle) < 3:
         return None
@@ -609,34 +705,126 @@ def derive_capacity(
 def _partial_start(
     t: FloatArray,
     i: FloatArray,
-    v: FloatArray,
+    v_mean: FloatArray,
+    v_min: FloatArray,
     ex: Excursion,
     soc_at_rest: Callable[[float], float] | None,
     peak_A: float,
 ) -> CapacityEstimate | None:
     """:func:`derive_capacity` for a discharge to the cut-off that starts part-charged (NMC-like),
-    at rest or under a small load (<= ``LOADED_START_SHARE`` of the peak; its voltage then
-    IR-corrected with the median -dV/dI of the record's current steps,
-    ``startvalues.median_step_resistance``)."""
+    at rest or under a load whose IR correction moves the start SOC by at most
+    ``LOADED_START_SOC_SHIFT`` (its voltage IR-corrected with the median -dV/dI of the record's
+    current steps, ``startvalues.median_step_resistance``)."""
     a, b = ex.start, ex.end
-    v_start, v_empty = float(np.mean(v[a])), float(np.min(v[b]))
+    v_start, v_empty = float(v_mean[a]), float(v_min[b])
     if soc_at_rest is None or v_empty > EMPTY_NMC_V:
         return None
     load_A = 0.0
     if abs(i[a]) > REST_SHARE * peak_A:
-        if abs(i[a]) > LOADED_START_SHARE * peak_A:
-            return None
         load_A = float(i[a])
-        r_ohm = median_step_resistance(t[a:b], i[a:b], np.mean(v[a:b], axis=1))
+        r_ohm = median_step_resistance(t[a:b], i[a:b], v_mean[a:b])
         if r_ohm is None:
             return None
-        v_start += r_ohm * float(i[a])
+        v_loaded = v_start
+        v_start += r_ohm * load_A
+        if not abs(float(soc_at_rest(v_start)) - float(soc_at_rest(v_loaded))) <= (
+            LOADED_START_SOC_SHIFT
+        ):
+            return None
     if not LFP_MAX_V < v_start < FULL_NMC_V:
         return None
     z = float(soc_at_rest(v_start))
     if not (math.isfinite(z) and z >= PARTIAL_START_SOC_MIN):
         return None
     return CapacityEstimate(ex.charge_Ah / z, v_start, v_empty, "NMC", z, load_A)
+
+
+def capacity_from_soc_change(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    soc_of: Callable[[FloatArray], FloatArray],
+    soc_range: tuple[float, float],
+    gap_s: float = GAP_S,
+) -> CapacityEstimate | None:
+    """The capacity (Ah) of a record that reaches no cut-off, from the charge it moves over the
+    SOC change the assumed OCV (``soc_of``, V -> fraction, valid inside ``soc_range``) reads;
+    None without the evidence (NMC-like only: an LFP plateau tells no SOC).
+
+    The start is read at rest (the first voltage; under load IR-corrected as in
+    :func:`_partial_start`); the later points are the rest ends (the last sample of each rest,
+    |I| <= ``REST_SHARE`` of the peak). A short rest inside a cycle is not relaxed: its voltage
+    sits a polarisation ``d`` off the OCV (below it after a discharge), which read as it is
+    takes the capacity 10-15 % low on a DST record. So ``z(v_k + d) = z0 - q_k / C`` is fitted
+    over the rest ends for C and one ``d``, within 2 R0 x the peak current (R1 + R2 at most
+    about 2 R0), on a 1 mV grid. Needs ``SOC_CHANGE_MIN_POINTS`` rest ends read inside the curve
+    spanning ``SOC_CHANGE_MIN_SPAN`` of SOC from the start."""
+    t = np.asarray(t_s, dtype=np.float64)
+    i = held(np.asarray(current_A, dtype=np.float64), 0.0)
+    v, _ = cell_mean_min(voltages_V)
+    if t.size < 10 or not np.isfinite(v[0]):
+        return None
+    peak = float(np.max(np.abs(i)))
+    rest = np.abs(i) <= REST_SHARE * peak
+    loaded = np.flatnonzero(~rest)
+    if peak <= 0 or loaded.size == 0:
+        return None
+    r_ohm = median_step_resistance(t, i, v)
+    lo, hi = soc_range
+    v0, load_A = float(v[0]), 0.0
+    if not rest[0]:
+        if r_ohm is None:
+            return None
+        load_A = float(i[0])
+        v0 += r_ohm * load_A
+        if not abs(float(soc_of(np.array(v0))) - float(soc_of(np.array(v[0])))) <= (
+            LOADED_START_SOC_SHIFT
+        ):
+            return None
+    z0 = float(soc_of(np.array(v0)))
+    if not (v0 > LFP_MAX_V and lo < z0 < hi):
+        return None
+    ends = np.flatnonzero(rest[:-1] & ~rest[1:])
+    if rest[-1]:
+        ends = np.append(ends, t.size - 1)
+    ends = ends[(ends > loaded[0]) & np.isfinite(v[ends])]
+    q = coulomb_Ah(t, i, gap_s)[ends]
+    if ends.size < SOC_CHANGE_MIN_POINTS or not np.any(q):
+        return None
+    sign = 1.0 if q[np.argmax(np.abs(q))] > 0 else -1.0  # discharge: rest voltages below OCV
+    d_max = 2.0 * r_ohm * peak if r_ohm is not None else 0.0
+    best: tuple[float, float, float, int, float] | None = None  # rms, d, 1/C, n, span
+    for d in sign * np.arange(0.0, d_max + 1e-3, 1e-3)[:1000]:
+        z = soc_of(v[ends] + d)
+        ok = (z > lo) & (z < hi)
+        n = int(np.count_nonzero(ok))
+        if n < SOC_CHANGE_MIN_POINTS:
+            continue
+        y, x = z0 - z[ok], q[ok]
+        inv_c = float(x @ y) / float(x @ x)
+        rms = float(np.sqrt(np.mean((y - inv_c * x) ** 2)))
+        if best is None or rms < best[0]:
+            best = (rms, float(d), inv_c, n, float(np.max(np.abs(y))))
+    if best is None or not best[2] > 0 or best[4] < SOC_CHANGE_MIN_SPAN:
+        return None
+    _, d, inv_c, n, span = best
+    return CapacityEstimate(
+        1.0 / inv_c, v0, float(v[ends[-1]]), "NMC", z0, load_A, n_rests=n, soc_span=span,
+        polarisation_V=-d,
+    )  # fmt: skip
+
+
+def capacity_not_read(capacity_Ah: float) -> Finding:
+    """The loud line for a run without a cell config or ``--capacity-ah`` whose record tells
+    no capacity (:func:`derive_capacity`, :func:`capacity_from_soc_change`)."""
+    return Finding(
+        "warning",
+        "capacity_not_read",
+        "the capacity could not be read off the record (no discharge to a cut-off, no rests "
+        f"spanning {100 * SOC_CHANGE_MIN_SPAN:.0f} % of SOC on the assumed OCV): the assumed "
+        f"cell's {capacity_Ah:g} Ah is used, and the SOC, the current-offset estimate and the "
+        "capacity-relative thresholds all follow it; give --capacity-ah",
+    )
 
 
 def assumed_cell(

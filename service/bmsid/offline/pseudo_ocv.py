@@ -27,7 +27,13 @@ from bmsid.errors import UserError
 from bmsid.estimate.startvalues import median_step_resistance
 from bmsid.model.ocv import eval_docv_dz
 from bmsid.offline.ocv_fit import fit_eq4
-from bmsid.offline.plausibility import FloatArray, coulomb_Ah, max_excursion
+from bmsid.offline.plausibility import (
+    FloatArray,
+    cell_mean_min,
+    coulomb_Ah,
+    held,
+    max_excursion,
+)
 
 #: The pseudo-OCV's SOC range keeps this far from 0 and 1: Eq. 4's 1/z and ln terms diverge.
 SOC_EDGE = 0.05
@@ -71,9 +77,8 @@ def pseudo_ocv(
     from full), or None: the curve's end segments run to them (``OcvCurve``), so the rested
     range the input gates and the start check use spans the cell's, not only the fitted part."""
     t = np.asarray(t_s, dtype=np.float64)
-    i = np.asarray(current_A, dtype=np.float64)
-    v = np.asarray(voltages_V, dtype=np.float64)
-    v = np.mean(v[:, None] if v.ndim == 1 else v, axis=1)
+    i = held(np.asarray(current_A, dtype=np.float64), 0.0)
+    v, _ = cell_mean_min(voltages_V)  # refused readings (NaN) left out
     if not (capacity_Ah > 0 and np.isfinite(start_soc)) or t.shape[0] < 10:
         return None
     q = coulomb_Ah(t, i, gap_s)

@@ -14,6 +14,7 @@ tells of the cell in its place.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -21,10 +22,12 @@ import numpy as np
 
 from bmsid.config.cell import CellConfig, HysteresisTable
 from bmsid.config.engine import ocv_model
+from bmsid.gates import GateConfig, GateState, gate_block
 from bmsid.offline import plausibility
 from bmsid.offline.inputs import cell_config
 from bmsid.offline.plausibility import CapacityEstimate, FloatArray
 from bmsid.offline.pseudo_ocv import pseudo_ocv
+from bmsid.samples import SampleBlock
 
 #: A cell reading below this anywhere is a dead tap or a dropout (0 V, 1 V), not a cell at its
 #: cut-off (the lowest measured: A123 LFP 1.99 V; the input gate's floor is 0.6 x the rested
@@ -44,36 +47,99 @@ class RecordCell:
     pseudo_ocv_text: str | None
 
 
+#: Passes of reading the capacity and re-gating with it (the current gate scales with it).
+MAX_GATE_PASSES = 4
+#: The read-off capacity is settled when a pass moves it by less than this share.
+GATE_SETTLED_REL = 0.01
+
+
+def accepted_readings(
+    t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, cell: CellConfig,
+    gap_s: float, gates: GateConfig | None = None,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
+    """The current (A) and voltages (V, (samples, cells)) the run's input gates
+    (``bmsid.gates``, limits from ``cell``) accept: a refused voltage NaN, a refused current
+    NaN (``plausibility.held`` holds it, as the engine does). What the estimators never see
+    must not decide the capacity either (11 samples of 2999 A read a 2 Ah cell as 13.3 Ah; a
+    dead channel's 0 V read as the pack's cut-off)."""
+    ocv = ocv_model(cell)
+    v_ends = ocv.ocv(np.array([ocv.soc_min, ocv.soc_max]))
+    limits = (gates or GateConfig()).limits(
+        float(v_ends[0]), float(v_ends[1]), cell.capacity_Ah, gap_s
+    )
+    block = SampleBlock.from_arrays(t_s, current_A, voltages_V)
+    out, _ = gate_block(block, limits, GateState.fresh(block.n_cells))
+    return out.current_A, out.cell_voltages_V
+
+
+def capacity_as_recorded(
+    t_s: FloatArray,
+    current_A: FloatArray,
+    voltages_V: FloatArray,
+    gap_s: float,
+    ocv_coeffs: Sequence[float] | None = None,
+) -> CapacityEstimate | None:
+    """The capacity the record's own readings imply, ungated (for the time-unit check, before
+    any gate whose current limit would scale with it): a cut-off or the SOC change."""
+    assumed, _ = cell_config(None, None, ocv_coeffs)
+    ocv = ocv_model(assumed)
+    return plausibility.derive_capacity(
+        t_s, current_A, voltages_V, gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
+    ) or plausibility.capacity_from_soc_change(
+        t_s, current_A, voltages_V, ocv.soc_from_ocv, (ocv.soc_min, ocv.soc_max), gap_s
+    )
+
+
 def cell_from_record(
     t_s: FloatArray,
     current_A: FloatArray,
     voltages_V: FloatArray,
     gap_s: float,
     ocv_coeffs: Sequence[float] | None = None,
+    gates: GateConfig | None = None,
 ) -> RecordCell | None:
     """The paper's cell (with ``ocv_coeffs``, ``--ocv-coeffs``, if given) with the capacity and,
     for an LFP-like record without ``ocv_coeffs``, the OCV read off the record (see the module
     docstring); None when the record tells no capacity. ``voltages_V``: (samples, cells); a
     cell that reads below :data:`DEAD_TAP_V` anywhere is left out (a 0 V tap read as a
-    discharge to the cut-off gave a whole pack 66.6 Ah instead of 70)."""
+    discharge to the cut-off gave a whole pack 66.6 Ah instead of 70).
+
+    Only readings the input gates accept are used (:func:`accepted_readings`). The current gate
+    scales with the capacity, so the capacity is read with the assumed cell's gates, then again
+    with the gates of the capacity read, until it settles: a value that the run's own gates
+    would not reproduce is no capacity (None)."""
     assumed, _ = cell_config(None, None, ocv_coeffs)
     ocv = ocv_model(assumed)
     v = np.asarray(voltages_V, dtype=np.float64)
     v = v[:, None] if v.ndim == 1 else v
-    live = ~np.any(v < DEAD_TAP_V, axis=0)  # NaN is left to derive_capacity
+    live = ~np.any(v < DEAD_TAP_V, axis=0)  # NaN is left to the gates
     if not np.count_nonzero(live):
         return None
     voltages_V = v[:, live]
-    est = plausibility.derive_capacity(
-        t_s, current_A, voltages_V, gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
-    )
-    if est is None:
-        return None
+
+    def soc(v_V: float) -> float:
+        return float(ocv.soc_from_ocv(v_V))
+
+    gated = assumed
+    est: CapacityEstimate | None = None
+    for _ in range(MAX_GATE_PASSES):
+        i_ok, v_ok = accepted_readings(t_s, current_A, voltages_V, gated, gap_s, gates)
+        est = plausibility.derive_capacity(
+            t_s, i_ok, v_ok, gap_s, soc
+        ) or plausibility.capacity_from_soc_change(
+            t_s, i_ok, v_ok, ocv.soc_from_ocv, (ocv.soc_min, ocv.soc_max), gap_s
+        )
+        if est is None:
+            return None
+        if math.isclose(est.capacity_Ah, gated.capacity_Ah, rel_tol=GATE_SETTLED_REL):
+            break
+        gated = assumed.model_copy(update={"capacity_Ah": est.capacity_Ah})
+    assert est is not None
     cell, note = cell_config(None, round(est.capacity_Ah, 3), ocv_coeffs)
     note = f"{note} ({est.text()})"
     text = None
     if ocv_coeffs is None and est.chemistry != assumed.chemistry:
-        cell, text = with_pseudo_ocv(cell, est, t_s, current_A, voltages_V, gap_s)
+        cell, text = with_pseudo_ocv(cell, est, t_s, i_ok, v_ok, gap_s)
         if text is not None:  # the paper's curve and hysteresis are gone: say what is left
             note = f"no --cell-config: capacity {cell.capacity_Ah:g} Ah ({est.text()}); {text}"
     return RecordCell(cell, note, est.chemistry, text)
