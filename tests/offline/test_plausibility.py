@@ -161,10 +161,12 @@ def test_capacity_is_read_off_a_full_to_empty_discharge(
 
 
 def part_charged_discharge(
-    soc0: float, i_start_A: float = 0.0, capacity_Ah: float = 2.0
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """100 s at ``i_start_A`` from ``soc0``, then 1C to the 3.0 V cut-off (the paper's OCV and
-    its resistances scaled to the capacity, 1 mV noise): (t s, current A, voltage V)."""
+    soc0: float, i_start_A: float = 0.0, capacity_Ah: float = 2.0, stop_V: float = 3.0,
+    n_cells: int | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
+    """100 s at ``i_start_A`` from ``soc0``, then 1C until the voltage reaches ``stop_V`` (the
+    paper's OCV and its resistances scaled to the capacity, 1 mV noise per cell): (t s, current
+    A, voltage V: (n,), or (n, n_cells) with ``n_cells``, stopped at the lowest cell)."""
     n = int(3600 * soc0) + 400
     t = np.arange(n, dtype=np.float64)
     i = np.where(t < 100, i_start_A, capacity_Ah)
@@ -173,9 +175,9 @@ def part_charged_discharge(
         t, i, ocv_model(paper_cell()), capacity_Ah=capacity_Ah, gamma=30.0, soc0=soc0,
         R0_ohm=r, R1_ohm=0.7 * r, tau1_s=30.0, R2_ohm=0.8 * r, tau2_s=600.0,
     )  # fmt: skip
-    v = sim.v_V[0] + np.random.default_rng(1).normal(0.0, 1e-3, n)
-    end = int(np.argmax(v <= 3.0)) + 1
-    return t[:end], i[:end], v[:end]
+    v = sim.v_V[0][:, None] + np.random.default_rng(1).normal(0.0, 1e-3, (n, n_cells or 1))
+    end = int(np.argmax(v.min(axis=1) <= stop_V)) + 1
+    return t[:end], i[:end], (v[:end] if n_cells else v[:end, 0])
 
 
 def _soc_at_rest(v_V: float) -> float:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 import pytest
+from test_plausibility import part_charged_discharge
 
 from bmsid.config.cell import paper_cell
 from bmsid.config.engine import ocv_model
@@ -18,23 +19,10 @@ FloatArray = npt.NDArray[np.float64]
 
 
 def discharge(
-    soc0: float, capacity_Ah: float = 2.0, stop_V: float = 3.0, n_cells: int = 1,
-    i_start_A: float = 0.0,
-) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
-    """100 s at ``i_start_A`` (rest) from ``soc0``, then 1C until the voltage reaches ``stop_V``
-    (the paper's OCV, its resistances scaled to the capacity, 1 mV noise per cell): (t s, I A,
-    V (n, cells))."""
-    n = int(3600 * soc0) + 400
-    t = np.arange(n, dtype=np.float64)
-    i = np.where(t < 100, i_start_A, capacity_Ah)
-    r = 1.2e-3 * 70.0 / capacity_Ah
-    sim = simulate(
-        t, i, ocv_model(paper_cell()), capacity_Ah=capacity_Ah, gamma=30.0, soc0=soc0,
-        R0_ohm=r, R1_ohm=0.7 * r, tau1_s=30.0, R2_ohm=0.8 * r, tau2_s=600.0,
-    )  # fmt: skip
-    v = sim.v_V[0][:, None] + np.random.default_rng(1).normal(0.0, 1e-3, (n, n_cells))
-    end = int(np.argmax(v.min(axis=1) <= stop_V)) + 1
-    return t[:end], i[:end], v[:end]
+    soc0: float, stop_V: float = 3.0, n_cells: int = 1, i_start_A: float = 0.0
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A 2 Ah cell's rest (or start at ``i_start_A``) then 1C to ``stop_V``, (samples, cells)."""
+    return part_charged_discharge(soc0, i_start_A, stop_V=stop_V, n_cells=n_cells)
 
 
 @pytest.mark.parametrize("glitch_A", [1000.0, 2999.0])
