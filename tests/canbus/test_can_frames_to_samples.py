@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.logs import csv_to_messages
 from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
 from bmsid.errors import UserError
 
@@ -185,6 +186,21 @@ def test_out_of_range_cell_is_nan_and_flagged() -> None:
     out = run(f2s, msgs)
     assert len(out) == 1 and math.isnan(out[0].cell_voltages_V[0])
     assert "out_of_range" in out[0].flags and f2s.counters["out_of_range"] == 1
+
+
+def test_a_temperature_sensor_not_fitted_is_missing_not_an_error() -> None:
+    """make-log sends one pack temperature in a group of three: the other two are the DBC's
+    not-available value, which is no decode error (20 warnings on a CALCE round trip before)."""
+    _t, i, v = synthetic(5, 4)
+    temps = np.full(5, 25.0)
+    msgs = list(csv_to_messages(np.arange(5.0), i, v, OWN, temperature_C=temps, t0_s=1000.0))
+    assert any(m.arbitration_id == 0x120 for m in msgs)
+    f2s = FrameToSamples(OWN, 4)
+    out = run(f2s, msgs)
+    assert len(out) == 5 and f2s.counters["out_of_range"] == 0
+    assert out[0].temperatures_C is not None
+    assert out[0].temperatures_C[0] == pytest.approx(25.0)
+    assert np.isnan(out[0].temperatures_C[1:3]).all()
 
 
 def test_too_many_cells_for_the_mapping() -> None:

@@ -32,7 +32,10 @@ Bad frames never raise and never reach a sample; each kind is counted in
 :attr:`FrameToSamples.counters` and logged at a rate that thins out (1st, 10th, 100th, ...):
 error frames, remote frames, unknown identifiers, wrong DLC, multiplexer index outside the DBC or
 outside ``n_cells``, values outside the signal's DBC range (that cell becomes NaN, flag
-``out_of_range``), and any other decode error.
+``out_of_range``), and any other decode error. A temperature's not-available value (SNA,
+``dbc/README.md``: a sensor of a group that is not fitted, as ``make-log`` writes them) is a
+missing reading, not an error: NaN, neither counted nor logged (a cell's is counted: the cell is
+mapped, and its missing reading is worth knowing).
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ import can
 import cantools
 import numpy as np
 
+from bmsid.canbus.codec import raw_range
 from bmsid.canbus.mapping import BusMapping, ListedGroup, MultiplexedGroup
 from bmsid.errors import UserError
 from bmsid.samples import Sample
@@ -92,6 +96,7 @@ class _Slot:
     offset: float
     lo: float
     hi: float
+    sna: float  # the DBC's not-available value (physical; NaN: the signal has none)
 
 
 @dataclass(slots=True)
@@ -113,11 +118,14 @@ def _low(values: deque[float]) -> float:
     return sorted(values)[int(_USUAL_Q * (len(values) - 1))]
 
 
-def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float]:
+def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float, float]:
+    """Physical range of ``sig`` (a millionth of a step wider) and its not-available value
+    (``codec.raw_range``: NaN when it has none)."""
     eps = abs(float(sig.scale)) * 1e-6
     lo = -math.inf if sig.minimum is None else float(sig.minimum) - eps
     hi = math.inf if sig.maximum is None else float(sig.maximum) + eps
-    return lo, hi
+    sna = raw_range(sig).sna
+    return lo, hi, math.nan if sna is None else sna * float(sig.scale) + float(sig.offset)
 
 
 class FrameToSamples:
@@ -171,8 +179,8 @@ class FrameToSamples:
 
         def slot(msg_name: str, sig_name: str, index: int, scale: float, offset: float) -> _Slot:
             sig = db.get_message_by_name(msg_name).get_signal_by_name(sig_name)
-            lo, hi = _bounds(sig)
-            return _Slot(sig_name, index, scale, offset, lo, hi)
+            lo, hi, sna = _bounds(sig)
+            return _Slot(sig_name, index, scale, offset, lo, hi, sna)
 
         cur = mapping.current
         sign = 1.0 if cur.positive == "discharge" else -1.0
@@ -272,9 +280,13 @@ class FrameToSamples:
 
     # --- assembly -----------------------------------------------------------------------------
 
-    def _value(self, values: Mapping[str, object], s: _Slot, what: str) -> float:
+    def _value(
+        self, values: Mapping[str, object], s: _Slot, what: str, quiet_sna: bool = False
+    ) -> float:
         raw = values.get(s.signal)
         v = float(raw) if isinstance(raw, int | float) else math.nan
+        if quiet_sna and v == s.sna:  # a sensor not fitted: missing, not an error
+            return math.nan
         if not (s.lo <= v <= s.hi):  # also catches NaN
             self._note("out_of_range", f"{what} signal {s.signal}={raw!r}")
             return math.nan
@@ -322,7 +334,7 @@ class FrameToSamples:
         for s in plan.temps:
             j = base + s.index
             if j < self.n_temps:
-                v = self._value(values, s, "temperature")
+                v = self._value(values, s, "temperature", quiet_sna=True)
                 self._temps[j], self._temps_t[j] = v, t
 
     def _take_cells(
