@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -16,12 +17,14 @@ from hypothesis import strategies as st
 from bmsid.canbus.logs import csv_to_messages, write_log
 from bmsid.canbus.mapping import default_mapping
 from bmsid.cli.main import main
-from bmsid.config.cell import paper_cell, save_cell_config
+from bmsid.config.cell import load_cell_config, paper_cell, save_cell_config
 from bmsid.config.engine import ocv_model
 from bmsid.model.simulator import simulate
 from bmsid.offline import plausibility as pl
 from bmsid.offline.csvio import TesterData, read_tester_csv, write_tester_csv
 from bmsid.offline.inputs import open_input
+from bmsid.offline.outputs import ocv_range_warning
+from bmsid.offline.scoring import IdentifyResult
 from bmsid.profiles import dst_current
 
 FloatArray = npt.NDArray[np.float64]
@@ -538,3 +541,27 @@ def test_blank_readings_are_skipped_counted_and_the_run_goes_on(
     assert rc == 0
     assert any(line.startswith("4 empty or NaN current/voltage/temperature value(s) read as")
                for line in out)  # fmt: skip
+
+
+class _FirstTick:
+    """What ``ocv_range_warning`` reads of a run: how SOC started and the first voltage."""
+
+    soc_init_method = "ocv_at_rest"
+    cell_names = ("voltage_V",)
+
+    def __init__(self, v_V: float) -> None:
+        self.v_V = v_V
+
+    def first_tick(self) -> dict[str, npt.NDArray[np.float64]]:
+        return {"v_meas_V": np.array([[self.v_V]])}
+
+
+@pytest.mark.parametrize(("v_V", "warned"), [(3.5753, False), (3.70, True), (2.10, True)])
+def test_the_ocv_range_warning_uses_the_curve_soc_is_clamped_to(v_V: float, warned: bool) -> None:
+    """The A123 config's end segments reach its rested empty / full voltages (2.209 / 3.584 V):
+    DYN50 opens at 3.5753 V, above the Eq. 4 fit's 98 % but on the curve, and was warned of an
+    OCV error it did not have (its model error at the first tick: 1 uV)."""
+    cell = load_cell_config(REPO / "configs" / "cells" / "a123_lfp_25C.toml")
+    run = cast("IdentifyResult", _FirstTick(v_V))
+    text = ocv_range_warning(run, cell)
+    assert (text is not None) == warned, text

@@ -187,7 +187,9 @@ def ocv_range_warning(result: IdentifyResult, cell: CellConfig) -> str | None:
     if result.soc_init_method != "ocv_at_rest" or first is None:
         return None
     ocv = ocv_model(cell)
-    lo, hi = cell.ocv.soc_min, cell.ocv.soc_max
+    # the model's range: with the config's rested empty / full voltages the curve's end segments
+    # reach 0 and 100 % (A123 DYN50 opens at 3.575 V, above the Eq. 4 fit's 98 % but on the curve)
+    lo, hi = ocv.soc_min, ocv.soc_max
     v_lo, v_hi = float(ocv.ocv(np.array(lo))), float(ocv.ocv(np.array(hi)))
     v0 = first["v_meas_V"][0]
     outside = [
