@@ -300,6 +300,24 @@ def test_sign_evidence_flips_with_the_current(seed: int, r0: float) -> None:
 
 
 # ----------------------------------------------------------------------------- capacity, SOC
+def test_a_recharge_in_a_gap_and_a_sensor_offset_exceed_no_capacity() -> None:
+    """Two 0.8-capacity discharges with 5 h between them (a recharge the record does not show)
+    are not 1.6 capacities in one direction; 1.014 capacities over two days are what a 1 % of
+    1C sensor offset moves (a multi-day record with a 0.5 A offset on 70 Ah was warned)."""
+    q, h = 2.0, 3600.0
+    t1 = np.arange(0.0, 0.8 * h)  # 1C for 0.8 h
+    t = np.concatenate([t1, t1 + 0.8 * h + 5 * h])
+    i = np.full(t.size, q)
+    assert pl.check_capacity(t, i, q) == []
+    (f,) = pl.check_capacity(np.arange(0.0, 1.6 * h), np.full(int(1.6 * h), q), q)
+    assert f.code == "capacity_exceeded"
+    two_days = np.arange(0.0, 48 * h, 10.0)
+    slow = np.full(two_days.size, 1.014 * q / 48.0)  # 1.014 capacities over two days
+    assert pl.check_capacity(two_days, slow, q, assumed=True) == []
+    six_h = two_days.size // 8  # 1.2 capacities in 6 h: beyond 1 + 6 h x 1 %
+    assert pl.check_capacity(two_days[:six_h], 8 * 1.2 / 1.014 * slow[:six_h], q, assumed=True)
+
+
 def test_capacity_that_the_record_exceeds_is_a_warning_with_numbers(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -34,6 +34,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.start_relaxation import NOISE_FLOOR_V, slope_from_sums
 from bmsid.estimate.startvalues import median_step_resistance
 
@@ -65,6 +66,9 @@ SIGN_WARN_CORR, SIGN_WARN_MIN_STEPS = 0.2, 5
 # one is checked at 1x), and below TINY_SHARE of an assumed capacity with peaks below
 # TINY_PEAK_C (a short record of the right cell moves little but still peaks at its C-rate).
 CAPACITY_SLACK = 1.25
+#: A current-sensor offset the capacity check allows for, C-rate (the SOC observer's prior,
+#: ``ObserverTuning.offset_prior_C``: 1 % of 1C, a plain Hall sensor).
+OFFSET_C = float(ObserverTuning.model_fields["offset_prior_C"].default)
 TINY_SHARE = 0.05
 TINY_PEAK_C = 0.5
 EXCITED_SHARE_MIN = 0.05
@@ -196,6 +200,21 @@ class Excursion:
     start: int
     end: int
     direction: Literal["discharge", "charge"]
+
+
+def widest_excursion(t_s: FloatArray, current_A: FloatArray, gap_s: float) -> Excursion:
+    """:func:`max_excursion` of the coulomb count within each stretch between gaps longer than
+    ``gap_s`` (what the pack did in a gap is unknown: a recharge there is not in the count), the
+    widest of them (indices into the whole record)."""
+    t = np.asarray(t_s, dtype=np.float64)
+    q = coulomb_Ah(t, current_A, gap_s)
+    cuts = np.flatnonzero(np.diff(t) > gap_s) + 1
+    best = Excursion(0.0, 0, 0, "discharge")
+    for a, b in zip([0, *cuts.tolist()], [*cuts.tolist(), t.size], strict=True):
+        ex = max_excursion(q[a:b])
+        if ex.charge_Ah > best.charge_Ah:
+            best = Excursion(ex.charge_Ah, a + ex.start, a + ex.end, ex.direction)
+    return best
 
 
 def max_excursion(q_Ah: FloatArray) -> Excursion:
@@ -406,12 +425,15 @@ def check_capacity(
     i = np.asarray(current_A, dtype=np.float64)
     if t.size < 2 or not capacity_Ah > 0:
         return []
-    ex = max_excursion(coulomb_Ah(t, i, gap_s))
+    ex = widest_excursion(t, i, gap_s)
     ratio = ex.charge_Ah / capacity_Ah
     what = "the assumed capacity" if assumed else "the capacity"
     fix = "give --capacity-ah or --cell-config" if assumed else "check the capacity"
     where = f"t = {t[ex.start]:g}..{t[ex.end]:g} s"
-    if ratio > (1.0 if assumed else CAPACITY_SLACK):
+    # what a current-sensor offset of OFFSET_C moves over the excursion (2 days at 1 % of C:
+    # 0.48 x the capacity), which the SOC observer estimates and removes
+    drift = OFFSET_C * (t[ex.end] - t[ex.start]) / 3600.0
+    if ratio > (1.0 if assumed else CAPACITY_SLACK) + drift:
         return [
             Finding(
                 "warning",
