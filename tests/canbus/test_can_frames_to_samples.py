@@ -118,6 +118,33 @@ def test_a_lost_current_frame_never_pairs_a_held_current_with_new_voltages(
     assert f2s.counters["samples"] + f2s.counters["stale_current"] >= 20
 
 
+def test_a_current_sent_faster_than_the_voltages_drops_no_cycle() -> None:
+    """A BMS sending the current every 10 ms and the cells every 100 ms, with 3 ms of bus
+    jitter: the held current is never more than a few ms old, and no cycle is lost (judged on
+    the current's own 10 ms period, 40 of the 280 were)."""
+    rng = np.random.default_rng(3)
+    db = OWN.database()
+    cur, cells = (
+        db.get_message_by_name("BMSID_PackCurrent"),
+        db.get_message_by_name("BMSID_CellVoltages"),
+    )
+    msgs: list[can.Message] = []
+    for k in range(3000):  # 30 s of current frames, each 0-3 ms late
+        data = cur.encode({"PackCurrent": 10.0 + k % 7, "SampleCounter": 0})
+        t = 1000.0 + 0.01 * k + rng.uniform(0.0, 0.003)
+        msgs.append(can.Message(arbitration_id=cur.frame_id, data=data, timestamp=t))
+    volts = cells.encode({"CellGroup": 0} | {f"CellVoltage{j}": 3.7 for j in range(4)})
+    for m in range(280):  # the cells on their own clock (~10 Hz), also 0-3 ms late
+        t = 1000.005 + 0.1037 * m + rng.uniform(0.0, 0.003)
+        msgs.append(can.Message(arbitration_id=cells.frame_id, data=volts, timestamp=t))
+    msgs.sort(key=lambda msg: msg.timestamp)
+    for msg in msgs:
+        msg.is_extended_id = False
+    f2s = FrameToSamples(OWN.model_copy(update={"counter": None}), 4)
+    samples = run(f2s, msgs)
+    assert f2s.counters["stale_current"] == 0 and len(samples) == 280
+
+
 def test_a_current_sent_at_half_the_voltages_rate_is_held() -> None:
     msgs = frames(OWN, n=60, n_cells=4)
     slow = [m for m in msgs if m.arbitration_id != 0x100 or round(m.timestamp) % 2 == 0]

@@ -14,16 +14,18 @@ and ``bmsid identify`` on a candump log both go through :class:`FrameToSamples`)
    A half-complete cycle is emitted with NaN for the missing cells and the flag ``incomplete``.
 4. A sample is only emitted with a current no older than ``staleness_s`` at the sample time,
    nor older than usual: once the bus has shown its rhythm (:data:`_RHYTHM_MIN` cycles), more
-   than :data:`LATE_PERIODS` of the current's frame period beyond the age the held current
-   usually has at a close (each the low quantile :data:`_USUAL_Q` of its last
-   :data:`_RHYTHM` values: lost frames lengthen intervals and ages, and up to half of them
-   lost leave that quantile alone). Older, its frame of this cycle was lost and the held
-   value is a cycle old; paired with this cycle's voltages across a current step it is a
-   sample the cell never produced (a 140 A step on a 1.2 mOhm cell: 170 mV; 20 % of the frames
-   of a 1 s log dropped at random gave 18.6 mV RMSE instead of 1.2). The rule holds for a
-   current sent with, before or after the voltages, and for one sent slower than them. Otherwise
-   the cycle is dropped and counted as ``stale_current`` (there is no NaN convention for the
-   current, and guessing one would corrupt the estimate).
+   than :data:`LATE_PERIODS` of the longer of the current's frame period and the cycle period
+   beyond the age the held current usually has at a close (each the low quantile
+   :data:`_USUAL_Q` of its last :data:`_RHYTHM` values: lost frames lengthen intervals and
+   ages, and up to half of them lost leave that quantile alone; a current sent faster than the
+   cycles is judged on the cycle, so its jitter drops nothing). Older, its frame of this cycle
+   was lost and the held value is a cycle old; paired with this cycle's voltages across a
+   current step it is a sample the cell never produced (a 140 A step on a 1.2 mOhm cell:
+   170 mV; 20 % of the frames of a 1 s log dropped at random gave 18.6 mV RMSE instead of 1.2).
+   The rule holds for a current sent with, before or after the voltages, and for one sent
+   slower or faster than them. Otherwise the cycle is dropped and counted as
+   ``stale_current`` (there is no NaN convention for the current, and guessing one would
+   corrupt the estimate).
 5. ``t_s`` is the (monotonic-guarded) timestamp of the last cell frame of the cycle. Wall-clock
    steps backwards are absorbed into an offset (counted as ``time_backwards``).
 6. Temperatures are held per sensor; NaN when never received or older than ``staleness_s``.
@@ -149,6 +151,8 @@ class FrameToSamples:
         self._current_t = -math.inf
         self._current_dt: deque[float] = deque(maxlen=_RHYTHM)  # intervals of current frames
         self._close_age: deque[float] = deque(maxlen=_RHYTHM)  # held current's age at closes
+        self._close_dt: deque[float] = deque(maxlen=_RHYTHM)  # intervals of closes (cycles)
+        self._t_close = -math.inf
         self._temps = [math.nan] * self.n_temps
         self._temps_t = [-math.inf] * self.n_temps
         self._counter: int | None = None
@@ -367,13 +371,17 @@ class FrameToSamples:
 
     def _late_limit_s(self) -> float:
         """The oldest the held current may be at this close (rule 4), s."""
-        if len(self._close_age) < _RHYTHM_MIN or len(self._current_dt) < _RHYTHM_MIN:
+        rhythm = (self._close_age, self._current_dt, self._close_dt)
+        if min(len(d) for d in rhythm) < _RHYTHM_MIN:
             return self.staleness_s
-        usual = _low(self._close_age) + LATE_PERIODS * _low(self._current_dt)
-        return min(self.staleness_s, usual)
+        period = max(_low(self._current_dt), _low(self._close_dt))
+        return min(self.staleness_s, _low(self._close_age) + LATE_PERIODS * period)
 
     def _close(self, out: list[Sample]) -> None:
         t = self._t_last
+        if 0.0 < t - self._t_close <= self.staleness_s:
+            self._close_dt.append(t - self._t_close)
+        self._t_close = t
         if t - self._current_t <= self.staleness_s:
             self._close_age.append(t - self._current_t)
         if self._n_seen < self.n_cells:
