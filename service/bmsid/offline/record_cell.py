@@ -23,6 +23,7 @@ import numpy as np
 from bmsid.config.cell import CellConfig, HysteresisTable
 from bmsid.config.engine import ocv_model
 from bmsid.gates import GateConfig, GateState, gate_block
+from bmsid.model.ocv import OcvModel
 from bmsid.offline import plausibility
 from bmsid.offline.inputs import cell_config
 from bmsid.offline.plausibility import CapacityEstimate, FloatArray
@@ -82,7 +83,13 @@ def capacity_as_recorded(
     """The capacity the record's own readings imply, ungated (for the time-unit check, before
     any gate whose current limit would scale with it): a cut-off or the SOC change."""
     assumed, _ = cell_config(None, None, ocv_coeffs)
-    ocv = ocv_model(assumed)
+    return _read_capacity(t_s, current_A, voltages_V, ocv_model(assumed), gap_s)
+
+
+def _read_capacity(
+    t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, ocv: OcvModel, gap_s: float
+) -> CapacityEstimate | None:
+    """A discharge to the cut-off, else the SOC change the rests read on ``ocv``."""
     return plausibility.derive_capacity(
         t_s, current_A, voltages_V, gap_s, lambda v_V: float(ocv.soc_from_ocv(v_V))
     ) or plausibility.capacity_from_soc_change(
@@ -116,19 +123,11 @@ def cell_from_record(
     if not np.count_nonzero(live):
         return None
     voltages_V = v[:, live]
-
-    def soc(v_V: float) -> float:
-        return float(ocv.soc_from_ocv(v_V))
-
     gated = assumed
     est: CapacityEstimate | None = None
     for _ in range(MAX_GATE_PASSES):
         i_ok, v_ok = accepted_readings(t_s, current_A, voltages_V, gated, gap_s, gates)
-        est = plausibility.derive_capacity(
-            t_s, i_ok, v_ok, gap_s, soc
-        ) or plausibility.capacity_from_soc_change(
-            t_s, i_ok, v_ok, ocv.soc_from_ocv, (ocv.soc_min, ocv.soc_max), gap_s
-        )
+        est = _read_capacity(t_s, i_ok, v_ok, ocv, gap_s)
         if est is None:
             return None
         if math.isclose(est.capacity_Ah, gated.capacity_Ah, rel_tol=GATE_SETTLED_REL):
