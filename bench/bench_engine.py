@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from bmsid.config.engine import build_bank
-from bmsid.estimate import varpro_kernel
+from bmsid.estimate import jit
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.samples import SampleBlock
@@ -73,7 +73,7 @@ def main() -> None:
     # The fusion's swarm window fits with each kernel, alternated in this one process.
     lpso: dict[str, list[str]] = {}
     for kernel in ("numpy", "compiled"):
-        varpro_kernel.select(kernel)
+        jit.select(kernel)
         dt = _run_block(single, "hy-affrls-lpso")
         res = [f"{dt:.2f} s"]
         dt = _run_block(pack, "hy-affrls-lpso")

@@ -11,22 +11,22 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.config.engine import build_bank
-from bmsid.estimate import varpro_kernel
+from bmsid.estimate import jit, varpro_kernel
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import paper_dst_case
 
 
 @pytest.fixture
 def restore_kernel() -> Iterator[None]:
-    before = varpro_kernel.KERNEL
+    before = jit.MODE
     yield
-    varpro_kernel.select(None if before == "unset" else before)
+    jit.restore(before)
 
 
 def test_the_compiled_kernel_is_available() -> None:
     """numba is a dependency: a machine where it does not compile must fail here, not fall
     back silently (the daemon's sandboxed unit chooses numpy explicitly)."""
-    compiled = varpro_kernel._compile()
+    compiled = varpro_kernel.KERNEL.compiled()
     assert compiled is not None
 
 
@@ -41,7 +41,7 @@ def test_the_compiled_kernel_is_available() -> None:
 def test_compiled_and_reference_normal_equations_agree(
     seed: int, n_w: int, p: int, use_h: bool, use_off: bool
 ) -> None:
-    compiled = varpro_kernel._compile()
+    compiled = varpro_kernel.KERNEL.compiled()
     assert compiled is not None
     rng = np.random.default_rng(seed)
     i = np.repeat(rng.uniform(-100.0, 100.0, n_w // 7 + 1), 7)[:n_w]
@@ -72,7 +72,7 @@ def test_a_fused_bank_gives_the_same_estimates_with_either_kernel(restore_kernel
     block = SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
     out = {}
     for name in ("numpy", "compiled"):
-        assert varpro_kernel.select(name) == name
+        assert jit.select(name) == name
         bank = build_bank(run.cell, 2, "hy-affrls-lpso", soc0=0.98)
         out[name] = bank.update_block(block)
         assert bank.counters["swarms"] >= 4

@@ -233,9 +233,9 @@ class BankHost:
     def __post_init__(self) -> None:
         # The window-fit kernel, chosen (and compiled or loaded) before any bank exists here,
         # fresh or restored: ``numpy`` where the sandbox forbids a JIT.
-        from bmsid.estimate import varpro_kernel  # noqa: PLC0415 (numba only where it runs)
+        from bmsid.estimate import jit  # noqa: PLC0415 (numba only where it runs)
 
-        varpro_kernel.select("numpy" if self.spec.kernels == "numpy" else None)
+        jit.select("numpy" if self.spec.kernels == "numpy" else None)
         self.bank = self._fresh_bank()
         #: a fresh state: what a restored or saved one must look like (state_problem)
         self._reference = self.bank.state_dict()

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.estimate import jit
 from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
@@ -98,6 +99,7 @@ class EstimatorBank:
     ) -> None:
         if variant not in VARIANT_STAGES:
             raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}")
+        jit.ensure()  # compile (or load) the kernels now, not in the middle of a run
         n = model.n_cells
         self.model = model
         self.n = n

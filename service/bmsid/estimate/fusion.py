@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import lpso, varpro_kernel
+from bmsid.estimate import lpso
 from bmsid.estimate.affrls import (
     fusion_covariance,
     reset_covariance,
@@ -71,7 +71,6 @@ class FusionStage:
     ) -> None:
         self.model, self.tuning = model, tuning
         self.n = n = model.n_cells
-        varpro_kernel.ensure()  # compile (or load) the window fits now, not in the first swarm
         self.cell_ids = cell_ids
         self.counters: dict[str, int] = {"swarms": 0, "clamped": 0, "swarms_rejected": 0}
         cols = [BOUNDED.index(name) for name in _LINEAR_BOUNDS]

@@ -14,21 +14,19 @@ comes twice:
   product over the window, no (candidates x window x columns) array. It agrees with the
   reference to rounding (``tests/estimate/test_varpro_kernel.py``).
 
-``normal_equations`` runs the compiled one where numba imports and compiles (the first use
-compiles it, or loads it from numba's cache: seconds once, then ~0.1 s per process), else the
-reference; ``select("numpy")`` forces the reference (to compare, or in a sandbox without
-writable executable memory, which a JIT needs: the daemon's ``estimator.kernels``).
+``normal_equations`` runs the implementation ``jit.select`` chose: the compiled one where numba
+imports and compiles (seconds once, then ~0.1 s per process from numba's cache), else the
+reference.
 """
 
 from __future__ import annotations
 
-import functools
-import warnings
 from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.estimate import jit
 from bmsid.model.ecm import rc_filter
 
 FloatArray = npt.NDArray[np.float64]
@@ -127,44 +125,13 @@ def _kernel_source(
     return G, b, last
 
 
-@functools.cache
-def _compile() -> NormalEquations | None:
-    """The compiled kernel, compiled (or loaded from numba's cache) once per process; None where
-    numba is missing or cannot compile here (a sandbox that forbids writable executable memory: the
-    shipped systemd unit sets ``estimator.kernels = "numpy"`` for that)."""
-    try:
-        import numba  # noqa: PLC0415 (optional: the reference runs without it)
-
-        kernel: NormalEquations = numba.njit(cache=True, nogil=True, fastmath=True)(_kernel_source)
-        one = np.ones(3)
-        kernel(one, one, one, one, one[:1] * 0.5, one[:1] * 0.9, one[:2].repeat(2), False, False)
-    except Exception as exc:  # any failure leaves the reference, which always works
-        warnings.warn(f"compiled window-fit kernel unavailable ({exc!r}): numpy used", stacklevel=2)
-        return None
-    return kernel
+def _warm(kernel: NormalEquations) -> object:
+    one = np.ones(3)
+    return kernel(one, one, one, one, one[:1] * 0.5, one[:1] * 0.9, one[:2].repeat(2), False, False)
 
 
-_impl: NormalEquations | None = None
-#: Which implementation runs: ``compiled`` or ``numpy`` (set at the first use).
-KERNEL = "unset"
-
-
-def select(name: str | None = None) -> str:
-    """Choose the implementation (``compiled``, ``numpy``; None: compiled where it works) and
-    compile it now; returns the one in use."""
-    global _impl, KERNEL  # noqa: PLW0603 (one process-wide choice, made once)
-    compiled = None if name == "numpy" else _compile()
-    if name == "compiled" and compiled is None:
-        raise RuntimeError("the compiled kernel is not available here (numba missing or failing)")
-    _impl = compiled or normal_equations_numpy
-    KERNEL = "compiled" if compiled is not None else "numpy"
-    return KERNEL
-
-
-def ensure() -> str:
-    """Select the implementation now if none is yet (compile or load at start-up, not in the
-    middle of a run); returns the one in use."""
-    return KERNEL if _impl is not None else select()
+#: ``fastmath`` lets the window sums vectorise (it reorders their additions)
+KERNEL = jit.Kernel("window fits", normal_equations_numpy, _kernel_source, _warm, fastmath=True)
 
 
 def normal_equations(
@@ -172,7 +139,5 @@ def normal_equations(
     a1: FloatArray, a2: FloatArray, s_cols: FloatArray, use_hysteresis: bool, use_offset: bool,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
     """G, b and the last branch states (see ``normal_equations_numpy``) by the implementation
-    in use (the compiled one where it works: ``select``)."""
-    ensure()
-    assert _impl is not None
-    return _impl(current_A, y_V, hm_V, weights, a1, a2, s_cols, use_hysteresis, use_offset)
+    in use (``jit.select``: the compiled one where it works)."""
+    return KERNEL.impl(current_A, y_V, hm_V, weights, a1, a2, s_cols, use_hysteresis, use_offset)
