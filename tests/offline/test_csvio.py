@@ -20,6 +20,7 @@ from bmsid.offline.csvio import (
     read_tester_csv,
     write_tester_csv,
 )
+from bmsid.offline.timetext import DURATION, seconds_from_text
 
 
 def _write(path: Path, text: str) -> Path:
@@ -244,3 +245,48 @@ def test_foreign_export_loads_with_a_column_map(tmp_path: Path) -> None:
         read_tester_csv(p, columns={"t_s": ColumnMap("Time")})
     with pytest.raises(UserError, match="other names: --columns"):
         read_tester_csv(p)
+
+
+def _hms(t: float, days: bool) -> str:
+    whole, frac = divmod(t, 1.0)
+    d, rest = divmod(int(whole), 86400)
+    h, rest = divmod(rest, 3600)
+    m, s = divmod(rest, 60)
+    hours = h if days else h + 24 * d
+    head = f"{d}." if days else ""
+    return f"{head}{hours:02d}:{m:02d}:{s + frac:06.3f}"
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    steps=st.lists(st.integers(1, 50_000_000), min_size=2, max_size=40),
+    days=st.booleans(),
+)
+def test_cycler_time_text_reads_as_the_seconds_it_writes(steps: list[int], days: bool) -> None:
+    """Digatron/Neware ``hh:mm:ss.fff`` (hours past 24 go on) and Maccor ``d.hh:mm:ss``: the
+    seconds they write, to the millisecond."""
+    t = np.cumsum(np.asarray(steps, dtype=float) / 1000.0)
+    read = seconds_from_text([_hms(x, days) for x in t])
+    assert read is not None and read[1] == DURATION
+    np.testing.assert_allclose(read[0], np.round(t, 3), rtol=0, atol=1e-6)
+
+
+def test_time_as_text_loads_like_seconds_and_other_text_is_refused(tmp_path: Path) -> None:
+    rows = [(0.0, 0.0, 3.61), (1.5, 2.0, 3.55), (3602.25, -1.0, 3.64)]
+    hms = _write(
+        tmp_path / "hms.csv",
+        "t_s,current_A,voltage_V\n" + "".join(f"{_hms(t, False)},{i},{v}\n" for t, i, v in rows),
+    )
+    iso = _write(
+        tmp_path / "iso.csv",
+        "t_s,current_A,voltage_V\n2024-03-01 23:59:59,0,3.61\n2024-03-02T00:00:00.5,2,3.55\n"
+        "2024-03-02 01:00:01.25,-1,3.64\n",
+    )
+    for p in (hms, iso):
+        d = read_tester_csv(p)
+        np.testing.assert_allclose(d.t_s - d.t_s[0], [0.0, 1.5, 3602.25], atol=1e-6)
+        np.testing.assert_allclose(d.current_A, [0.0, 2.0, -1.0])
+    for bad in ("1:00:00 PM", "2024-13-01 10:00:00"):  # a 12-hour clock, no such month
+        p = _write(tmp_path / "bad.csv", f"t_s,current_A,voltage_V\n{bad},0,3.6\n")
+        with pytest.raises(UserError, match=r"column 't_s' has empty, NaN or non-numeric"):
+            read_tester_csv(p)

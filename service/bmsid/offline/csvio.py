@@ -50,6 +50,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.errors import UserError
+from bmsid.offline.timetext import seconds_from_text
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -416,6 +417,7 @@ def iter_tester_csv(
     if has_temp:
         used.add(keys.index("temperature_c"))
     cleaner = _TimeCleaner(p)
+    time_form: str | None = None  # "numbers" or a timetext form, fixed by the first piece
     held: TesterData | None = None
     row0 = 0
     checked_mv = False
@@ -445,6 +447,23 @@ def iter_tester_csv(
 
         missing = 0
 
+        def times(text: list[tuple[str, ...]] = columns_text) -> FloatArray:
+            """``t_s`` in s: numbers, else cyclers' time text (``timetext``) once the first
+            piece read as such."""
+            nonlocal time_form
+            j = keys.index("t_s")
+            values = cells_of(j, text)
+            if time_form != "numbers":
+                read = seconds_from_text(values)
+                if read is not None:
+                    if time_form is None:
+                        log.info("%s: column %r read as %s", p, header[j], read[1])
+                    time_form = read[1]
+                    return read[0] * lay.scales[j] if j in lay.scales else read[0]
+            if time_form is None:
+                time_form = "numbers"
+            return required("t_s")  # numbers, or the error that names the lines that are not
+
         def required(name: str, text: list[tuple[str, ...]] = columns_text,
                      first_line: int = row0 + 2) -> FloatArray:  # fmt: skip
             nonlocal missing
@@ -456,7 +475,7 @@ def iter_tester_csv(
             missing += int(np.count_nonzero(np.isnan(arr)))
             return arr * lay.scales[j] if j in lay.scales else arr
 
-        t, restarts = cleaner.clean(required("t_s"), row0)
+        t, restarts = cleaner.clean(times(), row0)
         current = required("current_A")
         if charge_positive:
             current = -current
