@@ -43,6 +43,9 @@ from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.offline.identify import IdentifySpec, bound_findings, identify_file
 from bmsid.offline.inputs import load_config, parse_tuning
 from bmsid.offline.scoring import EvalWindow, SocReference, score
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = Path(os.environ.get("BMSID_REAL_DATA", REPO.parent / "shared" / "data" / "real"))

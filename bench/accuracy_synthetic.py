@@ -17,6 +17,9 @@ from bmsid.estimate.tuning import VARIANTS_T, EstimatorTuning, Variant
 from bmsid.metrics import voltage_metrics
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 
 def score(

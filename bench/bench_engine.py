@@ -27,6 +27,9 @@ from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 
 def _block(run: SyntheticRun) -> SampleBlock:

@@ -41,6 +41,9 @@ from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec
 from bmsid.offline.inputs import load_config
 from bmsid.synthetic import paper_dst_case
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 MODES = ("pool", "dask")
 WORKERS = (1, 2)

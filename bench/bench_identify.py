@@ -33,6 +33,9 @@ from bmsid.offline.inputs import load_config
 from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
 from bmsid.offline.report import PAPER_RUNTIME_S
 from bmsid.profiles import dst_current
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 REPO = Path(__file__).resolve().parents[1]
 PHYSICS_DST = REPO / "data" / "physics" / "dfn_nmc_dst_15C.csv.gz"

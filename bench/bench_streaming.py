@@ -40,6 +40,9 @@ import numpy as np
 
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.synthetic.multiday import DAY_S, MultidayOptions, generate
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 #: Cells of the pack record.
 PACK_CELLS = 16

@@ -67,6 +67,9 @@ from bmsid.synthetic.multiday import (
     reference_cell,
     write_record,
 )
+from bmsid.threads import one_blas_thread
+
+one_blas_thread()  # the engine's matrices are small (bmsid/threads.py)
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -46,6 +46,8 @@ from typing import NamedTuple, NoReturn
 
 import pytest
 
+from bmsid.threads import one_blas_thread
+
 HOW_TO_GET_REAL_PARTS = (
     "run ./scripts/test (it boots User-Mode Linux when the kernel has no CAN), or "
     "scripts/uml-run pytest -m realcan ..., or on a kernel with CAN: "
@@ -401,3 +403,6 @@ def pytest_runtest_makereport(
             f"BMSID_IN_UML): {reason}"
         )
     return report
+
+
+one_blas_thread()  # as the CLI and the benchmarks run the engine (bmsid/threads.py)

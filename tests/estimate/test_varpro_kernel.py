@@ -23,11 +23,57 @@ def restore_kernel() -> Iterator[None]:
     jit.restore(before)
 
 
-def test_the_compiled_kernel_is_available() -> None:
-    """numba is a dependency: a machine where it does not compile must fail here, not fall
-    back silently (the daemon's sandboxed unit chooses numpy explicitly)."""
-    compiled = varpro_kernel.KERNEL.compiled()
+def test_every_compiled_kernel_is_available() -> None:
+    """numba is a dependency: a machine where a kernel does not compile must fail here, not
+    fall back silently (the daemon's sandboxed unit chooses numpy explicitly)."""
+    assert varpro_kernel.KERNEL in jit._REGISTRY and varpro_kernel.SOLVE in jit._REGISTRY
+    for kernel in jit._REGISTRY:
+        assert kernel.compiled() is not None, kernel.name
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_w=st.integers(8, 300),
+    p=st.integers(1, 6),
+    use_h=st.booleans(),
+    use_off=st.booleans(),
+    prior=st.sampled_from([0.0, 1e-6, 1.0]),
+    with_cov=st.booleans(),
+)
+def test_compiled_and_reference_window_solves_agree(
+    seed: int, n_w: int, p: int, use_h: bool, use_off: bool, prior: float, with_cov: bool
+) -> None:
+    """The solves after the normal equations (parameters, RMSE, last branch states and the
+    covariance) on random windows: equal to float tolerance."""
+    compiled = varpro_kernel.SOLVE.compiled()
     assert compiled is not None
+    rng = np.random.default_rng(seed)
+    i = np.repeat(rng.uniform(-100.0, 100.0, n_w // 7 + 1), 7)[:n_w]
+    y = rng.normal(0.0, 0.02, n_w) - 0.001 * i
+    hm = rng.uniform(-0.02, 0.02, n_w)
+    w = rng.uniform(0.1, 1.0, n_w)
+    a1 = np.exp(-1.0 / rng.uniform(1.0, 60.0, p))
+    a2 = np.exp(-1.0 / rng.uniform(60.0, 5000.0, p))
+    active = np.array([True, True, True, use_h, use_off, True, True])
+    s = np.concatenate([rng.uniform(1e-4, 1e-2, 3), [1.0, 0.01], [1.0, 1.0]])[active]
+    G, b, last = varpro_kernel.normal_equations_numpy(i, y, hm, w, a1, a2, s, use_h, use_off)
+    j_off = 3 + int(use_h) if use_off else -1
+    idx = np.flatnonzero(active)
+    out = [
+        fn(G.copy(), b, last, y, w, a1, a2, s, idx, prior, j_off, with_cov)
+        for fn in (compiled, varpro_kernel.solve_numpy)
+    ]
+    # Two LAPACKs (numpy's, scipy's under numba) round differently: allow the rounding times the
+    # equilibrated system's condition number (an 8-sample window of 7 columns reaches 1e10).
+    d = np.sqrt(np.einsum("pii->pi", G))
+    cond = np.linalg.cond(G / (d[:, :, None] * d[:, None, :]))
+    for got, ref, name in zip(out[0], out[1], ("theta", "rmse", "x_last", "cov"), strict=True):
+        assert got.shape == ref.shape, name
+        for j in range(p):
+            g, r = got[j], ref[j]
+            tol = 1e-14 * cond[j] * np.max(np.abs(r[np.isfinite(r)]), initial=0.0) + 1e-300
+            np.testing.assert_allclose(g, r, rtol=1e-9, atol=tol, equal_nan=True, err_msg=name)
 
 
 @settings(max_examples=40, deadline=None)

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from bmsid import __version__
 from bmsid.cli import logsetup
 from bmsid.errors import UserError
+from bmsid.threads import one_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.quiet + getattr(args, "sub_quiet", 0),
     )
     logsetup.configure(level)
+    one_blas_thread()
     if not hasattr(args, "func"):
         parser.print_help()
         return 2

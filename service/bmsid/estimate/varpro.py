@@ -71,38 +71,15 @@ def fit_linear(
     a2 = rc_decay(w.dt_s, tau2_s)
     active = np.array([True, True, True, w.use_hysteresis, w.use_offset, True, True])
     s_full = np.concatenate([scale, [1.0, 1.0]])[active]
-    n_a = int(active.sum())
-    p = tau1_s.shape[0]
     wts = np.ones(w.current_A.shape[0]) if weights is None else weights
     G, b, x_last = varpro_kernel.normal_equations(
         w.current_A, w.y_V, w.hm_V, wts, a1, a2, s_full, w.use_hysteresis, w.use_offset
     )
-    if w.use_offset and offset_prior > 0:
-        j_off = 3 + int(w.use_hysteresis)
-        G[:, j_off, j_off] += offset_prior
-    d = np.sqrt(np.maximum(np.diagonal(G, axis1=1, axis2=2), 1e-300))
-    Gs = G / (d[:, :, None] * d[:, None, :]) + 1e-10 * np.eye(n_a)
-    th_s = np.linalg.solve(Gs, (b / d)[..., None])[..., 0]
-    th_n = th_s / d
-    yy = float(w.y_V @ (w.y_V * wts))
-    sse = yy - 2.0 * np.einsum("pk,pk->p", th_n, b) + np.einsum("pk,pkl,pl->p", th_n, G, th_n)
-    rmse = np.sqrt(np.maximum(sse, 0.0) / max(float(wts.sum()), 1e-300))
-    theta_full = np.zeros((p, 7))
-    theta_full[:, active] = th_n * s_full
-    theta = theta_full[:, :5]
-    cov5 = np.zeros((p, 5, 5))
-    if with_cov:
-        with np.errstate(all="ignore"):  # degenerate windows: caller checks finiteness
-            cov_n = np.linalg.inv(Gs) / (d[:, :, None] * d[:, None, :])
-        cov_full = np.zeros((p, 7, 7))
-        idx = np.flatnonzero(active)
-        cov_full[:, idx[:, None], idx[None, :]] = cov_n
-        cov5 = cov_full[:, :5, :5]
-    # Branch states at the last tick, with the window-start voltages U_j0 = -c_j folded in.
-    decay_last = np.stack([a1, a2], axis=1) ** (w.current_A.shape[0] - 1)
-    r = theta[:, 1:3]
-    ic = np.where(r > 0, -theta_full[:, 5:7] / np.where(r > 0, r, 1.0), 0.0)
-    x_last = x_last + ic * decay_last
+    j_off = 3 + int(w.use_hysteresis) if w.use_offset else -1
+    theta, rmse, x_last, cov5 = varpro_kernel.SOLVE.impl(
+        G, b, x_last, w.y_V, wts, a1, a2, s_full, np.flatnonzero(active), offset_prior, j_off,
+        with_cov,
+    )  # fmt: skip
     return LinearFit(theta=theta, rmse_V=rmse, x_last=x_last, cov=cov5)
 
 

@@ -141,3 +141,115 @@ def normal_equations(
     """G, b and the last branch states (see ``normal_equations_numpy``) by the implementation
     in use (``jit.select``: the compiled one where it works)."""
     return KERNEL.impl(current_A, y_V, hm_V, weights, a1, a2, s_cols, use_hysteresis, use_offset)
+
+
+#: (G, b, last branch states, y V, weights, a1, a2, column scales, active column indices,
+#: offset ridge, its column, with covariance) -> (theta (P, 5), RMSE V (P,), branch states at
+#: the last tick (P, 2), covariance (P, 5, 5))
+Solve = Callable[
+    [FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
+     FloatArray, npt.NDArray[np.int64], float, int, bool],
+    tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+]  # fmt: skip
+
+
+def solve_numpy(
+    G: FloatArray, b: FloatArray, x_last: FloatArray, y_V: FloatArray, wts: FloatArray,
+    a1: FloatArray, a2: FloatArray, s_full: FloatArray, idx: npt.NDArray[np.int64],
+    offset_prior: float, j_off: int, with_cov: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:  # fmt: skip
+    """The reference: each candidate's equilibrated normal equations solved (the offset's
+    ridge added to G in place), its weighted RMSE, the linear parameters in the order R0, R1,
+    R2, M scale, offset (inactive ones 0), the covariance in normalised units, and the branch
+    states at the last tick with the window-start voltages folded in (``varpro.fit_linear``)."""
+    p, n_a = b.shape
+    if j_off >= 0 and offset_prior > 0:
+        G[:, j_off, j_off] += offset_prior
+    d = np.sqrt(np.maximum(np.diagonal(G, axis1=1, axis2=2), 1e-300))
+    Gs = G / (d[:, :, None] * d[:, None, :]) + 1e-10 * np.eye(n_a)
+    th_s = np.linalg.solve(Gs, (b / d)[..., None])[..., 0]
+    th_n = th_s / d
+    yy = float(y_V @ (y_V * wts))
+    sse = yy - 2.0 * np.einsum("pk,pk->p", th_n, b) + np.einsum("pk,pkl,pl->p", th_n, G, th_n)
+    rmse = np.sqrt(np.maximum(sse, 0.0) / max(float(wts.sum()), 1e-300))
+    theta_full = np.zeros((p, 7))
+    theta_full[:, idx] = th_n * s_full
+    cov5 = np.zeros((p, 5, 5))
+    if with_cov:
+        with np.errstate(all="ignore"):  # degenerate windows: the caller checks finiteness
+            cov_n = np.linalg.inv(Gs) / (d[:, :, None] * d[:, None, :])
+        cov_full = np.zeros((p, 7, 7))
+        cov_full[:, idx[:, None], idx[None, :]] = cov_n
+        cov5 = cov_full[:, :5, :5]
+    decay_last = np.stack([a1, a2], axis=1) ** (y_V.shape[0] - 1)
+    r = theta_full[:, 1:3]
+    ic = np.where(r > 0, -theta_full[:, 5:7] / np.where(r > 0, r, 1.0), 0.0)
+    return theta_full[:, :5].copy(), rmse, x_last + ic * decay_last, cov5
+
+
+def _solve_source(
+    G: FloatArray, b: FloatArray, x_last: FloatArray, y_V: FloatArray, wts: FloatArray,
+    a1: FloatArray, a2: FloatArray, s_full: FloatArray, idx: npt.NDArray[np.int64],
+    offset_prior: float, j_off: int, with_cov: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:  # fmt: skip
+    """The same per candidate, in loops (compiled by numba): no Python between the small
+    solves, which were most of a swarm fit's time after the normal equations compiled."""
+    p, n_a = b.shape
+    n_w = y_V.shape[0]
+    theta = np.zeros((p, 5))
+    rmse = np.zeros(p)
+    x_out = np.empty((p, 2))
+    cov5 = np.zeros((p, 5, 5))
+    yy = 0.0
+    w_sum = 0.0
+    for k in range(n_w):
+        yy += y_V[k] * (y_V[k] * wts[k])
+        w_sum += wts[k]
+    full = np.zeros(7)
+    for j in range(p):
+        if j_off >= 0 and offset_prior > 0:
+            G[j, j_off, j_off] += offset_prior
+        d = np.empty(n_a)
+        for r in range(n_a):
+            d[r] = np.sqrt(max(G[j, r, r], 1e-300))
+        Gs = np.empty((n_a, n_a))
+        for r in range(n_a):
+            for q in range(n_a):
+                Gs[r, q] = G[j, r, q] / (d[r] * d[q]) + (1e-10 if r == q else 0.0)
+        th = np.linalg.solve(Gs, b[j] / d) / d
+        sse = yy
+        for r in range(n_a):
+            sse -= 2.0 * th[r] * b[j, r]
+        for r in range(n_a):
+            acc = 0.0
+            for q in range(n_a):
+                acc += G[j, r, q] * th[q]
+            sse += th[r] * acc
+        rmse[j] = np.sqrt(max(sse, 0.0) / max(w_sum, 1e-300))
+        full[:] = 0.0
+        for r in range(n_a):
+            full[idx[r]] = th[r] * s_full[r]
+        theta[j] = full[:5]
+        if with_cov:
+            inv = np.linalg.solve(Gs, np.eye(n_a))  # as numpy's inv: LU with identity
+            for r in range(n_a):
+                for q in range(n_a):
+                    if idx[r] < 5 and idx[q] < 5:
+                        cov5[j, idx[r], idx[q]] = inv[r, q] / (d[r] * d[q])
+        for br in range(2):
+            r_br = full[1 + br]
+            ic = -full[5 + br] / r_br if r_br > 0 else 0.0
+            a = a1[j] if br == 0 else a2[j]
+            x_out[j, br] = x_last[j, br] + ic * a ** (n_w - 1)
+    return theta, rmse, x_out, cov5
+
+
+def _warm_solve(kernel: Solve) -> object:
+    G = np.eye(5)[None, :, :].repeat(2, axis=0) + 0.1
+    one = np.ones(2)
+    idx = np.array([0, 1, 2, 5, 6], dtype=np.int64)
+    return kernel(G, np.ones((2, 5)), np.ones((2, 2)), one, one, one * 0.5, one * 0.9,
+                  np.ones(5), idx, 0.0, -1, True)  # fmt: skip
+
+
+SOLVE = jit.Kernel("window solves", solve_numpy, _solve_source, _warm_solve)

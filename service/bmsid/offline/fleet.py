@@ -42,6 +42,7 @@ from bmsid.offline.inputs import InputSource, with_score_reference
 from bmsid.offline.plausibility import check_head_samples
 from bmsid.offline.record_cell import cell_from_record
 from bmsid.offline.scoring import IdentifyResult
+from bmsid.threads import one_blas_thread
 
 #: What a directory argument contributes (searched recursively).
 INPUT_SUFFIXES = (".csv", ".csv.gz", ".log")
@@ -257,6 +258,7 @@ def identify_task(task: FleetTask) -> InputSummary:
     ``bmsid identify`` of one file: a first pass counts the ticks, the default decimation of a
     long record's parameter table applies), so a worker's memory does not grow with the record."""
     spec = replace(task.spec, keep_trace=False)
+    one_blas_thread()  # a pool of workers: one BLAS thread each (threads.py)
     try:
         with _ONE_AT_A_TIME:
             wall, cpu = time.perf_counter(), time.process_time()
