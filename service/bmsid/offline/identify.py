@@ -57,6 +57,7 @@ from bmsid.offline.outputs import (
     write_plots,
 )
 from bmsid.offline.scoring import EvalWindow, IdentifyResult, RunScorer, metrics_document
+from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
 from bmsid.offline.writers import ParamsSink, open_params_writer
 from bmsid.samples import Sample, SampleBlock
 
@@ -153,7 +154,7 @@ def run_blocks(
     cell: CellConfig,
     variant: Variant,
     tuning: EstimatorTuning | None = None,
-    soc0: float | None = None,
+    soc0: float | FloatArray | None = None,
     progress: Progress | None = None,
     cell_names: Sequence[str] | None = None,
     sink: EstimateSink | None = None,
@@ -373,6 +374,12 @@ def identify_source(
     """
     probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
     start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
+    soc0: float | FloatArray | None = spec.soc0
+    if soc0 is None:  # a start under load or still relaxing: fitted over the first window
+        fresh_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
+        soc0 = fitted_start_soc(
+            source.blocks(spec.block_size), spec.cell, spec.tuning, start, fresh_gate
+        )
     bounds = watched_bounds(spec.cell, start, spec.tuning, source.n_cells)
     scorer: RunScorer | None = None
     if not spec.keep_trace:
@@ -392,8 +399,10 @@ def identify_source(
                 sink = writer.append
         result = run_blocks(
             source.blocks(spec.block_size), source.n_cells, spec.cell, spec.variant, spec.tuning,
-            spec.soc0, progress, source.cell_names, sink, start, spec.gates, scorer,
+            soc0, progress, source.cell_names, sink, start, spec.gates, scorer,
         )  # fmt: skip
+    if spec.soc0 is None and soc0 is not None:
+        result = replace(result, soc_init_method=WINDOW_FIT)
     if out is not None:
         # a kept trace is scored once here, with the bounds, as the streamed run was
         scored = scorer or RunScorer.of_trace(result.kept_trace(), spec.window, bounds)
