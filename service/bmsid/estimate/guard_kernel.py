@@ -126,7 +126,7 @@ def guard_step_numpy(
     excited = q != POORLY_EXCITED
     if n == 1:
         error_bad, stats = _error_step_one(
-            stats.ravel().tolist(), float(err[0]), dt, bool(judged[0]), bool(excited[0]),
+            stats, float(err[0]), dt, bool(judged[0]), bool(excited[0]),
             bool(episode[0]), fast_tau, scale_tau, hold_s, sig2, floor2,
         )  # fmt: skip
     else:
@@ -212,13 +212,14 @@ def _error_step(
 
 
 def _error_step_one(
-    stats: list[float], err: float, dt: float, judged: bool, excited: bool, episode: bool,
+    stats: FloatArray, err: float, dt: float, judged: bool, excited: bool, episode: bool,
     fast_tau: float, scale_tau: float, hold_s: float, sig2: float, floor2: float,
 ) -> tuple[BoolArray, FloatArray]:  # fmt: skip
     """:func:`_error_step` of one cell in Python floats: the same operations in the same order
     (np.expm1 as the arrays use it; a mask is a branch), the same bits
-    (``tests/estimate/test_guard.py``); ~10 us instead of ~30 us of numpy calls a tick."""
-    e2_fast, fast_s, e2_scale, scale_s, excess_s = stats
+    (``tests/estimate/test_guard.py``); ~10 us instead of ~30 us of numpy calls a tick.
+    ``stats`` (5, 1) is updated in place and returned."""
+    e2_fast, fast_s, e2_scale, scale_s, excess_s = stats[:, 0].tolist()
     fin = math.isfinite(err)
     e2 = err * err
     fast_s, e2_fast = _ewma_one(fast_s, e2_fast, e2, fin, dt, fast_tau)
@@ -229,8 +230,8 @@ def _error_step_one(
     teach = judged and excited and not episode and (young or (not excess and e2 <= limit))
     scale_s, e2_scale = _ewma_one(scale_s, e2_scale, e2, teach, dt, scale_tau)
     excess_s = excess_s + dt if excess else (0.0 if judged else excess_s)
-    new = np.array([[e2_fast], [fast_s], [e2_scale], [scale_s], [excess_s]])
-    return np.array([excess_s >= hold_s]), new
+    stats[:, 0] = e2_fast, fast_s, e2_scale, scale_s, excess_s
+    return np.array([excess_s >= hold_s]), stats
 
 
 def _ewma(
