@@ -67,7 +67,6 @@ the other stages'). Pure numpy, no I/O, vectorised over cells.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -75,50 +74,47 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.cellmodel import CellModel
-from bmsid.estimate.fields import FIELDS_BY_NAME
+from bmsid.estimate.guard_kernel import (
+    CAUSE_ERROR,
+    CAUSE_PARAMS,
+    CAUSE_SOC,
+    HELD,
+    KERNEL,
+    WATCHED,
+)
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.estimate.types import Quality
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
-#: The identified parameters, published together from one tick: the current one, or the last good.
-HELD: tuple[str, ...] = (
-    "R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F", "tau1_s", "tau2_s", "ocv_offset_V",
-)  # fmt: skip
-#: Per :data:`HELD` row, the value a parameter must exceed: 0 where it must be > 0, else -inf
-#: (finite only).
-_LOWER = np.array([[0.0 if FIELDS_BY_NAME[k].positive else -np.inf] for k in HELD])
+__all__ = ["CAUSE_ERROR", "CAUSE_PARAMS", "CAUSE_SOC", "HELD", "ON_BOUND_REL", "WATCHED",
+           "PublishGuard"]  # fmt: skip
 
-#: The bounded parameters the guard watches, in the bit order of :attr:`PublishGuard.bound_bits`
-#: (1 R0, 2 R1, 4 R2, 8 tau1, 16 tau2).
-WATCHED: tuple[str, ...] = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s")
-_WATCHED_ROWS = np.array([HELD.index(k) for k in WATCHED])
-_BIT_VALUES = (1 << np.arange(len(WATCHED), dtype=np.int64))[:, None]
-#: Per :data:`HELD` row, its branch (0 R0, 1 R1 C1 tau1, 2 R2 C2 tau2; 3 none: the OCV offset
-#: is held only with the whole cell).
-_BRANCH_OF_HELD = np.array([0, 1, 1, 2, 2, 1, 2, 3])
-_TAUS = [HELD.index("tau1_s"), HELD.index("tau2_s")]
-_RC_ROWS = ((_BRANCH_OF_HELD == 1) | (_BRANCH_OF_HELD == 2))[:, None]
 #: A parameter within this share of a bound counts as on it (a clamp leaves it exactly there;
 #: the RLS map and the swarm can settle just inside).
 ON_BOUND_REL = 0.01
 
-#: Bits of :attr:`PublishGuard.cause`: why the cell's present episode started.
-CAUSE_SOC = 1  #: SOC outside [-margin, 1 + margin] or not finite
-CAUSE_ERROR = 2  #: model error in excess for ``divergence_hold_s``
-CAUSE_PARAMS = 4  #: a parameter not finite (or not > 0 where it must be)
-
-#: Quality codes as plain ints: numpy compares an array with an IntEnum member 5x slower.
-_CONVERGING = int(Quality.CONVERGING)
-_POORLY_EXCITED = int(Quality.POORLY_EXCITED)
-_OUT_OF_BOUNDS = int(Quality.OUT_OF_BOUNDS)
-_DIVERGED = int(Quality.DIVERGED)
-
+#: The model-error statistics, rows of ``PublishGuard._stats`` (each also an attribute).
 _STATS = ("e2_fast", "fast_s", "e2_scale", "scale_s", "excess_s")
 _ARRAYS = (*_STATS, "good", "good_soc", "episode", "cause")
+
+
+class _StatRow:
+    """One row of ``PublishGuard._stats`` as an attribute: read, a view of the live row (the
+    tick kernel updates it in place); set, the row of a copy."""
+
+    def __init__(self, row: int) -> None:
+        self.row = row
+
+    def __get__(self, guard: Any, owner: object = None) -> FloatArray:
+        return guard._stats[self.row]  # type: ignore[no-any-return]
+
+    def __set__(self, guard: Any, value: npt.ArrayLike) -> None:
+        stats = guard._stats.copy()
+        stats[self.row] = value
+        guard._stats = stats
 
 
 class PublishGuard:
@@ -142,6 +138,8 @@ class PublishGuard:
     """
 
     name = "guard"
+    #: the model-error statistics F, its seconds seen, S, its seconds seen, T (module docstring)
+    e2_fast, fast_s, e2_scale, scale_s, excess_s = (_StatRow(j) for j in range(len(_STATS)))
 
     def __init__(
         self,
@@ -161,21 +159,26 @@ class PublishGuard:
         self.good_soc = np.full(n_cells, np.nan)
         self.episode = np.zeros(n_cells, dtype=bool)
         self.cause = np.zeros(n_cells, dtype=np.int64)
-        self.e2_fast = np.zeros(n_cells)
-        self.fast_s = np.zeros(n_cells)
-        self.e2_scale = np.zeros(n_cells)
-        self.scale_s = np.zeros(n_cells)
-        self.excess_s = np.zeros(n_cells)
+        self._stats = np.zeros((len(_STATS), n_cells))  # e2_fast ... excess_s: one array
         self.t_prev: float | None = None
         self.bound_bits = np.zeros(n_cells, dtype=np.int64)
-        self._near: tuple[FloatArray, FloatArray] | None = None
+        # the kernel's arguments that never change: "on a bound" limits (lo, hi) per WATCHED
+        # row (NaN and not read without bounds), the tuning's numbers, learn for all cells
+        self._near = np.full((2, len(WATCHED), n_cells), np.nan)
+        self._has_near = bounds is not None
         if bounds is not None:
             lo, hi = (
                 np.stack([np.broadcast_to(np.asarray(bounds[k][i], dtype=np.float64), (n_cells,))
                           for k in WATCHED])
                 for i in (0, 1)
             )  # fmt: skip
-            self._near = (lo + ON_BOUND_REL * np.abs(lo), hi - ON_BOUND_REL * np.abs(hi))
+            self._near = np.array([lo + ON_BOUND_REL * np.abs(lo), hi - ON_BOUND_REL * np.abs(hi)])
+        tun = self.tuning
+        self._consts = np.array([
+            tun.divergence_soc_margin, tun.divergence_fast_s, tun.divergence_scale_s,
+            tun.divergence_hold_s, tun.divergence_sigmas**2, tun.divergence_floor_V**2,
+        ])  # fmt: skip
+        self._learn_all = np.ones(n_cells, dtype=bool)
 
     @classmethod
     def for_model(cls, model: CellModel, tuning: EstimatorTuning | None = None) -> PublishGuard:
@@ -213,77 +216,25 @@ class PublishGuard:
             (what to publish: ``cells`` with held values where needed, the quality codes with
             ``DIVERGED`` where a cell is in an episode, the cells to re-initialise now).
         """
-        # ~40 us per tick when all is well (1 or 96 cells): branches skip what is not needed
-        tun = self.tuning
-        dt = self._data_dt(t_s)
-        soc = np.asarray(cells["soc"], dtype=np.float64)
-        # np.array of a list of equal rows: a fifth of np.stack's cost on rows this short
+        # one kernel call (guard_kernel.py): the numpy reference or its compiled twin
         params = np.array([cells[k] for k in HELD], dtype=np.float64)
-        q = np.array(quality, dtype=np.int64)  # the copy returned
-        converging = q == _CONVERGING
-
-        # what is wrong now
-        margin = tun.divergence_soc_margin
-        soc_bad = ~((soc >= -margin) & (soc <= 1.0 + margin))  # NaN included
-        params_bad = ~((params > _LOWER) & (params < np.inf)).all(axis=0)  # NaN included
-        judged = ~converging if learn is None else ~converging & np.asarray(learn, dtype=bool)
-        error_bad = self._error_step(
-            np.asarray(cells["v_error_V"], dtype=np.float64), dt, judged,
-            q != _POORLY_EXCITED,
+        learn_ = self._learn_all if learn is None else np.asarray(learn, dtype=bool)
+        # (the statistics, episodes, causes and bound bits are updated in place)
+        good, soc, q, reinit, n_reinit, n_held, masked = KERNEL.impl(
+            self._data_dt(t_s), np.asarray(cells["soc"], dtype=np.float64), params,
+            np.asarray(cells["v_error_V"], dtype=np.float64), np.asarray(quality, dtype=np.int64),
+            np.asarray(on_bound, dtype=bool), learn_, self._stats, self.good, self.good_soc,
+            self.episode, self.cause, self.bound_bits, self._near, self._has_near, self._consts,
         )  # fmt: skip
-        diverged = soc_bad | error_bad | params_bad
-
-        # episodes: one re-initialisation each; over once the cell converged again, unharmed
-        reinit = diverged & ~self.episode
-        # np.count_nonzero: a fifth of ndarray.any()'s cost on these short masks
-        if np.count_nonzero(reinit) or np.count_nonzero(self.episode):
-            over = self.episode & ~diverged & ~converging
-            self.episode = (self.episode | reinit) & ~over
-            cause = soc_bad * CAUSE_SOC | error_bad * CAUSE_ERROR | params_bad * CAUSE_PARAMS
-            self.cause = np.where(reinit, cause, np.where(self.episode, self.cause, 0))
-            self.counters["diverged"] += int(reinit.sum())
-            if reinit.any():
-                self.reset(reinit)
-            q[self.episode] = _DIVERGED
-
-        # hold the parameters (all of a cell's on a clamp or in an episode; on a parameter that
-        # sits on a bound, its branch: R0, or R1 C1 tau1, or R2 C2 tau2, so C = tau / R stays
-        # true and R0 still follows temperature while tau2 waits on its bound) and a bad SOC
-        held = np.asarray(on_bound, dtype=bool) | self.episode
-        clamped = np.count_nonzero(held) > 0
-        mask: BoolArray | None = None
-        if self._near is not None:
-            w = params[_WATCHED_ROWS]
-            # converging cells too: a value learnt on a bound before convergence would become
-            # the "last good" one (the bank flags them after the average, bank._run_tick)
-            sits = (w <= self._near[0]) | (w >= self._near[1])
-            self.bound_bits = (sits * _BIT_VALUES).sum(axis=0)
-            if np.count_nonzero(sits):
-                none = np.zeros(self.n, dtype=bool)
-                branch = np.array([sits[0], sits[1] | sits[3], sits[2] | sits[4], none])
-                mask = branch[_BRANCH_OF_HELD] | held
-                q[(self.bound_bits > 0) & ~self.episode & ~converging] = _OUT_OF_BOUNDS
-        if mask is None and clamped:
-            mask = np.broadcast_to(held, params.shape)
-        # branch 1 stays the fast one: a branch held while the other moves can cross it (tau2
-        # held by its lower bound, tau1 rising past it), so both RC branches are held then
-        taus = params[_TAUS] if mask is None else np.where(mask, self.good, params)[_TAUS]
-        crossed = ~(taus[0] < taus[1])  # NaN included
-        if np.count_nonzero(crossed):
-            mask = (held if mask is None else mask) | (crossed & _RC_ROWS)
+        self.counters["diverged"] += n_reinit
+        self.counters["held_on_bound"] += n_held
         out = dict(cells)
         out["on_bound"] = self.bound_bits.astype(np.float64)
-        if mask is not None:
-            self.counters["held_on_bound"] += int((mask.any(axis=0) & ~self.episode).sum())
-            published = np.where(mask, self.good, params)
+        if masked:  # else the cells' own arrays are published
             for j, k in enumerate(HELD):
-                out[k] = published[j]
-            self.good = published
-        else:
-            self.good = params
-        # a count up to the margin past 0 or 1 is no divergence, but is published as 0 or 1
-        good = np.where(soc_bad, self.good_soc, soc) if np.count_nonzero(soc_bad) else soc
-        out["soc"] = self.good_soc = np.minimum(np.maximum(good, 0.0), 1.0)
+                out[k] = good[j]
+        self.good = good
+        out["soc"] = self.good_soc = soc
         return out, q, reinit
 
     def _data_dt(self, t_s: float) -> float:
@@ -294,65 +245,13 @@ class PublishGuard:
         step = float(t_s) - prev if prev is not None else 0.0
         return step if 0.0 < step <= tun.gap_s else tun.id_period_s
 
-    def _error_step(
-        self, err: FloatArray, dt: float, judged: BoolArray, excited: BoolArray
-    ) -> BoolArray:
-        """Advance F, S and T by one tick (module docstring) for the cells ``judged`` (not
-        converging, may learn; S learns from the ``excited`` ones); the cells whose model error
-        has been in excess for ``divergence_hold_s``."""
-        if self.n == 1:
-            return self._error_step_one(float(err[0]), dt, bool(judged[0]), bool(excited[0]))
-        tun = self.tuning
-        fin = np.isfinite(err)
-        e2 = err * err  # NaN where not fin: every use below is masked by fin
-        self.fast_s, self.e2_fast = _ewma(
-            self.fast_s, self.e2_fast, e2, fin, dt, tun.divergence_fast_s
-        )
-        limit = tun.divergence_sigmas**2 * np.maximum(self.e2_scale, tun.divergence_floor_V**2)
-        judged = fin & judged
-        excess = judged & (self.scale_s >= tun.divergence_fast_s) & (self.e2_fast > limit)
-        young = self.scale_s < tun.divergence_scale_s
-        teach = judged & excited & ~self.episode & (young | (~excess & (e2 <= limit)))
-        self.scale_s, self.e2_scale = _ewma(
-            self.scale_s, self.e2_scale, e2, teach, dt, tun.divergence_scale_s
-        )
-        self.excess_s = np.where(excess, self.excess_s + dt, np.where(judged, 0.0, self.excess_s))
-        return np.asarray(self.excess_s >= tun.divergence_hold_s)
-
-    def _error_step_one(self, err: float, dt: float, judged: bool, excited: bool) -> BoolArray:
-        """:meth:`_error_step` of a one-cell guard in Python floats: the same operations in the
-        same order (np.expm1 as the arrays use it; a mask is a branch), the same bits
-        (``tests/estimate/test_guard.py``); ~10 us instead of ~30 us of numpy calls a tick."""
-        tun = self.tuning
-        fin = math.isfinite(err)
-        e2 = err * err
-        fast_s, e2_fast = _ewma_one(
-            float(self.fast_s[0]), float(self.e2_fast[0]), e2, fin, dt, tun.divergence_fast_s
-        )
-        scale_s, e2_scale = float(self.scale_s[0]), float(self.e2_scale[0])
-        limit = tun.divergence_sigmas**2 * _maximum(e2_scale, tun.divergence_floor_V**2)
-        judged = fin and judged
-        excess = judged and scale_s >= tun.divergence_fast_s and e2_fast > limit
-        young = scale_s < tun.divergence_scale_s
-        teach = (
-            judged and excited and not self.episode[0] and (young or (not excess and e2 <= limit))
-        )
-        scale_s, e2_scale = _ewma_one(scale_s, e2_scale, e2, teach, dt, tun.divergence_scale_s)
-        excess_s = float(self.excess_s[0])
-        excess_s = excess_s + dt if excess else (0.0 if judged else excess_s)
-        self.fast_s, self.e2_fast = np.array([fast_s]), np.array([e2_fast])
-        self.scale_s, self.e2_scale = np.array([scale_s]), np.array([e2_scale])
-        self.excess_s = np.array([excess_s])
-        return np.array([excess_s >= tun.divergence_hold_s])
-
     # ------------------------------------------------------------------ protocol
     def reset(self, mask: npt.ArrayLike) -> None:
         """Forget the masked cells' model-error statistics (learnt again once they converge).
         Their last good values and any running episode are kept: a re-initialised cell stays
         ``DIVERGED`` with its last good values until it has converged again."""
         m = np.broadcast_to(np.asarray(mask, dtype=bool), (self.n,))
-        for k in _STATS:
-            setattr(self, k, np.where(m, 0.0, getattr(self, k)))
+        self._stats = np.where(m, 0.0, self._stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Plain arrays and numbers that restore the guard exactly."""
@@ -365,34 +264,3 @@ class PublishGuard:
         load_arrays(self, st, _ARRAYS, self.name)
         t = float(st["t_prev"])
         self.t_prev = t if np.isfinite(t) else None
-
-
-def _ewma(
-    seen_s: FloatArray, x: FloatArray, value: FloatArray, use: BoolArray, dt: float, tau_s: float
-) -> tuple[FloatArray, FloatArray]:
-    """Bias-corrected EWMA over time: ``x += g / w (value - x)`` where ``use``, with ``g = 1 -
-    exp(-dt / tau)`` and ``w = 1 - exp(-seen / tau)`` (``seen`` counted with this tick): the
-    weighted mean of what it saw, not a pull towards 0. Returns (seen s, x)."""
-    every = np.count_nonzero(use) == use.size  # the usual tick: the same numbers, no masks
-    seen = seen_s + dt if every else np.where(use, seen_s + dt, seen_s)
-    g = -math.expm1(-dt / tau_s)
-    w = np.maximum(-np.expm1(seen * (-1.0 / tau_s)), g)  # >= g > 0: no 0/0 where unused
-    if every:
-        return seen, x + (g / w) * (value - x)
-    return seen, np.where(use, x + (g / w) * (value - x), x)
-
-
-def _ewma_one(
-    seen_s: float, x: float, value: float, use: bool, dt: float, tau_s: float
-) -> tuple[float, float]:
-    """:func:`_ewma` of one cell in Python floats (np.expm1 kept: libm's expm1 differs from
-    numpy's in the last bit)."""
-    seen = seen_s + dt if use else seen_s
-    g = -math.expm1(-dt / tau_s)
-    w = _maximum(float(-np.expm1(seen * (-1.0 / tau_s))), g)
-    return seen, (x + (g / w) * (value - x) if use else x)
-
-
-def _maximum(a: float, b: float) -> float:
-    """np.maximum of two floats: NaN propagates, ties give ``a``."""
-    return a if a >= b or math.isnan(a) else b
