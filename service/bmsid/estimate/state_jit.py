@@ -2,11 +2,18 @@
 kernels and takes back, so that ``state.py`` and ``observer.py`` only ask whether it ran.
 
 The kernels' per-cell constants and the OCV curve's numbers are packed once and again only when
-the stage rebinds one of them (a capacity measured at an anchor, a checkpoint loaded).
+the stage rebinds one of them (a capacity measured at an anchor, a checkpoint loaded). State
+arrays the stages publish or hand on (z, h, the context's fields) are new arrays every tick, as
+in the numpy code; the observer's private accumulators (dz/db, process noise, throughput, load
+current) and P are updated in place. One difference a later stage could see: the observer
+removes its current offset from the tick's current and held current as the numpy code does,
+but leaves ``tick.coulomb_steps`` as measured (the kernel removes it; nothing after the state
+stage reads them).
 """
 
 from __future__ import annotations
 
+from operator import is_
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -77,7 +84,7 @@ def _packed(st: CoulombState) -> Packed:
     if pk is None:
         pk = st.__dict__["_packed"] = Packed(st)
     src = _cell_sources(st)
-    if len(src) != len(pk.key) or any(a is not b for a, b in zip(src, pk.key, strict=True)):
+    if len(src) != len(pk.key) or not all(map(is_, src, pk.key)):
         for row, x in zip((ok_.CAP, ok_.EFF, ok_.KAPPA_D, ok_.KAPPA_C, ok_.Q_OBS, ok_.EFF_OBS),
                           src, strict=True):  # fmt: skip
             pk.cells[row] = x
@@ -108,11 +115,12 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
             q_mean_Ah = float(q_Ah.sum() / q_Ah.size)
             pk.qb_coef = (obs.tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2
             pk.q_key = q_Ah
+        tau_load = np.ascontiguousarray(obs._tau_load_s)  # params' tau2: a view would compile
         out, learn, all_ok, resting = ok_.STEP.impl(
-            st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A,
-            obs._tau_load_s, obs._learn_gate, tick.v_V, tick.ok, steps, b, tick.current_A,
-            tick.i_prev_A, tick.dt_s, float(obs.P[obs.n, obs.n]), pk.cells, pk.tun, pk.ocv,
-            pk.m_soc, pk.m_V, pk.knots, obs.d, True,
+            st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A, tau_load,
+            obs._learn_gate, tick.v_V, tick.ok, steps, b, tick.current_A, tick.i_prev_A,
+            tick.dt_s, float(obs.P[obs.n, obs.n]), pk.cells, pk.tun, pk.ocv, pk.m_soc, pk.m_V,
+            pk.knots, obs.d, True,
         )  # fmt: skip
         obs._qb += pk.qb_coef * tick.dt_s / 86400.0
         obs._since_s += tick.dt_s
@@ -146,10 +154,13 @@ def update(
         pk.utun = np.array([tun.v_sigma_V**2, tun.r_dc_rel_sigma, tun.v_sigma_floor_V**2,
                             tun.gate_sigmas**2, tun.learn_ocv_sigma_V])  # fmt: skip
     ocv = obs.model.ocv
+    # C-contiguous float64 as the kernel was compiled for (a view would compile anew mid-run)
+    p = {k: np.ascontiguousarray(params[k], dtype=np.float64)
+         for k in ("R0_ohm", "R1_ohm", "R2_ohm", "v_model_V", "M_V") if k in params}  # fmt: skip
     z, d, gate, anchored, z_ocv, z_var, b, n_gated, updated = ok_.UPDATE.impl(
         obs.P, obs._g, obs._qz, obs._qb, obs._since_s, obs._d_walk, obs.z, ctx.soc_clamped,
-        ctx.ocv_V, ctx.h, ctx.m_table_V, tick.v_V, tick.ok, params["R0_ohm"], params["R1_ohm"],
-        params["R2_ohm"], params["v_model_V"], params["M_V"] if obs.d.shape[0] else obs.z,
+        ctx.ocv_V, ctx.h, ctx.m_table_V, tick.v_V, tick.ok, p["R0_ohm"], p["R1_ohm"],
+        p["R2_ohm"], p["v_model_V"], p["M_V"] if obs.d.shape[0] else obs.z,
         converged, anchor, obs._i_load_A, obs._reanchor, tick.current_A, obs._rest_s <= 0.0,
         obs.b, obs._b_max, pk.ocv, ocv._inv_v, ocv._inv_z, pk.knots, obs.d, obs._m_knots,
         pk.utun,
