@@ -163,6 +163,7 @@ def _step_source(
         use_map = use_map or d[k] != 0.0
     all_ok = True
     any_gate = False
+    kappa_prev = decay = 0.0
     for c in range(n):
         zc_ = z[c]
         for k in range(n_steps):
@@ -181,7 +182,9 @@ def _step_source(
         hc = h[c]
         if dt_s > 0:
             kappa = cells[KAPPA_C, c] if i_prev_A < 0 else cells[KAPPA_D, c]
-            decay = math.exp(-abs(kappa * i_prev_A) * dt_s)
+            if c == 0 or kappa != kappa_prev:  # a pack of one rate: one exp, the same bits
+                decay = math.exp(-abs(kappa * i_prev_A) * dt_s)
+                kappa_prev = kappa
             hc = decay * hc - (1.0 - decay) * _sign(i_prev_A)
         out[0, c] = zc_
         out[1, c] = hc
