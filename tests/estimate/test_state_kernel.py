@@ -108,7 +108,7 @@ def _tick(rng: np.random.Generator, t: float, z: np.ndarray, ocv: OcvModel) -> T
     steps = tuple((current(), float(rng.choice([1.0, rng.uniform(0.1, 2.0)])))
                   for _ in range(int(rng.integers(0, 4))))  # fmt: skip
     dt = float(rng.choice([0.0, 1.0, rng.uniform(0.5, 3.0), 60.0]))
-    ok = rng.random(n) < 0.85
+    ok = np.asarray(rng.random(n) < 0.85, dtype=bool)
     v = np.where(ok, ocv.ocv(np.clip(z, 0.0, 1.0)) + rng.normal(0.0, 0.01, n), np.nan)
     new_segment = bool(rng.random() < 0.1)
     return Tick(
@@ -178,13 +178,14 @@ def test_compiled_and_numpy_ticks_agree(
 ) -> None:  # fmt: skip
     """Random states and ticks (currents at rest and under load, several or no coulomb steps,
     zero dt, gaps, cells without a voltage, SOC beyond the curve, an offset, a learnt map, due
-    updates with anchors, re-anchors and gated innovations): the compiled step and update
-    leave every state, context field and counter equal to the stages' own numpy code."""
+    updates with anchors, re-anchors and gated innovations): the compiled step and update (and
+    their sources run as plain Python, the registry's reference) leave every state, context
+    field and counter equal to the stages' own numpy code."""
     rng = np.random.default_rng(seed)
     cfg = {"observer": observer, "ends": ends, "map": learn_map, "uniform": uniform,
            "pending": pending, "knee": knee}  # fmt: skip
     ref = _stage(rng, n, cfg)
-    new = copy.deepcopy(ref)
+    new, src = copy.deepcopy(ref), copy.deepcopy(ref)
     before = jit.MODE
     try:
         for k in range(6):
@@ -192,12 +193,16 @@ def test_compiled_and_numpy_ticks_agree(
             params = _params(rng, np.where(tick.ok, tick.v_V, 3.7))
             converged = rng.random(n) < 0.7
             ctx = {}
-            for name, stage in (("numpy", ref), ("compiled", new)):
-                assert jit.select(name) == name
+            for name, stage in (("numpy", ref), ("compiled", new), ("source", src)):
+                assert jit.select("numpy" if name == "numpy" else "compiled")
+                if name == "source":  # the kernels' own sources run uncompiled
+                    for kernel in (observer_kernel.STEP, observer_kernel.UPDATE):
+                        kernel.impl = kernel.reference
                 ctx[name] = TickContext(copy.deepcopy(tick))
                 stage.step(ctx[name])
                 stage.correct(ctx[name], {k: v.copy() for k, v in params.items()}, converged)
             _same(ref, new, ctx["numpy"], ctx["compiled"])
+            _same(ref, src, ctx["numpy"], ctx["source"])
     finally:
         jit.restore(before)
 
