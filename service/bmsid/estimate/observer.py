@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from bmsid.estimate import state_jit
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covariance
@@ -90,16 +91,12 @@ class ObserverState(CoulombState):
         self._q_As = np.asarray(model.capacity_As, dtype=np.float64).copy()
         self._eff = np.broadcast_to(np.asarray(model.efficiency, dtype=np.float64), (n,)).copy()
         # Accumulated since the last update: dz/db, SOC and offset process noise, data time.
-        self._g = np.zeros(n)
-        self._qz = np.zeros(n)
-        self._qb = 0.0
-        self._since_s = 0.0
-        self._rest_s = 0.0
+        self._g, self._qz = np.zeros(n), np.zeros(n)
+        self._qb = self._since_s = self._rest_s = 0.0
         self._i_load_A = np.zeros(n)
         self._tau_load_s = np.asarray(model.start("tau2_s"), dtype=np.float64).copy()
         self._anchored = np.zeros(n, dtype=bool)
-        self._reanchor = False
-        self._widen = False
+        self._reanchor = self._widen = False
         self._learn_gate = np.ones(n, dtype=bool)
         self._start_var = np.zeros(n)
         tau_relax_s = relaxation_tau_s(model.start("tau1_s"), model.start("tau2_s"))
@@ -111,6 +108,8 @@ class ObserverState(CoulombState):
 
     # ------------------------------------------------------------------ per tick
     def step(self, ctx: TickContext) -> None:
+        if state_jit.step(self, ctx, observer=True):  # the compiled kernel (jit.select)
+            return
         tick = ctx.tick
         self._remove_offset(tick)
         self._accumulate(tick)
@@ -124,10 +123,14 @@ class ObserverState(CoulombState):
         limit = self._rest_limit_A
         if not np.count_nonzero(self._learn_gate):
             limit += 2.0 * math.sqrt(max(float(self.P[self.n, self.n]), 0.0))
-        extra_V = self._relax.feed(tick.t_s, tick.v_V, tick.ok, i_abs < limit)
+        self._after_step(tick, i_abs < limit)
+
+    def _after_step(self, tick: Tick, resting: bool) -> None:
+        """The start's first rest watched, the rest timed, a restart after downtime."""
+        extra_V = self._relax.feed(tick.t_s, tick.v_V, tick.ok, resting)
         if extra_V is not None and np.count_nonzero(extra_V):
             self._widen_start(extra_V)
-        if i_abs < limit:
+        if resting:
             self._rest_s += tick.dt_s
         elif self._rest_s:
             self._rest_s = 0.0
@@ -150,11 +153,9 @@ class ObserverState(CoulombState):
         n = self.n
         self.start_variance(tick, "restart", self.z)
         self.P[:n, :n] = np.diag(np.diag(self.P)[:n] + self._start_var)
-        self.P[:n, n:] = 0.0
-        self.P[n:, :n] = 0.0
+        self.P[:n, n:] = self.P[n:, :n] = 0.0
         self.capacity.forget_anchors()
-        self._reanchor = True
-        self._widen = False
+        self._reanchor, self._widen = True, False
 
     def _remove_offset(self, tick: Tick) -> None:
         """Measured current -> true current (the tick is rebuilt every tick: edited in place)."""
@@ -209,6 +210,8 @@ class ObserverState(CoulombState):
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
         anchor = np.zeros(self.n, dtype=bool) if anchor is None else anchor
+        if state_jit.update(self, ctx, params, converged, anchor):  # compiled (jit.select)
+            return
         self._predict()
         tick, n, zc = ctx.tick, self.n, ctx.soc_clamped
         hz = self.model.ocv.docv_dz(zc)
@@ -266,10 +269,8 @@ class ObserverState(CoulombState):
         P[n, n] += self._qb
         k = np.arange(n + 1, P.shape[0])
         P[k, k] += self._d_walk * self._since_s
-        self._g = np.zeros(n)
-        self._qz = np.zeros(n)
-        self._qb = 0.0
-        self._since_s = 0.0
+        self._g, self._qz = np.zeros(n), np.zeros(n)
+        self._qb = self._since_s = 0.0
 
     def _update(
         self, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray, e: FloatArray,

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from bmsid.estimate import state_jit
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.statedict import load_arrays
@@ -111,6 +112,8 @@ class CoulombState:
         self._kappa_charge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, -1.0)
 
     def step(self, ctx: TickContext) -> None:
+        if state_jit.step(self, ctx, observer=False):  # the compiled kernel (jit.select)
+            return
         tick = ctx.tick
         m = self.model
         for i, dt in tick.coulomb_steps:

@@ -1,0 +1,394 @@
+"""The state stage's and the SOC observer's per-tick work as compiled kernels (issue 12).
+
+The numpy reference is the stages' own code (``state.py``, ``observer.py``,
+``observer_ekf.py``, ``model/ocv.py``), unchanged; ``jit.select`` decides which one a stage
+runs (``state_jit.py`` calls the kernels, the stages fall back to their own code for a tick
+with a cell to start). The kernels here loop over cells with the reference's operations in its
+order, so they agree to rounding (libm's exp/log against numpy's SIMD ones, LAPACK's gesv and
+BLAS's sums against numba's): ``tests/estimate/test_state_kernel.py``.
+
+The kernels call a few scalar helpers (the OCV curve and its slope, numpy's interp, the
+hysteresis map's hat weights), plain Python marked ``@helper`` (``jit_helpers.py``), kept in this
+file so that numba's cache sees a change to them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from bmsid.estimate import jit
+from bmsid.estimate.jit_helpers import helper, register
+from bmsid.estimate.stage import BoolArray, FloatArray
+
+# ------------------------------------------------------------------ the OCV curve (Eq. 4, ends)
+#: Layout of the OCV vector (``state_jit.ocv_params``): Eq. 4's six coefficients (0-5), its
+#: range, the SOC range, the end flags, the end cubics (4 coefficients each, highest power
+#: first, padded with leading zeros) and their derivatives (3 each).
+EQ4_MIN, EQ4_MAX, SOC_MIN, SOC_MAX, HAS_LOW, HAS_HIGH = 6, 7, 8, 9, 10, 11
+LOW, HIGH, DLOW, DHIGH, N_OCV = 12, 16, 20, 23, 26
+
+
+@helper
+def _max(a: float, b: float) -> float:
+    """np.maximum of two floats (NaN propagates)."""
+    return a if a >= b or math.isnan(a) else b
+
+
+@helper
+def _min(a: float, b: float) -> float:
+    """np.minimum of two floats (NaN propagates)."""
+    return a if a <= b or math.isnan(a) else b
+
+
+@helper
+def _sign(x: float) -> float:
+    """np.sign of a float (0 at 0, NaN at NaN)."""
+    return 1.0 if x > 0 else (-1.0 if x < 0 else (0.0 if x == 0 else x))
+
+
+@helper
+def _horner(p: FloatArray, i0: int, k: int, s: float) -> float:
+    out = 0.0
+    for j in range(i0, i0 + k):
+        out = out * s + p[j]
+    return out
+
+
+@helper
+def _end(p: FloatArray, z: float, v: float, deriv: bool) -> float:
+    """``OcvModel._ends`` at one SOC: the end segment (or its slope) beyond Eq. 4."""
+    if p[HAS_LOW] != 0.0 and z < p[EQ4_MIN]:
+        zc = _min(_max(z, p[SOC_MIN]), p[SOC_MAX])
+        return _horner(p, DLOW, 3, zc - p[EQ4_MIN]) if deriv else _horner(
+            p, LOW, 4, zc - p[EQ4_MIN])  # fmt: skip
+    if p[HAS_HIGH] != 0.0 and z > p[EQ4_MAX]:
+        zc = _min(_max(z, p[SOC_MIN]), p[SOC_MAX])
+        return _horner(p, DHIGH, 3, zc - p[EQ4_MAX]) if deriv else _horner(
+            p, HIGH, 4, zc - p[EQ4_MAX])  # fmt: skip
+    return v
+
+
+@helper
+def ocv_at(p: FloatArray, z: float) -> float:
+    """``OcvModel.ocv`` at one SOC (V)."""
+    zc = _min(_max(z, p[EQ4_MIN]), p[EQ4_MAX])
+    v = (p[0] + zc * (p[1] + p[2] * zc) + p[3] / zc + p[4] * math.log(zc)
+         + p[5] * math.log1p(-zc))  # fmt: skip
+    return _end(p, z, v, False)
+
+
+@helper
+def docv_dz_at(p: FloatArray, z: float) -> float:
+    """``OcvModel.docv_dz`` at one SOC (V per unit SOC)."""
+    zc = _min(_max(z, p[EQ4_MIN]), p[EQ4_MAX])
+    d = p[1] + 2 * p[2] * zc - p[3] / (zc * zc) + p[4] / zc - p[5] / (1 - zc)
+    return _end(p, z, d, True)
+
+
+@helper
+def interp_at(x: float, xp: FloatArray, fp: FloatArray) -> float:
+    """``np.interp`` at one point (numpy's C code: ends held, NaN where x is NaN)."""
+    n = xp.shape[0]
+    if math.isnan(x):
+        return x
+    if x < xp[0]:
+        return float(fp[0])
+    if x > xp[n - 1]:
+        return float(fp[n - 1])
+    lo, hi = 0, n - 1  # the last j with xp[j] <= x
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if xp[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    j = hi if xp[hi] <= x else lo
+    if j == n - 1 or xp[j] == x:
+        return float(fp[j])
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    y = slope * (x - xp[j]) + fp[j]
+    if math.isnan(y):
+        y = slope * (x - xp[j + 1]) + fp[j + 1]
+        if math.isnan(y) and fp[j] == fp[j + 1]:
+            y = fp[j]
+    return float(y)
+
+
+@helper
+def hat_at(knots: FloatArray, z: float) -> tuple[int, float]:
+    """``hysteresis_map.hat_matrix`` of one SOC: its row is 1 - f at j and f at j + 1."""
+    k = knots.shape[0]
+    zc = _min(_max(z, knots[0]), knots[k - 1])
+    j = 0
+    while j < k - 1 and knots[j + 1] <= zc:  # searchsorted(side="right") - 1
+        j += 1
+    j = min(max(j, 0), k - 2)
+    return j, (zc - knots[j]) / (knots[j + 1] - knots[j])
+
+
+# ------------------------------------------------------------------ the tick's state step
+#: Rows of the per-cell constants ``cells``: the count's capacity (A s) and efficiency, the
+#: hysteresis rates on discharge and charge (Eq. 6), the observer's capacity and efficiency.
+CAP, EFF, KAPPA_D, KAPPA_C, Q_OBS, EFF_OBS, N_CELL_ROWS = 0, 1, 2, 3, 4, 5, 6
+#: Rows of the step's output: SOC, h, clamped SOC, OCV, M, h M, the voltage or OCV.
+N_OUT = 7
+#: Layout of the step's tuning vector ``tun``: the learn range, the observer's rest limit (A),
+#: current gain and SOC walk variances.
+LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, N_TUN = 0, 1, 2, 3, 4, 5
+
+
+def _step_source(
+    z: FloatArray, h: FloatArray, g: FloatArray, qz: FloatArray, thr: FloatArray,
+    i_load: FloatArray, tau_load: FloatArray, gate: BoolArray, v: FloatArray, ok: BoolArray,
+    steps: FloatArray, b: float, current_A: float, i_prev_A: float, dt_s: float, p_bb: float,
+    cells: FloatArray, tun: FloatArray, ocv: FloatArray, m_soc: FloatArray, m_V: FloatArray,
+    knots: FloatArray, d: FloatArray, observer: bool,
+) -> tuple[FloatArray, BoolArray, bool, bool]:  # fmt: skip
+    """One tick of ``CoulombState.step`` (and with ``observer`` of ``ObserverState.step``)
+    for cells none of which starts this tick: the coulomb steps (``steps`` (k, 2), measured,
+    ``b`` the offset removed), h, OCV, M, h M, v or OCV, the learn mask. The observer's
+    accumulators ``g``, ``qz``, ``thr`` (capacity throughput) and ``i_load`` are updated in
+    place. Returns the ``N_OUT`` rows, the learn mask, whether every cell has a voltage, and
+    whether the pack rests (observer)."""
+    n = z.shape[0]
+    out = np.empty((N_OUT, n))
+    learn = np.empty(n, dtype=np.bool_)
+    n_steps = steps.shape[0]
+    use_map = False  # the observer's map: M corrected where any knot has learnt (d.any())
+    for k in range(d.shape[0]):
+        use_map = use_map or d[k] != 0.0
+    all_ok = True
+    any_gate = False
+    kappa_prev = decay = 0.0
+    for c in range(n):
+        zc_ = z[c]
+        for k in range(n_steps):
+            i = steps[k, 0] - b if observer and b != 0.0 else steps[k, 0]
+            dt = steps[k, 1]
+            if observer:  # _accumulate
+                eta = cells[EFF_OBS, c] if i < 0 else 1.0
+                dz = eta * dt / cells[Q_OBS, c]
+                g[c] = g[c] + dz
+                qz[c] = qz[c] + tun[GAIN2] * abs(i) * dz
+                thr[c] = thr[c] + eta * i * dt / 3600.0
+            ce = cells[EFF, c] if i < 0 else 1.0
+            zc_ = zc_ + -ce * i * dt / cells[CAP, c]
+        if observer:
+            qz[c] = qz[c] + tun[WALK2] * dt_s / 3600.0
+        hc = h[c]
+        if dt_s > 0:
+            kappa = cells[KAPPA_C, c] if i_prev_A < 0 else cells[KAPPA_D, c]
+            if c == 0 or kappa != kappa_prev:  # a pack of one rate: one exp, the same bits
+                decay = math.exp(-abs(kappa * i_prev_A) * dt_s)
+                kappa_prev = kappa
+            hc = decay * hc - (1.0 - decay) * _sign(i_prev_A)
+        out[0, c] = zc_
+        out[1, c] = hc
+        zcl = _min(_max(zc_, ocv[SOC_MIN]), ocv[SOC_MAX])
+        out[2, c] = zcl
+        u = ocv_at(ocv, zcl)
+        out[3, c] = u
+        m = interp_at(zcl, m_soc, m_V)
+        if use_map:
+            j, f = hat_at(knots, zcl)
+            m = _max(m + ((1.0 - f) * d[j] + f * d[j + 1]), 0.0)
+        out[4, c] = m
+        out[5, c] = hc * m
+        out[6, c] = v[c] if ok[c] else u
+        all_ok = all_ok and ok[c]
+        learn[c] = ok[c] and zcl >= tun[LEARN_LO] and zcl <= tun[LEARN_HI]
+        any_gate = any_gate or gate[c]
+    resting = False
+    if observer:
+        i_abs = abs(current_A)
+        for c in range(n):
+            a = math.exp(-dt_s / tau_load[c])
+            i_load[c] = _max(i_abs, a * i_load[c] + (1 - a) * i_abs)
+        limit = tun[REST_LIMIT]
+        if not any_gate:
+            limit += 2.0 * math.sqrt(max(p_bb, 0.0))
+        resting = i_abs < limit
+    return out, learn, all_ok, resting
+
+
+def _warm_step(kernel: Callable[..., Any]) -> object:
+    register()
+    one, yes = np.ones(2), np.ones(2, dtype=np.bool_)
+    p = np.zeros(N_OCV)
+    p[[0, EQ4_MIN, EQ4_MAX, SOC_MIN, SOC_MAX]] = 3.7, 0.01, 0.99, 0.01, 0.99
+    return kernel(
+        one * 0.5, one * 0.0, one * 0, one * 0, one * 0, one * 0, one * 100.0, yes, one * 3.7,
+        yes, np.ones((1, 2)), 0.0, 1.0, 1.0, 1.0, 0.0, np.ones((N_CELL_ROWS, 2)) * 1e4,
+        np.array([0.0, 1.0, 0.1, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
+        np.array([0.0, 1.0]), one * 0.0, True,
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------ the measurement update
+#: Layout of the update's tuning vector ``utun``: v_sigma^2, r_dc_rel_sigma, v_sigma_floor^2,
+#: gate_sigmas^2, learn_ocv_sigma (``ObserverTuning``).
+V_SIGMA2, R_DC_REL, FLOOR2, GATE2, LEARN_OCV, N_UTUN = 0, 1, 2, 3, 4, 5
+
+
+def _update_source(
+    P: FloatArray, g: FloatArray, qz: FloatArray, qb: float, since_s: float, d_walk: FloatArray,
+    z: FloatArray, zc: FloatArray, ocv_V: FloatArray, h: FloatArray, m_table: FloatArray,
+    v: FloatArray, ok: BoolArray, R0: FloatArray, R1: FloatArray, R2: FloatArray,
+    v_model: FloatArray, M_V: FloatArray, converged: BoolArray, anchor: BoolArray,
+    i_load: FloatArray, reanchor: bool, current_A: float, consider_offset: bool, b: float,
+    b_max: float, ocv: FloatArray, inv_v: FloatArray, inv_z: FloatArray, knots: FloatArray,
+    d: FloatArray, m_knots: FloatArray, utun: FloatArray,
+) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray, FloatArray, FloatArray, float, int,
+           bool]:  # fmt: skip
+    """``ObserverState.correct`` from ``_predict`` to ``_gate_learning`` (with
+    ``observer_ekf.joint_update``): P updated in place, ``g`` and ``qz`` zeroed. Returns the
+    new z, d, learn gate, the anchored cells, the OCV's SOC and its variance there, the new
+    offset, the cells gated out and whether the state was updated."""
+    n, N, K = z.shape[0], P.shape[0], d.shape[0]
+    pb = P[:n, n].copy()  # _predict: P <- F P F' + Q
+    pbb = P[n, n]
+    for i in range(n):
+        for j in range(n):
+            P[i, j] = P[i, j] + (g[i] * pb[j] + pb[i] * g[j] + pbb * (g[i] * g[j]))
+    for i in range(n):
+        P[i, n] = P[n, i] = pb[i] + g[i] * pbb
+        P[i, i] = P[i, i] + qz[i]
+        g[i] = qz[i] = 0.0
+    P[n, n] = P[n, n] + qb
+    for k in range(K):
+        P[n + 1 + k, n + 1 + k] = P[n + 1 + k, n + 1 + k] + d_walk[k] * since_s
+    hz, hb, e, r = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    z_ocv, z_var = np.full(n, np.nan), np.empty(n)
+    G = np.zeros((n, K))
+    valid = np.empty(n, dtype=np.bool_)
+    jump = reanchor
+    for c in range(n):
+        jump = jump or anchor[c]
+    for c in range(n):
+        hz[c] = docv_dz_at(ocv, zc[c])
+        hb[c] = R0[c] + R1[c] + R2[c]
+        e[c] = v[c] - v_model[c]
+        if jump:  # SOC may move far: the OCV's secant (OcvModel.secant_slope)
+            z_to = interp_at(ocv_V[c] + e[c], inv_v, inv_z)
+            z_ocv[c] = z_to
+            dz = z_to - zc[c]
+            sec = ((ocv_at(ocv, z_to) - ocv_at(ocv, zc[c])) / dz if abs(dz) > 1e-3
+                   else docv_dz_at(ocv, zc[c]))  # fmt: skip
+            if (anchor[c] or reanchor) and math.isfinite(sec):
+                hz[c] = sec
+        if reanchor:
+            r_rc = abs(current_A) * (R1[c] + R2[c])
+            r[c] = utun[V_SIGMA2] + r_rc * r_rc
+        else:
+            r_load = i_load[c] * utun[R_DC_REL] * hb[c]
+            r[c] = utun[V_SIGMA2] + r_load * r_load
+        if K:
+            r_anchor = utun[FLOOR2]
+            mt = m_table[c]
+            scale = M_V[c] / _max(mt, 1e-12) if mt > 0 else 1.0
+            scale = scale if math.isfinite(scale) else 1.0
+            j, f = hat_at(knots, zc[c])
+            var_c = _max(P[c, c], 0.0)
+            var_m = (1.0 - f) * _max(P[n + 1 + j, n + 1 + j], 0.0) + f * _max(
+                P[n + 2 + j, n + 2 + j], 0.0)  # fmt: skip
+            teach = anchor[c] and abs(hz[c]) * math.sqrt(var_c) <= math.sqrt(var_m)
+            coef = (1.0 if teach else 0.0) * scale * h[c]
+            G[c, j] = coef * (1.0 - f)
+            G[c, j + 1] = coef * f
+        else:
+            r_anchor = utun[FLOOR2] + (0.25 * m_table[c]) * (0.25 * m_table[c])
+        if anchor[c]:
+            r[c] = r_anchor
+        forced = anchor[c] or reanchor
+        valid[c] = (ok[c] and math.isfinite(e[c]) and math.isfinite(hz[c])
+                    and math.isfinite(hb[c]) and (converged[c] or forced))  # fmt: skip
+        z_var[c] = r[c] / _max(hz[c] * hz[c], 1e-12)
+    idx = np.flatnonzero(valid)
+    n_gated, updated = 0, False
+    z_new, b_new, d_new = z, b, d
+    if idx.size:  # observer_ekf.joint_update
+        m = idx.size
+        PHt = np.empty((N, m))
+        for a in range(N):
+            for q in range(m):
+                c = idx[q]
+                acc = 0.0
+                for k in range(K):
+                    acc += P[a, n + 1 + k] * G[c, k]
+                PHt[a, q] = P[a, c] * hz[c] + P[a, n] * hb[c] + acc
+        S = np.empty((m, m))
+        for p_ in range(m):
+            c = idx[p_]
+            for q in range(m):
+                acc = 0.0
+                for k in range(K):
+                    acc += G[c, k] * PHt[n + 1 + k, q]
+                S[p_, q] = hz[c] * PHt[c, q] + hb[c] * PHt[n, q] + acc
+            S[p_, p_] += r[c]
+        inside = np.empty(m, dtype=np.bool_)
+        for p_ in range(m):
+            c = idx[p_]
+            inside[p_] = e[c] * e[c] <= utun[GATE2] * S[p_, p_] or anchor[c] or reanchor
+        keep = np.flatnonzero(inside)
+        n_gated = m - keep.size
+        if keep.size:
+            idx = idx[keep]
+            PHt = np.ascontiguousarray(PHt[:, keep])
+            S = np.ascontiguousarray(S[keep][:, keep])
+            solved = True
+            try:
+                X = np.linalg.solve(S, np.ascontiguousarray(PHt.T))
+            except Exception:  # a singular S: nothing updated
+                solved = False
+                X = np.zeros((idx.size, N))
+            Kg = np.ascontiguousarray(X.T)
+            if consider_offset:
+                for q in range(idx.size):
+                    if not (anchor[idx[q]] or reanchor):
+                        Kg[n, q] = 0.0
+            dx = Kg @ np.ascontiguousarray(e[idx])
+            if solved and np.all(np.isfinite(dx)):
+                KPHt = Kg @ np.ascontiguousarray(PHt.T)
+                Pn = P - KPHt - KPHt.T + (Kg @ S) @ np.ascontiguousarray(Kg.T)
+                for a in range(N):
+                    for q in range(a, N):
+                        P[a, q] = P[q, a] = 0.5 * (Pn[a, q] + Pn[q, a])
+                    P[a, a] = _max(P[a, a], 0.0)
+                z_new = np.empty(n)
+                for c in range(n):
+                    z_new[c] = _min(_max(z[c] + dx[c], 0.0), 1.0)
+                b_new = _min(_max(b + float(dx[n]), -b_max), b_max)
+                d_new = np.empty(K)
+                for k in range(K):
+                    d_new[k] = _max(d[k] + dx[n + 1 + k], -m_knots[k])
+                updated = True
+    gate = np.empty(n, dtype=np.bool_)  # _gate_learning
+    anchored = np.empty(n, dtype=np.bool_)
+    for c in range(n):
+        zz = _min(_max(z_new[c], ocv[SOC_MIN]), ocv[SOC_MAX])
+        gate[c] = abs(docv_dz_at(ocv, zz)) * math.sqrt(_max(P[c, c], 0.0)) <= utun[LEARN_OCV]
+        anchored[c] = anchor[c] and valid[c]
+    return z_new, d_new, gate, anchored, z_ocv, z_var, b_new, n_gated, updated
+
+
+def _warm_update(kernel: Callable[..., Any]) -> object:
+    register()
+    one, yes = np.ones(2), np.ones(2, dtype=np.bool_)
+    p = np.zeros(N_OCV)
+    p[[0, 1, EQ4_MIN, EQ4_MAX, SOC_MIN, SOC_MAX]] = 3.5, 0.5, 0.01, 0.99, 0.01, 0.99
+    return kernel(
+        np.eye(5) * 1e-4, one * 0, one * 0, 0.0, 0.0, one * 0, one * 0.5, one * 0.5, one * 3.7,
+        one * 0, one * 0.01, one * 3.7, yes, one * 1e-3, one * 1e-3, one * 1e-3, one * 3.7,
+        one * 0.01, yes, yes, one * 0, True, 0.0, True, 0.0, 1.0, p, np.array([3.0, 4.0]),
+        np.array([0.0, 1.0]), np.array([0.0, 1.0]), one * 0, one * 0.01, np.ones(N_UTUN) * 1e-4,
+    )  # fmt: skip
+
+
+#: The reference in the registry is the kernel source run as plain Python (the stages' numpy
+#: mode runs their own code: the reference the tests compare against).
+STEP = jit.Kernel("state step", _step_source, _step_source, _warm_step)
+UPDATE = jit.Kernel("observer update", _update_source, _update_source, _warm_update)

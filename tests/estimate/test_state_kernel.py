@@ -1,0 +1,255 @@
+"""The state stage's and the SOC observer's compiled tick kernels (estimate/observer_kernel.py)
+against their numpy reference: the stages' own code (issue 12: a compiled engine, kept equal
+to the reference to float tolerance, with the same decisions)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bmsid.config.cell import PAPER_OCV_MEAN, paper_cell
+from bmsid.config.engine import build_bank, cell_model
+from bmsid.estimate import jit, observer_kernel
+from bmsid.estimate.observer import ObserverState
+from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.stage import TickContext
+from bmsid.estimate.state import CoulombState
+from bmsid.estimate.ticks import Tick
+from bmsid.estimate.tuning import EstimatorTuning
+from bmsid.model.ocv import OcvModel, eval_docv_dz, eval_ocv
+from bmsid.samples import SampleBlock
+from bmsid.synthetic import paper_dst_case
+from bmsid.synthetic.multiday import MultidayOptions, generate
+
+PAPER = np.asarray(PAPER_OCV_MEAN)
+M_SOC, M_V = [0.0, 0.3, 0.7, 1.0], [0.02, 0.012, 0.01, 0.015]
+
+
+@pytest.fixture
+def restore_kernel() -> Iterator[None]:
+    before = jit.MODE
+    yield
+    jit.restore(before)
+
+
+def test_the_compiled_kernels_are_available() -> None:
+    """numba is a dependency: both kernels compile here (no silent fallback)."""
+    assert observer_kernel.STEP.compiled() is not None
+    assert observer_kernel.UPDATE.compiled() is not None
+
+
+# ----------------------------------------------------------------------------- random stages
+def _ocv(ends: bool) -> OcvModel:
+    lo, hi = 0.03, 0.97
+    if not ends:
+        return OcvModel.from_coeffs(PAPER, lo, hi, M_SOC, M_V)
+    v_lo, v_hi = float(eval_ocv(PAPER, lo)), float(eval_ocv(PAPER, hi))
+    d_lo, d_hi = float(eval_docv_dz(PAPER, lo)), float(eval_docv_dz(PAPER, hi))
+    return OcvModel.from_coeffs(
+        PAPER, lo, hi, M_SOC, M_V, v_empty_V=v_lo - d_lo * lo, v_full_V=v_hi + d_hi * (1 - hi)
+    )
+
+
+def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombState:
+    """A stage of ``n`` cells in a random state (every cell started)."""
+    model = cell_model(paper_cell(), n)
+    model = dataclasses.replace(model, ocv=_ocv(cfg["ends"]))
+    if not cfg["uniform"]:
+        model = dataclasses.replace(
+            model, capacity_Ah=rng.uniform(1.5, 3.0, n), efficiency=rng.uniform(0.95, 1.0, n),
+            gamma=rng.uniform(10.0, 200.0, n),
+        )  # fmt: skip
+    knee = cfg["knee"]
+    if not cfg["observer"]:
+        stage = CoulombState(model, None, knee)
+    else:
+        tun = ObserverTuning(learn_hysteresis=cfg["map"], update_period_s=5.0,
+                             anchor_min_rest_s=30.0, restart_gap_s=50.0)  # fmt: skip
+        stage = ObserverState(model, None, knee, tun, 0.05)
+    stage.z = rng.uniform(-0.05, 1.05, n)
+    stage.h = rng.uniform(-1.0, 1.0, n)
+    stage._pending = rng.random(n) < 0.1 if cfg["pending"] else np.zeros(n, dtype=bool)
+    if isinstance(stage, ObserverState):
+        N = stage.P.shape[0]
+        sd = np.concatenate([rng.uniform(0.001, 0.1, n), [0.1], rng.uniform(1e-4, 5e-3, N - n - 1)])
+        a = rng.normal(size=(N, N)) + 3.0 * np.eye(N)
+        corr = a @ a.T
+        corr /= np.sqrt(np.outer(np.diag(corr), np.diag(corr)))
+        stage.P = corr * np.outer(sd, sd)
+        stage.b = float(rng.choice([0.0, rng.uniform(-0.1, 0.1)]))
+        if cfg["map"] and rng.random() < 0.7:
+            stage.d = rng.uniform(-3e-3, 3e-3, stage.d.shape[0])
+        stage._g = rng.uniform(0.0, 1e-3, n)
+        stage._qz = rng.uniform(0.0, 1e-6, n)
+        stage._qb, stage._since_s = float(rng.uniform(0, 1e-4)), float(rng.uniform(0, 10))
+        stage._rest_s = float(rng.choice([0.0, 10.0, 40.0, 500.0]))
+        stage._anchored = rng.random(n) < 0.3
+        stage._reanchor = bool(rng.random() < 0.2)
+        stage._learn_gate = rng.random(n) < (0.0 if rng.random() < 0.3 else 0.7)
+        stage._i_load_A = rng.uniform(0.0, 3.0, n)
+        stage._tau_load_s = rng.uniform(5.0, 300.0, n)
+    return stage
+
+
+def _tick(rng: np.random.Generator, t: float, z: np.ndarray, ocv: OcvModel) -> Tick:
+    n = z.shape[0]
+
+    def current() -> float:
+        return float(rng.choice([0.0, rng.uniform(-0.02, 0.02), rng.uniform(-6.0, 6.0)]))
+
+    steps = tuple((current(), float(rng.choice([1.0, rng.uniform(0.1, 2.0)])))
+                  for _ in range(int(rng.integers(0, 4))))  # fmt: skip
+    dt = float(rng.choice([0.0, 1.0, rng.uniform(0.5, 3.0), 60.0]))
+    ok = np.asarray(rng.random(n) < 0.85, dtype=bool)
+    v = np.where(ok, ocv.ocv(np.clip(z, 0.0, 1.0)) + rng.normal(0.0, 0.01, n), np.nan)
+    new_segment = bool(rng.random() < 0.1)
+    return Tick(
+        t_s=t, current_A=current(), i_prev_A=current(), dt_s=dt, period_s=1.0, v_V=v, ok=ok,
+        coulomb_steps=steps, current_std_A=1.0, temperature_C=math.nan, first=False,
+        new_segment=new_segment,
+    )  # fmt: skip
+
+
+def _params(rng: np.random.Generator, v: np.ndarray) -> dict[str, np.ndarray]:
+    n = v.shape[0]
+    e = rng.normal(0.0, rng.choice([0.002, 0.02, 0.2]), n)
+    return {
+        "R0_ohm": rng.uniform(0.01, 0.05, n), "R1_ohm": rng.uniform(0.005, 0.02, n),
+        "R2_ohm": rng.uniform(0.005, 0.03, n), "tau2_s": rng.uniform(5.0, 300.0, n),
+        "v_model_V": v - e, "M_V": rng.uniform(0.0, 0.03, n),
+    }  # fmt: skip
+
+
+_CTX = ("soc_clamped", "ocv_V", "m_table_V", "h", "hm_V", "v_safe_V")
+_OBS_ARRAYS = ("P", "_g", "_qz", "d", "_i_load_A", "_learn_gate", "_anchored", "_q_As")
+_OBS_SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_reanchor", "soc_init_method")
+
+
+def _close(a: Any, b: Any, what: str) -> None:
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype == bool or a.dtype.kind in "iUO":
+        np.testing.assert_array_equal(b, a, err_msg=what)
+        return
+    scale = float(np.nanmax(np.abs(a))) if a.size and np.any(np.isfinite(a)) else 0.0
+    np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * max(scale, 1.0), err_msg=what)
+
+
+def _same(ref: CoulombState, new: CoulombState, cref: TickContext, cnew: TickContext) -> None:
+    for name in ("z", "h", "_pending"):
+        _close(getattr(ref, name), getattr(new, name), name)
+    for name in _CTX:
+        _close(getattr(cref, name), getattr(cnew, name), f"ctx.{name}")
+    np.testing.assert_array_equal(cnew.learn, cref.learn, err_msg="ctx.learn")
+    assert new.counters == ref.counters
+    if isinstance(ref, ObserverState):
+        assert isinstance(new, ObserverState)
+        for name in _OBS_ARRAYS:
+            _close(getattr(ref, name), getattr(new, name), name)
+        for name in _OBS_SCALARS:
+            _close(getattr(ref, name), getattr(new, name), name)
+        for name, x in ref.capacity.state_dict().items():
+            _close(x, new.capacity.state_dict()[name], f"capacity.{name}")
+        _close(cref.tick.current_A, cnew.tick.current_A, "tick.current_A")
+        _close(cref.tick.i_prev_A, cnew.tick.i_prev_A, "tick.i_prev_A")
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(1, 8),
+    seed=st.integers(0, 2**32 - 1),
+    observer=st.booleans(),
+    ends=st.booleans(),
+    learn_map=st.booleans(),
+    uniform=st.booleans(),
+    pending=st.booleans(),
+    knee=st.sampled_from([math.inf, 3.0]),
+)
+def test_compiled_and_numpy_ticks_agree(
+    n: int, seed: int, observer: bool, ends: bool, learn_map: bool, uniform: bool, pending: bool,
+    knee: float,
+) -> None:  # fmt: skip
+    """Random states and ticks (currents at rest and under load, several or no coulomb steps,
+    zero dt, gaps, cells without a voltage, SOC beyond the curve, an offset, a learnt map, due
+    updates with anchors, re-anchors and gated innovations): the compiled step and update (and
+    their sources run as plain Python, the registry's reference) leave every state, context
+    field and counter equal to the stages' own numpy code."""
+    rng = np.random.default_rng(seed)
+    cfg = {"observer": observer, "ends": ends, "map": learn_map, "uniform": uniform,
+           "pending": pending, "knee": knee}  # fmt: skip
+    ref = _stage(rng, n, cfg)
+    new, src = copy.deepcopy(ref), copy.deepcopy(ref)
+    before = jit.MODE
+    try:
+        for k in range(6):
+            tick = _tick(rng, 100.0 * (k + 1), ref.z, ref.model.ocv)
+            params = _params(rng, np.where(tick.ok, tick.v_V, 3.7))
+            converged = rng.random(n) < 0.7
+            ctx = {}
+            for name, stage in (("numpy", ref), ("compiled", new), ("source", src)):
+                assert jit.select("numpy" if name == "numpy" else "compiled")
+                if name == "source":  # the kernels' own sources run uncompiled
+                    for kernel in (observer_kernel.STEP, observer_kernel.UPDATE):
+                        kernel.impl = kernel.reference
+                ctx[name] = TickContext(copy.deepcopy(tick))
+                stage.step(ctx[name])
+                stage.correct(ctx[name], {k: v.copy() for k, v in params.items()}, converged)
+            _same(ref, new, ctx["numpy"], ctx["compiled"])
+            _same(ref, src, ctx["numpy"], ctx["source"])
+    finally:
+        jit.restore(before)
+
+
+# ----------------------------------------------------------------------------- whole banks
+@pytest.mark.parametrize("variant", ["hy-affrls", "hy-affrls-lpso"])
+@pytest.mark.parametrize("observer", [True, False])
+def test_a_bank_gives_the_same_estimates_with_either_kernel(
+    restore_kernel: None, variant: str, observer: bool
+) -> None:
+    """Three cells of the reference DST (1,200 s), with the observer and as a plain count."""
+    run = paper_dst_case(1200, r0_spread=np.array([1.0, 1.15, 1.3]))
+    block = SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
+    tun = EstimatorTuning(observer=ObserverTuning(enabled=observer))
+    out, counters = {}, {}
+    for name in ("numpy", "compiled"):
+        assert jit.select(name) == name
+        bank = build_bank(run.cell, 3, variant, tun, soc0=0.98)  # type: ignore[arg-type]
+        out[name] = bank.update_block(block)
+        counters[name] = bank.counters
+    ref, new = out["numpy"], out["compiled"]
+    assert counters["compiled"] == counters["numpy"]
+    np.testing.assert_array_equal(new.quality, ref.quality)
+    for name in ref.cells:
+        np.testing.assert_allclose(new[name], ref[name], rtol=1e-7, atol=1e-12, err_msg=name)
+
+
+def test_an_observer_with_anchors_a_gap_and_an_offset_decides_alike(
+    restore_kernel: None,
+) -> None:
+    """14 h of the multi-day record with a +0.5 A offset and an hour of downtime: the same
+    anchors, re-anchor, capacity updates and observer updates, estimates to tolerance."""
+    rec = generate(MultidayOptions(n_days=1, duration_s=14 * 3600, current_offset_A=0.5,
+                                   hysteresis_tilt=0.6))  # fmt: skip
+    keep = np.ones(rec.n_samples, dtype=bool)
+    keep[30000:33600] = False
+    block = SampleBlock.from_arrays(rec.t_s[keep], rec.current_A[keep], rec.voltage_V[keep, None])
+    tun = EstimatorTuning(id_period_s=10.0)
+    out, counters = {}, {}
+    for name in ("numpy", "compiled"):
+        assert jit.select(name) == name
+        bank = build_bank(rec.cell, 1, "hy-affrls", tun)
+        out[name] = bank.update_block(block)
+        counters[name] = bank.counters
+    assert counters["compiled"] == counters["numpy"]
+    assert counters["numpy"]["anchors"] >= 2 and counters["numpy"]["reanchors"] == 1
+    ref, new = out["numpy"], out["compiled"]
+    np.testing.assert_array_equal(new.quality, ref.quality)
+    for name in ref.cells:
+        np.testing.assert_allclose(new[name], ref[name], rtol=1e-6, atol=1e-12, err_msg=name)
