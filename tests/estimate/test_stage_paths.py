@@ -12,12 +12,14 @@ from bmsid.estimate.stage import (
     _adapt_arrays,
     _adapt_one,
     _innovation_gain,
+    innovation_constants,
 )
 from bmsid.estimate.ticks import Tick
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.ecm import branches_step
 
 TUNING = EstimatorTuning()
+CONSTS = innovation_constants(TUNING)
 ANY = st.floats(allow_nan=True, allow_infinity=True, width=64)
 #: errors (V) and RMS values around the ones a tick sees, and any float
 VOLTS = st.one_of(st.floats(-0.2, 0.2), st.floats(0.0, 0.02), ANY)
@@ -50,7 +52,8 @@ def test_one_cell_innovation_path_equals_the_array_path(
 ) -> None:
     forget = Forgetting(min(lo, hi), max(lo, hi), 1.0)
     g = _innovation_gain(dt, TUNING.innovation_scale_s)
-    args = (np.array([e]), np.array([sig]), np.array([ok]), quiet, g, forget, TUNING)
+    args = (np.array([e]), np.array([sig]), np.array([ok]), quiet, g, forget.lam_lo, forget.lam_hi,
+            CONSTS)  # fmt: skip
     with np.errstate(all="ignore"):
         want = _adapt_arrays(*args)
     got = _adapt_one(*args)
@@ -67,9 +70,10 @@ def test_one_cell_innovation_path_over_the_errors_of_a_drive() -> None:
     forget = Forgetting(TUNING.lambda_min, TUNING.lambda_max, 1.0)
     g = _innovation_gain(1.0, TUNING.innovation_scale_s)
     ok = np.ones(e.shape, dtype=bool)
-    want = _adapt_arrays(e, sig, ok, False, g, forget, TUNING)
+    want = _adapt_arrays(e, sig, ok, False, g, forget.lam_lo, forget.lam_hi, CONSTS)
     for k in range(e.shape[0]):
-        got = _adapt_one(e[k : k + 1], sig[k : k + 1], ok[k : k + 1], False, g, forget, TUNING)
+        got = _adapt_one(e[k : k + 1], sig[k : k + 1], ok[k : k + 1], False, g, forget.lam_lo,
+                         forget.lam_hi, CONSTS)  # fmt: skip
         assert b"".join(_bits(h) for h in got) == b"".join(_bits(w[k : k + 1]) for w in want)
 
 
