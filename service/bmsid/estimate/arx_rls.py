@@ -87,7 +87,8 @@ class ArxRlsStage:
 
     def step(self, ctx: TickContext) -> None:
         """One tick: a single call of ``rls_kernel.ARX_TICK`` (compiled or its numpy reference,
-        ``rls_reference.arx_tick_numpy``)."""
+        ``rls_reference.arx_tick_numpy``); it updates the branch states, lambda, the innovation
+        RMS, theta, P and the histories in place."""
         tick, tun = ctx.tick, self.tuning
         if tick.new_segment:
             self.hist_n = 0
@@ -98,11 +99,7 @@ class ArxRlsStage:
         if self.T_arx == 0.0 and dt > 0:
             self.T_arx = dt
             self.theta_arx = self._seed_theta()
-        (
-            self.x1, self.x2, self.R0, self.R1, self.R2, self.tau1, self.tau2, self.lam,
-            self.sig_e, self.theta_arx, self.P_arx, self.ue_hist, self.i_hist, self.arx_err,
-            self.v_model, rejected,
-        ) = ARX_TICK.impl(
+        out, rejected = ARX_TICK.impl(
             self.x1, self.x2, self.tau1, self.tau2, self.R0, self.R1, self.R2, self.lam,
             self.sig_e, self.theta_arx, self.P_arx, self.ue_hist, self.arx_scale, self.i_hist,
             self._bounds, self._rest_A, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V, tick.ok, ctx.learn,
@@ -110,13 +107,15 @@ class ArxRlsStage:
             forget.lam_lo, forget.lam_hi, innovation_gain(dt, tun), self._consts,
             tun.trace_max, self.hysteresis, self.hist_n >= 2 and self.T_arx > 0,
         )  # fmt: skip
+        # published as they are: rows of an array new every tick
+        self.R0, self.R1, self.R2, self.tau1, self.tau2, self.arx_err, self.v_model = out
         if rejected:
             self.counters["arx_rejected"] += rejected
         self.hist_n += 1
 
     def outputs(self) -> dict[str, FloatArray]:
-        # Every array here is rebound by each step (np.where), never written in place: the
-        # estimates may hold them without a copy.
+        # Every array here is rebound by each step (rows of the tick kernel's result), never
+        # written in place: the estimates may hold them without a copy.
         zeros = np.zeros(self.n)
         out = {
             "R0_ohm": self.R0,

@@ -136,23 +136,20 @@ class FusionStage:
         self._m_table = ctx.m_table_V
         hm, learn = ctx.hm_V, ctx.learn
         # the AFFRLS and the bounds: one call of the kernel (compiled, or the numpy reference
-        # rls_reference.fusion_tick_numpy)
-        (
-            self.x1, self.x2, self.theta, self.P, self.lam, self.sig_e, self.arx_err, v_model, y,
-            n_moved,
-        ) = FUSION_TICK.impl(
-            self.x1, self.x2, self.tau1, self.tau2, self.theta, self.P, self.sig_e, self._lin,
-            self._rest_A, ctx.v_safe_V, ctx.ocv_V, hm, tick.ok, learn, self.clamped, i,
-            tick.i_prev_A, dt, forget.lam_lo, forget.lam_hi, innovation_gain(dt, tun),
+        # rls_reference.fusion_tick_numpy); x1, x2, theta, P, lambda and sig_e move in place
+        out, n_moved = FUSION_TICK.impl(
+            self.x1, self.x2, self.tau1, self.tau2, self.theta, self.P, self.sig_e, self.lam,
+            self._lin, self._rest_A, ctx.v_safe_V, ctx.ocv_V, hm, tick.ok, learn, self.clamped,
+            i, tick.i_prev_A, dt, forget.lam_lo, forget.lam_hi, innovation_gain(dt, tun),
             self._consts, tun.trace_max, self._fit_scale, tun.identify_ocv_offset,
         )  # fmt: skip
+        self.arx_err, self.v_model, y = out  # rows of an array new every tick
         if n_moved:
             self.counters["clamped"] += n_moved
         self._carry_temperature(tick.temperature_C, dt, learn)
         self.buffer.push(i, y, hm, learn)
         self._run_swarms(tick.t_s)
         self._publish_linear()
-        self.v_model = v_model
 
     def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
         """R0 follows the temperature, also while learning (``estimate/arrhenius.py``)."""

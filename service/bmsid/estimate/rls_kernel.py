@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from bmsid.estimate import jit
-from bmsid.estimate.rls_reference import ArxTick, FusionTick, arx_tick_numpy, fusion_tick_numpy
+from bmsid.estimate.rls_reference import arx_tick_numpy, fusion_tick_numpy
 
 # ------------------------------------------------------------------ helpers (shared)
 
@@ -182,20 +182,17 @@ def _arx_source(
 ) -> Any:  # fmt: skip
     """``rls_reference.arx_tick_numpy`` cell by cell (compiled by numba)."""
     n, m = theta.shape
-    x1n, x2n, arx_err, v_model = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    lam_n, sig_n, ue_n = lam.copy(), sig_e.copy(), np.empty((n, 2))
-    theta_n, P_n, tr = theta.copy(), P.copy(), np.zeros(n)
+    out = np.empty((7, n))  # R0, R1, R2, tau1, tau2, a-priori error, model voltage
+    theta_n, P_n, tr = np.empty((n, m)), np.empty((n, m, m)), np.zeros(n)
     phi, pphi = np.empty(m), np.empty(m)
     for c in range(n):
-        xa, xb = x1[c], x2[c]
         if dt > 0:
-            xa = _branch(xa, tau1[c], ip, dt)
-            xb = _branch(xb, tau2[c], ip, dt)
-        x1n[c], x2n[c] = xa, xb
+            x1[c] = _branch(x1[c], tau1[c], ip, dt)
+            x2[c] = _branch(x2[c], tau2[c], ip, dt)
         clamped[c] = False
         h = hm[c] if use_h else 0.0
-        vm = ocv[c] + h - R0[c] * i - R1[c] * xa - R2[c] * xb
-        v_model[c] = vm
+        vm = ocv[c] + h - R0[c] * i - R1[c] * x1[c] - R2[c] * x2[c]
+        out[6, c] = vm
         ue = v[c] - ocv[c] - h
         if do_rls:
             phi[0], phi[1], phi[2] = ue_hist[c, 0], ue_hist[c, 1], i
@@ -204,50 +201,49 @@ def _arx_source(
             for k in range(m):
                 acc += phi[k] * (theta[c, k] * scale[c, k])
             e = ue - acc
-            arx_err[c] = e if ok[c] else 0.0
+            out[5, c] = e if ok[c] else 0.0
             quiet = abs(i) < rest_A[c] and abs(i - ip) < rest_A[c]
-            e_c, sig_n[c], lam_n[c] = _adapt_cell(
+            e_c, sig_e[c], lam[c] = _adapt_cell(
                 e, sig_e[c], learn[c], quiet, g, lam_lo, lam_hi, consts
             )
             for k in range(m):
                 phi[k] *= scale[c, k]
-            tr[c] = _rls_row(theta[c], P[c], phi, e_c, lam_n[c], theta_n[c], P_n[c], pphi)
+            tr[c] = _rls_row(theta[c], P[c], phi, e_c, lam[c], theta_n[c], P_n[c], pphi)
         else:
-            arx_err[c] = v[c] - vm if ok[c] else 0.0
-        ue_n[c, 0], ue_n[c, 1] = ue, ue_hist[c, 0]
-    R0n, R1n, R2n, tau1n, tau2n = R0.copy(), R1.copy(), R2.copy(), tau1.copy(), tau2.copy()
+            out[5, c] = v[c] - vm if ok[c] else 0.0
+        ue_hist[c, 1] = ue_hist[c, 0]
+        ue_hist[c, 0] = ue
+        out[0, c], out[1, c], out[2, c] = R0[c], R1[c], R2[c]  # held unless the map is taken
+        out[3, c], out[4, c] = tau1[c], tau2[c]
+    i_hist[1] = i_hist[0]
+    i_hist[0] = i
     rejected = 0
     if do_rls:
         _cap_and_mask(theta, P, theta_n, P_n, tr, learn, trace_max)
+        theta[:, :] = theta_n
+        P[:, :, :] = P_n
         lo, hi = bounds[0], bounds[1]
+        raw = np.empty(5)
         for c in range(n):
-            status, r0, r1, r2, t2, t1 = _map_row(
-                theta_n[c, 0] * scale[c, 0], theta_n[c, 1] * scale[c, 1],
-                theta_n[c, 2] * scale[c, 2], theta_n[c, 3] * scale[c, 3],
-                theta_n[c, 4] * scale[c, 4], T,
+            status, raw[0], raw[1], raw[2], raw[3], raw[4] = _map_row(
+                theta[c, 0] * scale[c, 0], theta[c, 1] * scale[c, 1], theta[c, 2] * scale[c, 2],
+                theta[c, 3] * scale[c, 3], theta[c, 4] * scale[c, 4], T,
             )  # fmt: skip
             if not (learn[c] and status == 0.0):
                 rejected += 1 if learn[c] else 0
                 continue
-            raw = (r0, r1, r2, t2, t1)
-            out = np.empty(5)
             inside = True
-            for k in range(5):
-                out[k] = _minimum(_maximum(raw[k], lo[k, c]), hi[k, c])
-                inside = inside and out[k] == raw[k]
-            R0n[c], R1n[c], R2n[c], tau2n[c], tau1n[c] = out[0], out[1], out[2], out[3], out[4]
+            for k in range(5):  # rows R0, R1, R2, tau2, tau1 into out's R0, R1, R2, tau2, tau1
+                r = _minimum(_maximum(raw[k], lo[k, c]), hi[k, c])
+                inside = inside and r == raw[k]
+                out[k if k < 3 else 7 - k, c] = r
             clamped[c] = not inside
             arx_ok[c] = True
-    i_hist_n = np.empty(2)
-    i_hist_n[0], i_hist_n[1] = i, i_hist[0]
-    return (
-        x1n, x2n, R0n, R1n, R2n, tau1n, tau2n, lam_n, sig_n, theta_n, P_n, ue_n, i_hist_n,
-        arx_err, v_model, rejected,
-    )  # fmt: skip
+    return out, rejected
 
 
 def _fusion_source(
-    x1: Any, x2: Any, tau1: Any, tau2: Any, theta: Any, P: Any, sig_e: Any, lin: Any,
+    x1: Any, x2: Any, tau1: Any, tau2: Any, theta: Any, P: Any, sig_e: Any, lam: Any, lin: Any,
     rest_A: Any, v: Any, ocv: Any, hm: Any, ok: Any, learn: Any, clamped: Any, i: float,
     ip: float, dt: float, lam_lo: float, lam_hi: float, g: float,
     consts: tuple[float, float, float, float], trace_max: float, fit_scale: bool,
@@ -256,36 +252,33 @@ def _fusion_source(
     """``rls_reference.fusion_tick_numpy`` cell by cell (compiled by numba)."""
     sc, phi_sc, lo, hi, tol = lin[0], lin[1], lin[2], lin[3], lin[4]
     n, m = theta.shape
-    x1n, x2n, arx_err, v_model, y = (np.empty(n), np.empty(n), np.empty(n), np.empty(n),
-                                     np.empty(n))  # fmt: skip
-    lam_n, sig_n = np.empty(n), np.empty(n)
+    out = np.empty((3, n))  # a-priori error, model voltage, V - OCV
     theta_n, P_n, tr = np.empty((n, m)), np.empty((n, m, m)), np.empty(n)
     phi, pphi = np.empty(m), np.empty(m)
-    out_of_bounds = False
     for c in range(n):
-        xa, xb = x1[c], x2[c]
         if dt > 0:
-            xa = _branch(xa, tau1[c], ip, dt)
-            xb = _branch(xb, tau2[c], ip, dt)
-        x1n[c], x2n[c] = xa, xb
+            x1[c] = _branch(x1[c], tau1[c], ip, dt)
+            x2[c] = _branch(x2[c], tau2[c], ip, dt)
         clamped[c] = False
-        phi[0], phi[1], phi[2], phi[3], phi[4] = -i, -xa, -xb, hm[c], 1.0
+        phi[0], phi[1], phi[2], phi[3], phi[4] = -i, -x1[c], -x2[c], hm[c], 1.0
         acc = 0.0
         for k in range(m):
             acc += phi[k] * (theta[c, k] * sc[c, k])
         vm = ocv[c] + acc
-        v_model[c] = vm
-        y[c] = v[c] - ocv[c]
+        out[1, c] = vm
+        out[2, c] = v[c] - ocv[c]
         e = v[c] - vm
-        arx_err[c] = e if ok[c] else 0.0
+        out[0, c] = e if ok[c] else 0.0
         quiet = abs(i) < rest_A[c] and abs(i - ip) < rest_A[c]
-        e_c, sig_n[c], lam_n[c] = _adapt_cell(
+        e_c, sig_e[c], lam[c] = _adapt_cell(
             e, sig_e[c], learn[c], quiet, g, lam_lo, lam_hi, consts
         )
         for k in range(m):
             phi[k] *= phi_sc[c, k]
-        tr[c] = _rls_row(theta[c], P[c], phi, e_c, lam_n[c], theta_n[c], P_n[c], pphi)
+        tr[c] = _rls_row(theta[c], P[c], phi, e_c, lam[c], theta_n[c], P_n[c], pphi)
     _cap_and_mask(theta, P, theta_n, P_n, tr, learn, trace_max)
+    P[:, :, :] = P_n
+    out_of_bounds = False
     for c in range(n):
         for k in range(m):
             th = theta_n[c, k] * sc[c, k]
@@ -295,9 +288,9 @@ def _fusion_source(
         for c in range(n):
             th_j = theta_n[c, j] * sc[c, j]
             d_n = (_minimum(_maximum(th_j, lo[c, j]), hi[c, j]) - th_j) / sc[c, j]
-            pjj = P_n[c, j, j]
+            pjj = P[c, j, j]
             for k in range(m):
-                theta_n[c, k] += (P_n[c, k, j] / pjj if pjj > 0 else 0.0) * d_n
+                theta_n[c, k] += (P[c, k, j] / pjj if pjj > 0 else 0.0) * d_n
     # clamp_linear
     n_moved = 0
     for c in range(n):
@@ -310,41 +303,39 @@ def _fusion_source(
             elif k == 4 and not fit_offset:
                 cl = 0.0
             moved = moved or abs(cl - th) > tol[c, k]
-            theta_n[c, k] = cl / sc[c, k]
+            theta[c, k] = cl / sc[c, k]
         if moved:
             clamped[c] = True
             n_moved += 1
-    return x1n, x2n, theta_n, P_n, lam_n, sig_n, arx_err, v_model, y, n_moved
+    return out, n_moved
 
 
-def _args(n: int) -> tuple[Any, ...]:
-    """Arrays of every type the stages pass (n cells)."""
-    one, flag = np.ones(n), np.ones(n, dtype=bool)
-    return one, np.ones((n, 5)), np.eye(5)[None].repeat(n, axis=0), flag, (1e-3, 6.0, 3.0, 0.5)
+def _f() -> Any:
+    """A fresh one-cell float array (the warm-up calls write some arguments in place)."""
+    return np.ones(1)
 
 
 def _warm_arx(kernel: Any) -> object:
+    """One cell, every argument of the type the stage passes."""
     _compile_helpers()
-    one, th, P, flag, consts = _args(1)
+    th, P, flag = np.ones((1, 5)), np.eye(5)[None], np.ones(1, bool)
     bounds = np.stack([np.zeros((5, 1)), np.full((5, 1), 1e9)])
     return kernel(
-        one, one, one, one, one, one, one, one, one, th * 0.1, P, np.zeros((1, 2)), th,
-        np.zeros(2), bounds, one, one, one, one, flag, flag, flag.copy(), flag.copy(), 1.0, 1.0,
-        1.0, 1.0, 0.99, 1.0, 0.01, consts, 1e5, True, True,
+        _f(), _f(), _f(), _f(), _f(), _f(), _f(), _f(), _f(), th * 0.1, P, np.zeros((1, 2)), th,
+        np.zeros(2), bounds, _f(), _f(), _f(), _f(), flag, flag, flag.copy(), flag.copy(), 1.0,
+        1.0, 1.0, 1.0, 0.99, 1.0, 0.01, (1e-3, 6.0, 3.0, 0.5), 1e5, True, True,
     )  # fmt: skip
 
 
 def _warm_fusion(kernel: Any) -> object:
     _compile_helpers()
-    one, th, P, flag, consts = _args(1)
+    th, P, flag = np.ones((1, 5)), np.eye(5)[None], np.ones(1, bool)
     lin = np.stack([th, th, th * 0.0, th * 2.0, th * 1e-12])
     return kernel(
-        one, one, one, one, th, P, one, lin, one, one, one, one, flag, flag, flag.copy(), 1.0,
-        1.0, 1.0, 0.99, 1.0, 0.01, consts, 1e5, True, False,
+        _f(), _f(), _f(), _f(), th, P, _f(), _f(), lin, _f(), _f(), _f(), _f(), flag, flag,
+        flag.copy(), 1.0, 1.0, 1.0, 0.99, 1.0, 0.01, (1e-3, 6.0, 3.0, 0.5), 1e5, True, False,
     )  # fmt: skip
 
 
 ARX_TICK = jit.Kernel("ARX tick", arx_tick_numpy, _arx_source, _warm_arx)
 FUSION_TICK = jit.Kernel("fusion tick", fusion_tick_numpy, _fusion_source, _warm_fusion)
-
-__all__ = ["ARX_TICK", "FUSION_TICK", "ArxTick", "FusionTick"]

@@ -10,8 +10,10 @@ floats so that a compiled kernel can take the same arguments:
 * :func:`fusion_tick_numpy` (``fusion.FusionStage``): branch states, model voltage, Eq. 21, the
   AFFRLS update of the linear parameters, their projection onto the bounds and the clamp.
 
-Both write the flags ``clamped`` (and ``arx_ok``) in place, as the stages did, and return every
-other array new (the stages publish some without a copy). The argument order is the kernels'.
+Both update the stage's internal state in place (branch states, lambda, innovation RMS, theta,
+P, histories, the flags) and return what the stage publishes without a copy, new every tick, as
+the rows of one array: a compiled kernel returns one array rather than ten (turning each into a
+Python object costs about half a microsecond). The argument order is the kernels'.
 """
 
 from __future__ import annotations
@@ -29,20 +31,11 @@ BoolArray = npt.NDArray[np.bool_]
 
 _MAP_OK = int(MapStatus.OK)  # numpy compares an array with an IntEnum member ~5x slower
 
-#: arx_tick's results: x1, x2, R0, R1, R2, tau1, tau2, lambda, innovation RMS, theta, P, U_E
-#: history, current history, a-priori error, model voltage, sets rejected by the map
-ArxTick = tuple[
-    FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
-    FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
-    FloatArray, int,
-]  # fmt: skip
+#: (rows R0, R1, R2, tau1, tau2, a-priori error, model voltage (7, n); sets the map rejected)
+ArxTick = tuple[FloatArray, int]
 
-#: fusion_tick's results: x1, x2, theta, P, lambda, innovation RMS, a-priori error, model
-#: voltage, V - OCV (the window buffer's y), cells clamped
-FusionTick = tuple[
-    FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
-    FloatArray, FloatArray, int,
-]  # fmt: skip
+#: (rows a-priori error, model voltage, V - OCV (the window buffer's y) (3, n); cells clamped)
+FusionTick = tuple[FloatArray, int]
 
 
 def arx_tick_numpy(
@@ -63,10 +56,11 @@ def arx_tick_numpy(
     R0, R1, R2, tau2, tau1; ``rest_A`` (n,) the rest limit. The tick: current ``i`` and the one
     held before it ``ip`` (A), its step ``dt`` and the ARX period ``T`` (s), the forgetting
     limits, the innovation gain ``g``; ``use_h`` removes h M from U_E; ``do_rls`` (two past
-    samples and a period) updates theta, else only the states move.
+    samples and a period) updates theta, else only the states move. In place: x1, x2, lam,
+    sig_e, theta, P, ue_hist, i_hist and the flags ``clamped``, ``arx_ok``.
     """
     n = x1.shape[0]
-    x1, x2 = branches_step(x1, x2, tau1, tau2, ip, dt)
+    x1[:], x2[:] = branches_step(x1, x2, tau1, tau2, ip, dt)
     clamped[:] = False
     h_term = hm if use_h else np.zeros(n)
     v_model = ocv + h_term - R0 * i - R1 * x1 - R2 * x2
@@ -80,22 +74,18 @@ def arx_tick_numpy(
         e = ue - np.einsum("nk,nk->n", phi, theta * scale)
         arx_err = np.where(ok, e, 0.0)
         quiet = (abs(i) < rest_A) & (abs(i - ip) < rest_A)
-        e_c, sig_e, lam = adapt_with_gain(e, sig_e, learn, quiet, g, lam_lo, lam_hi, consts)
-        theta, P = rls_update(theta, P, phi * scale, e_c, lam, learn, trace_max)
+        e_c, sig_e[:], lam[:] = adapt_with_gain(e, sig_e, learn, quiet, g, lam_lo, lam_hi, consts)
+        theta[:], P[:] = rls_update(theta, P, phi * scale, e_c, lam, learn, trace_max)
         R0, R1, R2, tau2, tau1, n_rejected = _accept(
             theta * scale, T, learn, bounds, (R0, R1, R2, tau2, tau1), clamped, arx_ok
         )
     else:
         arx_err = np.where(ok, v - v_model, 0.0)
-    ue_hist_new = np.empty((n, 2))
-    ue_hist_new[:, 0] = ue
-    ue_hist_new[:, 1] = ue_hist[:, 0]
-    i_hist = np.array([i, i_hist[0]])
-    v_model = np.asarray(v_model, dtype=np.float64)
-    return (
-        x1, x2, R0, R1, R2, tau1, tau2, lam, sig_e, theta, P, ue_hist_new, i_hist, arx_err,
-        v_model, n_rejected,
-    )  # fmt: skip
+    ue_hist[:, 1] = ue_hist[:, 0]
+    ue_hist[:, 0] = ue
+    i_hist[1] = i_hist[0]
+    i_hist[0] = i
+    return np.array([R0, R1, R2, tau1, tau2, arx_err, v_model]), n_rejected
 
 
 def _accept(
@@ -125,7 +115,8 @@ def _accept(
 
 def fusion_tick_numpy(
     x1: FloatArray, x2: FloatArray, tau1: FloatArray, tau2: FloatArray, theta: FloatArray,
-    P: FloatArray, sig_e: FloatArray, lin: FloatArray, rest_A: FloatArray, v: FloatArray,
+    P: FloatArray, sig_e: FloatArray, lam: FloatArray, lin: FloatArray, rest_A: FloatArray,
+    v: FloatArray,
     ocv: FloatArray, hm: FloatArray, ok: BoolArray, learn: BoolArray, clamped: BoolArray,
     i: float, ip: float, dt: float, lam_lo: float, lam_hi: float, g: float,
     consts: InnovationConstants, trace_max: float, fit_scale: bool, fit_offset: bool,
@@ -135,11 +126,11 @@ def fusion_tick_numpy(
     theta (n, 5): R0, R1, R2, M scale, OCV offset normalised; ``lin`` (5, n, 5) holds per cell
     their scale, the regressor's scale, lower and upper bounds and the clamp tolerance; the
     rest as in :func:`arx_tick_numpy`. ``fit_scale``/``fit_offset``: the M scale/the offset are
-    identified (else held at 1/0).
+    identified (else held at 1/0). In place: x1, x2, theta, P, lam, sig_e and ``clamped``.
     """
     scale, phi_scale, lo, hi, tol = lin
     n = x1.shape[0]
-    x1, x2 = branches_step(x1, x2, tau1, tau2, ip, dt)
+    x1[:], x2[:] = branches_step(x1, x2, tau1, tau2, ip, dt)
     clamped[:] = False
     phi = np.ones((n, 5))  # column 4: the offset's 1
     phi[:, 0] = -i
@@ -150,15 +141,14 @@ def fusion_tick_numpy(
     e = v - v_model
     arx_err = e if np.count_nonzero(ok) == n else np.where(ok, e, 0.0)
     quiet = (abs(i) < rest_A) & (abs(i - ip) < rest_A)
-    e_c, sig_e, lam = adapt_with_gain(e, sig_e, learn, quiet, g, lam_lo, lam_hi, consts)
-    theta, P = rls_update(theta, P, phi * phi_scale, e_c, lam, learn, trace_max)
-    theta, th = project_linear(theta, P, scale, lo, hi)
-    theta, moved = clamp_linear(theta, th, scale, lo, hi, tol, fit_scale, fit_offset)
+    e_c, sig_e[:], lam[:] = adapt_with_gain(e, sig_e, learn, quiet, g, lam_lo, lam_hi, consts)
+    theta_n, P[:] = rls_update(theta, P, phi * phi_scale, e_c, lam, learn, trace_max)
+    theta_n, th = project_linear(theta_n, P, scale, lo, hi)
+    theta[:], moved = clamp_linear(theta_n, th, scale, lo, hi, tol, fit_scale, fit_offset)
     n_moved = int(np.count_nonzero(moved))  # usually 0: the flags stay as they are
     if n_moved:
         clamped |= moved
-    v_model = np.asarray(v_model, dtype=np.float64)
-    return x1, x2, theta, P, lam, sig_e, arx_err, v_model, v - ocv, n_moved
+    return np.array([arx_err, v_model, v - ocv]), n_moved
 
 
 def project_linear(
