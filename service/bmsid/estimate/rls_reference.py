@@ -73,7 +73,7 @@ def arx_tick_numpy(
         phi[:, 3:] = i_hist
         e = ue - np.einsum("nk,nk->n", phi, theta * scale)
         arx_err = np.where(ok, e, 0.0)
-        quiet = (abs(i) < rest_A) & (abs(i - ip) < rest_A)
+        quiet = _quiet(i, ip, rest_A)
         e_c, sig_e[:], lam[:] = adapt_with_gain(e, sig_e, learn, quiet, g, lam_lo, lam_hi, consts)
         theta[:], P[:] = rls_update(theta, P, phi * scale, e_c, lam, learn, trace_max)
         R0, R1, R2, tau2, tau1, n_rejected = _accept(
@@ -140,7 +140,7 @@ def fusion_tick_numpy(
     v_model = ocv + (phi * (theta * scale)).sum(axis=1)
     e = v - v_model
     arx_err = e if np.count_nonzero(ok) == n else np.where(ok, e, 0.0)
-    quiet = (abs(i) < rest_A) & (abs(i - ip) < rest_A)
+    quiet = _quiet(i, ip, rest_A)
     e_c, sig_e[:], lam[:] = adapt_with_gain(e, sig_e, learn, quiet, g, lam_lo, lam_hi, consts)
     theta_n, P[:] = rls_update(theta, P, phi * phi_scale, e_c, lam, learn, trace_max)
     theta_n, th = project_linear(theta_n, P, scale, lo, hi)
@@ -149,6 +149,13 @@ def fusion_tick_numpy(
     if n_moved:
         clamped |= moved
     return np.array([arx_err, v_model, v - ocv]), n_moved
+
+
+def _quiet(i: float, ip: float, rest_A: FloatArray) -> bool | BoolArray:
+    """``stage.is_quiet``: cells at rest with no current change (|I|, |dI| < ``rest_A``); one
+    cell's answer as one bool (no array operations: the innovation step takes either)."""
+    lim = rest_A if rest_A.shape[0] > 1 else float(rest_A[0])
+    return (abs(i) < lim) & (abs(i - ip) < lim)
 
 
 def project_linear(

@@ -123,33 +123,6 @@ def is_excited(tick: Tick, excitation_limit_A: float | FloatArray) -> bool | Boo
     return tick.current_std_A >= excitation_limit_A
 
 
-class BranchSteps:
-    """:func:`bmsid.model.ecm.branches_step` that keeps the decays a = exp(-dt / tau) and 1 - a
-    while the step dt (s) and the time constants tau1, tau2 (s) stay the same to the bit: the
-    fusion's poles move once a swarm, and most ticks are one period apart."""
-
-    __slots__ = ("_a1", "_a2", "_b1", "_b2", "_key")
-
-    def __init__(self) -> None:
-        self._key: tuple[float, bytes, bytes] | None = None
-        self._a1 = self._a2 = self._b1 = self._b2 = _EMPTY
-
-    def __call__(
-        self, x1: FloatArray, x2: FloatArray, tau1_s: FloatArray, tau2_s: FloatArray,
-        current_A: float, dt_s: float,
-    ) -> tuple[FloatArray, FloatArray]:  # fmt: skip
-        """Both unit-gain branch states over ``dt_s`` at the held current (A); unchanged when
-        ``dt_s`` <= 0."""
-        if dt_s <= 0:
-            return x1, x2
-        key = (dt_s, tau1_s.tobytes(), tau2_s.tobytes())  # equal bytes: equal decays
-        if key != self._key:
-            a1, a2 = np.exp(-dt_s / tau1_s), np.exp(-dt_s / tau2_s)
-            self._a1, self._a2, self._b1, self._b2 = a1, a2, 1.0 - a1, 1.0 - a2
-            self._key = key
-        return self._a1 * x1 + self._b1 * current_A, self._a2 * x2 + self._b2 * current_A
-
-
 @dataclass(frozen=True, slots=True)
 class Forgetting:
     """Per-tick forgetting limits (Eq. 21 with per-second constants raised to the tick's data
