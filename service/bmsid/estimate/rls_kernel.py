@@ -9,8 +9,10 @@ arguments and results they share; ``jit.select`` chooses for all kernels at once
 
 Each kernel loops over the cells and, per cell, calls the helpers below the two stages share
 (``_branch``, ``_adapt_cell``, ``_rls_row``), in the same formulas and order as the reference:
-equal to it to rounding (``tests/estimate/test_rls_kernel.py``; the map ``_map_row`` and the
-innovation step give the same bits, the RLS's sums differ from numpy's BLAS in the last bits).
+equal to it to rounding (``tests/estimate/test_rls_kernel.py``: the map ``_map_row`` gives the
+same bits as ``model.arx``'s; libm's exp and pow and the RLS's plain sums differ from numpy's
+vectorised exp, pow and BLAS products in the last bits, 1e-15 relative a tick, ~1e-12 over a
+run, and the same accept/reject decisions and quality codes on the reference DST).
 
 The helpers are plain Python (they run uncompiled too); :func:`_compile_helpers` replaces each
 in this module's namespace by its numba dispatcher before a kernel first compiles (numba looks a
