@@ -7,17 +7,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.estimate.stage import (
-    BranchSteps,
     Forgetting,
     _adapt_arrays,
     _adapt_one,
     _innovation_gain,
+    innovation_constants,
 )
 from bmsid.estimate.ticks import Tick
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.model.ecm import branches_step
 
 TUNING = EstimatorTuning()
+CONSTS = innovation_constants(TUNING)
 ANY = st.floats(allow_nan=True, allow_infinity=True, width=64)
 #: errors (V) and RMS values around the ones a tick sees, and any float
 VOLTS = st.one_of(st.floats(-0.2, 0.2), st.floats(0.0, 0.02), ANY)
@@ -50,7 +50,8 @@ def test_one_cell_innovation_path_equals_the_array_path(
 ) -> None:
     forget = Forgetting(min(lo, hi), max(lo, hi), 1.0)
     g = _innovation_gain(dt, TUNING.innovation_scale_s)
-    args = (np.array([e]), np.array([sig]), np.array([ok]), quiet, g, forget, TUNING)
+    args = (np.array([e]), np.array([sig]), np.array([ok]), quiet, g, forget.lam_lo, forget.lam_hi,
+            CONSTS)  # fmt: skip
     with np.errstate(all="ignore"):
         want = _adapt_arrays(*args)
     got = _adapt_one(*args)
@@ -67,38 +68,11 @@ def test_one_cell_innovation_path_over_the_errors_of_a_drive() -> None:
     forget = Forgetting(TUNING.lambda_min, TUNING.lambda_max, 1.0)
     g = _innovation_gain(1.0, TUNING.innovation_scale_s)
     ok = np.ones(e.shape, dtype=bool)
-    want = _adapt_arrays(e, sig, ok, False, g, forget, TUNING)
+    want = _adapt_arrays(e, sig, ok, False, g, forget.lam_lo, forget.lam_hi, CONSTS)
     for k in range(e.shape[0]):
-        got = _adapt_one(e[k : k + 1], sig[k : k + 1], ok[k : k + 1], False, g, forget, TUNING)
+        got = _adapt_one(e[k : k + 1], sig[k : k + 1], ok[k : k + 1], False, g, forget.lam_lo,
+                         forget.lam_hi, CONSTS)  # fmt: skip
         assert b"".join(_bits(h) for h in got) == b"".join(_bits(w[k : k + 1]) for w in want)
-
-
-@settings(max_examples=200, deadline=None)
-@given(
-    n=st.integers(1, 4),
-    steps=st.lists(
-        st.tuples(
-            st.sampled_from([1.0, 1.0, 1.0, 0.5, 0.0, -1.0]),  # dt, s: mostly the period
-            st.floats(-300.0, 300.0),  # the held current, A
-            st.booleans(),  # a swarm moves a pole in place before this tick
-            st.floats(1.0, 5000.0),  # its new value, s
-        ),
-        min_size=1,
-        max_size=30,
-    ),
-)
-def test_branch_steps_equal_branches_step_while_poles_move_in_place(
-    n: int, steps: list[tuple[float, float, bool, float]]
-) -> None:
-    tau1, tau2 = np.linspace(5.0, 50.0, n), np.linspace(100.0, 900.0, n)
-    x1 = x2 = y1 = y2 = np.zeros(n)
-    cached = BranchSteps()
-    for k, (dt, i, move, tau) in enumerate(steps):
-        if move:
-            (tau1 if k % 2 else tau2)[k % n] = tau
-        x1, x2 = branches_step(x1, x2, tau1, tau2, i, dt)
-        y1, y2 = cached(y1, y2, tau1, tau2, i, dt)
-        assert _bits(y1) == _bits(x1) and _bits(y2) == _bits(x2)
 
 
 @given(dt=st.floats(-10.0, 1e4), period=st.floats(0.01, 100.0))

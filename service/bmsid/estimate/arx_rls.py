@@ -13,23 +13,21 @@ from typing import Any
 
 import numpy as np
 
-from bmsid.estimate.affrls import reset_covariance, rls_update
+from bmsid.estimate.affrls import reset_covariance
 from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.rls_kernel import ARX_TICK
 from bmsid.estimate.stage import (
     BoolArray,
     FloatArray,
     Forgetting,
     TickContext,
-    adapt_innovation,
-    is_quiet,
+    innovation_constants,
+    innovation_gain,
     per_cell_limit,
 )
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.model.arx import MapStatus, params_to_theta, theta_to_rows
-from bmsid.model.ecm import branches_step
-
-_MAP_OK = int(MapStatus.OK)  # numpy compares an array with an IntEnum member ~5x slower
+from bmsid.model.arx import params_to_theta
 
 
 class ArxRlsStage:
@@ -53,17 +51,20 @@ class ArxRlsStage:
         self.v_model = np.zeros(self.n)
         self._m_table = np.zeros(self.n)
         rows = [0, 1, 2, 4, 3]  # model columns R0, R1, R2, tau1, tau2 as theta_to_rows' rows
-        self._bounds = (model.lo[:, rows].T, model.hi[:, rows].T)
-        self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
+        # the kernel's constant arguments: contiguous float arrays, one tuple
+        self._bounds = np.ascontiguousarray(np.stack([model.lo[:, rows].T, model.hi[:, rows].T]))
+        self._rest_A = np.full(self.n, per_cell_limit(tuning.rest_current_C, model))
+        self._consts = innovation_constants(tuning)
 
     def _start_values(self) -> None:
         """Every per-cell array at its start value (start values clamped to the bounds)."""
         m, n = self.model, self.n
         self.x1 = np.zeros(n)
         self.x2 = np.zeros(n)
-        self.R0 = m.start("R0_ohm")
-        self.R1 = m.start("R1_ohm")
-        self.R2 = m.start("R2_ohm")
+        # contiguous (a column of the model's table is not): what the compiled kernel was built for
+        self.R0 = np.ascontiguousarray(m.start("R0_ohm"))
+        self.R1 = np.ascontiguousarray(m.start("R1_ohm"))
+        self.R2 = np.ascontiguousarray(m.start("R2_ohm"))
         self.tau1 = np.clip(m.start("tau1_s"), *m.bound("tau1_s"))
         self.tau2 = np.clip(m.start("tau2_s"), *m.bound("tau2_s"))
         self.lam = np.ones(n)
@@ -85,69 +86,36 @@ class ArxRlsStage:
         return self.arx_ok
 
     def step(self, ctx: TickContext) -> None:
+        """One tick: a single call of ``rls_kernel.ARX_TICK`` (compiled or its numpy reference,
+        ``rls_reference.arx_tick_numpy``); it updates the branch states, lambda, the innovation
+        RMS, theta, P and the histories in place."""
         tick, tun = ctx.tick, self.tuning
         if tick.new_segment:
             self.hist_n = 0
-        dt, ip, i = tick.dt_s, tick.i_prev_A, tick.current_A
-        self.x1, self.x2 = branches_step(self.x1, self.x2, self.tau1, self.tau2, ip, dt)
+        dt = tick.dt_s
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
-        quiet = is_quiet(tick, self._rest_limit_A)
-        self.clamped[:] = False
         self._m_table = ctx.m_table_V
-        ok, v, ocv_v = tick.ok, ctx.v_safe_V, ctx.ocv_V
-        h_term = ctx.hm_V if self.hysteresis else np.zeros(self.n)
-        v_model = ocv_v + h_term - self.R0 * i - self.R1 * self.x1 - self.R2 * self.x2
-        ue = v - ocv_v - h_term
         if self.T_arx == 0.0 and dt > 0:
             self.T_arx = dt
             self.theta_arx = self._seed_theta()
-        if self.hist_n >= 2 and self.T_arx > 0:
-            phi = np.empty((self.n, 5))
-            phi[:, :2] = self.ue_hist
-            phi[:, 2] = i
-            phi[:, 3:] = self.i_hist
-            e = ue - np.einsum("nk,nk->n", phi, self.theta_arx * self.arx_scale)
-            self.arx_err = np.where(ok, e, 0.0)
-            learn = ctx.learn
-            e_c, self.sig_e, self.lam = adapt_innovation(
-                e, self.sig_e, learn, quiet, dt, forget, tun
-            )
-            self.theta_arx, self.P_arx = rls_update(
-                self.theta_arx, self.P_arx, phi * self.arx_scale, e_c, self.lam, learn,
-                tun.trace_max,
-            )  # fmt: skip
-            self._accept(learn)
-        else:
-            self.arx_err = np.where(ok, v - v_model, 0.0)
-        ue_hist = np.empty((self.n, 2))
-        ue_hist[:, 0] = ue
-        ue_hist[:, 1] = self.ue_hist[:, 0]
-        self.ue_hist = ue_hist
-        self.i_hist = np.array([i, self.i_hist[0]])
+        out, rejected = ARX_TICK.impl(
+            self.x1, self.x2, self.tau1, self.tau2, self.R0, self.R1, self.R2, self.lam,
+            self.sig_e, self.theta_arx, self.P_arx, self.ue_hist, self.arx_scale, self.i_hist,
+            self._bounds, self._rest_A, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V, tick.ok, ctx.learn,
+            self.clamped, self.arx_ok, tick.current_A, tick.i_prev_A, dt, self.T_arx,
+            forget.lam_lo, forget.lam_hi, innovation_gain(dt, tun), self._consts,
+            tun.trace_max, self.hysteresis, self.hist_n >= 2 and self.T_arx > 0,
+        )  # fmt: skip
+        # published as they are: rows of an array new every tick
+        self.R0, self.R1, self.R2, self.tau1, self.tau2, self.arx_err, self.v_model = out
+        if rejected:
+            self.counters["arx_rejected"] += rejected
         self.hist_n += 1
-        self.v_model = np.asarray(v_model, dtype=np.float64)
-
-    def _accept(self, ok: BoolArray) -> None:
-        raw, status = theta_to_rows(self.theta_arx * self.arx_scale, self.T_arx)
-        good = ok & (status == _MAP_OK)
-        lo, hi = self._bounds
-        clipped = np.minimum(np.maximum(raw, lo), hi)  # rows R0, R1, R2, tau2, tau1
-        inside = np.logical_and.reduce(clipped == raw)  # ufunc reduce: no .all() dispatch
-        if np.count_nonzero(good) == good.size:  # the usual tick: every row taken
-            self.clamped |= ~inside
-            self.R0, self.R1, self.R2, self.tau2, self.tau1 = clipped
-            self.arx_ok |= good
-            return
-        self.counters["arx_rejected"] += int(np.count_nonzero(ok & ~good))
-        self.clamped |= good & ~inside
-        held = np.array([self.R0, self.R1, self.R2, self.tau2, self.tau1])
-        self.R0, self.R1, self.R2, self.tau2, self.tau1 = np.where(good, clipped, held)
-        self.arx_ok |= good
 
     def outputs(self) -> dict[str, FloatArray]:
-        # Every array here is rebound by each step (np.where), never written in place: the
-        # estimates may hold them without a copy.
+        # Every array here is rebound by each step (rows of the tick kernel's result), never
+        # written in place: the estimates may hold them without a copy.
         zeros = np.zeros(self.n)
         out = {
             "R0_ohm": self.R0,

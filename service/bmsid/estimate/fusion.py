@@ -22,23 +22,19 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate import lpso
-from bmsid.estimate.affrls import (
-    fusion_covariance,
-    reset_covariance,
-    rls_update,
-    swarm_covariance,
-)
+from bmsid.estimate.affrls import fusion_covariance, reset_covariance, swarm_covariance
 from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
+from bmsid.estimate.rls_kernel import FUSION_TICK
+from bmsid.estimate.rls_reference import clamp_linear
 from bmsid.estimate.stage import (
     BoolArray,
-    BranchSteps,
     FloatArray,
     Forgetting,
     TickContext,
-    adapt_innovation,
+    innovation_constants,
+    innovation_gain,
     is_excited,
-    is_quiet,
     per_cell_limit,
 )
 from bmsid.estimate.statedict import load_arrays
@@ -81,7 +77,6 @@ class FusionStage:
         self.scale = np.stack([r0, r1, r2, np.ones(n), np.full(n, 0.05)], axis=1)
         self._theta0 = np.stack([r0, r1, r2, np.ones(n), np.zeros(n)], axis=1) / self.scale
         self._clamp_tol = 1e-12 * np.abs(self.scale)  # a clamp that moves less is no clamp
-        self._phi = np.ones((n, 5))  # regressor, refilled every tick (column 4: the offset's 1)
         size = int(np.ceil(tuning.window_s / tuning.id_period_s)) + 1
         self.buffer = WindowBuffer(size=size, n_cells=n)
         self.schedule = SwarmSchedule(
@@ -96,13 +91,16 @@ class FusionStage:
         self.v_model = np.zeros(n)
         self._no_hysteresis = not bool(np.any(model.ocv.m_V))
         self._fit_scale = tuning.fits_hysteresis_scale
-        self._branches = BranchSteps()
         # The RLS regressor's scale: the OCV offset's column zeroed (see fusion_covariance).
-        self._phi_scale = self.scale * np.array([1.0, 1.0, 1.0, float(self._fit_scale), 0.0])
+        phi_scale = self.scale * np.array([1.0, 1.0, 1.0, float(self._fit_scale), 0.0])
+        # the tick kernel's constants: per cell the scale, the regressor's scale, the bounds
+        # and the clamp tolerance (5, n, 5), and the innovation step's tuning
+        self._lin = np.stack([self.scale, phi_scale, self._lin_lo, self._lin_hi, self._clamp_tol])
+        self._consts = innovation_constants(tuning)
         self._m_table = np.zeros(n)
         self._excited: bool | BoolArray = False
         self._period_s = tuning.id_period_s
-        self._rest_limit_A = per_cell_limit(tuning.rest_current_C, model)
+        self._rest_A = np.full(n, per_cell_limit(tuning.rest_current_C, model))
         self._excitation_limit_A = per_cell_limit(tuning.excitation_C, model)
         self._step_A = float(np.min(self._excitation_limit_A))  # a current step, A
         self._start_values()
@@ -130,33 +128,28 @@ class FusionStage:
         if tick.new_segment:
             self.buffer.clear()
             self.schedule.new_segment(tick.t_s)
-        dt, ip, i = tick.dt_s, tick.i_prev_A, tick.current_A
-        self.x1, self.x2 = self._branches(self.x1, self.x2, self.tau1, self.tau2, ip, dt)
+        dt, i = tick.dt_s, tick.current_A
         forget = Forgetting.for_tick(tick, tun)
         self.lam_exp = forget.per_second_exp
         self._period_s = tick.period_s
         self._excited = is_excited(tick, self._excitation_limit_A)  # one bool for a uniform pack
-        self.clamped[:] = False
         self._m_table = ctx.m_table_V
-        ok, v, ocv_v, hm, learn = tick.ok, ctx.v_safe_V, ctx.ocv_V, ctx.hm_V, ctx.learn
-        phi = self._phi
-        phi[:, 0] = -i
-        phi[:, 1] = -self.x1
-        phi[:, 2] = -self.x2
-        phi[:, 3] = hm
-        v_model = ocv_v + (phi * (self.theta * self.scale)).sum(axis=1)
-        e = v - v_model
-        self.arx_err = e if np.count_nonzero(ok) == self.n else np.where(ok, e, 0.0)
-        quiet = is_quiet(tick, self._rest_limit_A)
-        e_c, self.sig_e, self.lam = adapt_innovation(e, self.sig_e, learn, quiet, dt, forget, tun)
-        phi_n = phi * self._phi_scale
-        theta, self.P = rls_update(self.theta, self.P, phi_n, e_c, self.lam, learn, tun.trace_max)
-        self.theta = self._clamp_linear(*self._project_linear(theta, self.P))
+        hm, learn = ctx.hm_V, ctx.learn
+        # the AFFRLS and the bounds: one call of the kernel (compiled, or the numpy reference
+        # rls_reference.fusion_tick_numpy); x1, x2, theta, P, lambda and sig_e move in place
+        out, n_moved = FUSION_TICK.impl(
+            self.x1, self.x2, self.tau1, self.tau2, self.theta, self.P, self.sig_e, self.lam,
+            self._lin, self._rest_A, ctx.v_safe_V, ctx.ocv_V, hm, tick.ok, learn, self.clamped,
+            i, tick.i_prev_A, dt, forget.lam_lo, forget.lam_hi, innovation_gain(dt, tun),
+            self._consts, tun.trace_max, self._fit_scale, tun.identify_ocv_offset,
+        )  # fmt: skip
+        self.arx_err, self.v_model, y = out  # rows of an array new every tick
+        if n_moved:
+            self.counters["clamped"] += n_moved
         self._carry_temperature(tick.temperature_C, dt, learn)
-        self.buffer.push(i, v - ocv_v, hm, learn)
+        self.buffer.push(i, y, hm, learn)
         self._run_swarms(tick.t_s)
         self._publish_linear()
-        self.v_model = np.asarray(v_model, dtype=np.float64)
 
     def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
         """R0 follows the temperature, also while learning (``estimate/arrhenius.py``)."""
@@ -168,48 +161,16 @@ class FusionStage:
         if r0 is not None:
             self.theta[:, 0] = np.clip(r0, lo, hi) / sc
 
-    def _project_linear(self, theta_n: FloatArray, P: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Project an estimate that left the bounds back onto them in the metric of P.
-
-        Clipping one coordinate alone leaves the coordinates correlated with it carrying a step
-        that assumed it had moved; the error then grows and the next updates push further the
-        wrong way. Moving coordinate j onto its bound by d shifts the others by P[:, j] d /
-        P[j, j] (the least-squares estimate conditioned on theta_j at the bound). P is kept, so
-        the parameter can leave the bound again when the data say so. Coordinates are taken one
-        at a time, in a fixed order; the final clip removes what is left. Returns it and it x sc.
-        """
-        sc, lo, hi = self.scale, self._lin_lo, self._lin_hi
-        th = theta_n * sc
-        if not ((th < lo) | (th > hi)).any():
-            return theta_n, th
-        theta_n = theta_n.copy()
-        for j in range(5):  # fixed order, whatever the other cells do (bank == single)
-            th_j = theta_n[:, j] * sc[:, j]
-            d_n = (np.minimum(np.maximum(th_j, lo[:, j]), hi[:, j]) - th_j) / sc[:, j]
-            pjj = P[:, j, j]
-            gain = np.where(
-                pjj[:, None] > 0, P[:, :, j] / np.where(pjj > 0, pjj, 1.0)[:, None], 0.0
-            )
-            theta_n += gain * d_n[:, None]
-        return theta_n, theta_n * sc
-
-    def _clamp_linear(
-        self, theta_n: FloatArray, th: FloatArray | None = None, rows: slice = slice(None)
-    ) -> FloatArray:
-        """theta_n (normalised; ``th``: x scale) of the cells ``rows`` clipped; flags the moved."""
-        sc = self.scale[rows]
-        th = theta_n * sc if th is None else th
-        cl = np.minimum(np.maximum(th, self._lin_lo[rows]), self._lin_hi[rows])
-        if not self._fit_scale:
-            cl[:, 3] = 1.0
-        if not self.tuning.identify_ocv_offset:
-            cl[:, 4] = 0.0
-        moved = (np.abs(cl - th) > self._clamp_tol[rows]).any(axis=1)
+    def _clamp_linear(self, theta_n: FloatArray, rows: slice) -> FloatArray:
+        """theta_n (normalised) of the cells ``rows`` clipped; flags the moved."""
+        sc, lo, hi = self.scale[rows], self._lin_lo[rows], self._lin_hi[rows]
+        tol, offset = self._clamp_tol[rows], self.tuning.identify_ocv_offset
+        cl, moved = clamp_linear(theta_n, theta_n * sc, sc, lo, hi, tol, self._fit_scale, offset)
         n_moved = int(np.count_nonzero(moved))  # usually 0: flags and count stay as they are
         if n_moved:
             self.clamped[rows] |= moved
             self.counters["clamped"] += n_moved
-        return np.asarray(cl / sc)
+        return cl
 
     def _publish_linear(self) -> None:
         # one copy, transposed: each field is a row of it (contiguous, fresh every tick)

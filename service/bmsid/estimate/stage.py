@@ -27,6 +27,10 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 
+#: (e_floor_V, innovation_clip_sigmas, e_base_sigmas, forgetting_base) of the tuning: what the
+#: innovation and forgetting step (Eq. 21) reads of it, as plain floats
+InnovationConstants = tuple[float, float, float, float]
+
 _EMPTY: FloatArray = np.zeros(0)
 _EMPTY_BOOL: BoolArray = np.zeros(0, dtype=bool)
 
@@ -119,33 +123,6 @@ def is_excited(tick: Tick, excitation_limit_A: float | FloatArray) -> bool | Boo
     return tick.current_std_A >= excitation_limit_A
 
 
-class BranchSteps:
-    """:func:`bmsid.model.ecm.branches_step` that keeps the decays a = exp(-dt / tau) and 1 - a
-    while the step dt (s) and the time constants tau1, tau2 (s) stay the same to the bit: the
-    fusion's poles move once a swarm, and most ticks are one period apart."""
-
-    __slots__ = ("_a1", "_a2", "_b1", "_b2", "_key")
-
-    def __init__(self) -> None:
-        self._key: tuple[float, bytes, bytes] | None = None
-        self._a1 = self._a2 = self._b1 = self._b2 = _EMPTY
-
-    def __call__(
-        self, x1: FloatArray, x2: FloatArray, tau1_s: FloatArray, tau2_s: FloatArray,
-        current_A: float, dt_s: float,
-    ) -> tuple[FloatArray, FloatArray]:  # fmt: skip
-        """Both unit-gain branch states over ``dt_s`` at the held current (A); unchanged when
-        ``dt_s`` <= 0."""
-        if dt_s <= 0:
-            return x1, x2
-        key = (dt_s, tau1_s.tobytes(), tau2_s.tobytes())  # equal bytes: equal decays
-        if key != self._key:
-            a1, a2 = np.exp(-dt_s / tau1_s), np.exp(-dt_s / tau2_s)
-            self._a1, self._a2, self._b1, self._b2 = a1, a2, 1.0 - a1, 1.0 - a2
-            self._key = key
-        return self._a1 * x1 + self._b1 * current_A, self._a2 * x2 + self._b2 * current_A
-
-
 @dataclass(frozen=True, slots=True)
 class Forgetting:
     """Per-tick forgetting limits (Eq. 21 with per-second constants raised to the tick's data
@@ -176,6 +153,19 @@ def _innovation_gain(dt_s: float, scale_s: float) -> float:
     return float(1.0 - np.exp(-dt_s / scale_s))
 
 
+def innovation_constants(tuning: EstimatorTuning) -> InnovationConstants:
+    """What Eq. 21's step reads of the tuning, as plain floats (a compiled kernel's argument)."""
+    return (
+        float(tuning.e_floor_V), float(tuning.innovation_clip_sigmas),
+        float(tuning.e_base_sigmas), float(tuning.forgetting_base),
+    )  # fmt: skip
+
+
+def innovation_gain(dt_s: float, tuning: EstimatorTuning) -> float:
+    """The innovation RMS's EWMA gain over a tick of ``dt_s`` s."""
+    return _innovation_gain(max(dt_s, 1e-9), tuning.innovation_scale_s)
+
+
 def adapt_innovation(
     e: FloatArray,
     sig_e: FloatArray,
@@ -189,10 +179,26 @@ def adapt_innovation(
 
     Returns (clipped error V, new innovation RMS V, lambda per tick), each shape (n,).
     """
-    g = _innovation_gain(max(dt_s, 1e-9), tuning.innovation_scale_s)
+    g = innovation_gain(dt_s, tuning)
+    lo, hi, consts = forgetting.lam_lo, forgetting.lam_hi, innovation_constants(tuning)
+    return adapt_with_gain(e, sig_e, ok, quiet, g, lo, hi, consts)
+
+
+def adapt_with_gain(
+    e: FloatArray,
+    sig_e: FloatArray,
+    ok: BoolArray,
+    quiet: bool | BoolArray,
+    g: float,
+    lam_lo: float,
+    lam_hi: float,
+    consts: InnovationConstants,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`adapt_innovation` with the RMS's EWMA gain ``g`` this tick, the forgetting limits
+    (``Forgetting.lam_lo``, ``lam_hi``) and ``innovation_constants``."""
     if e.shape[0] == 1:
-        return _adapt_one(e, sig_e, ok, quiet, g, forgetting, tuning)
-    return _adapt_arrays(e, sig_e, ok, quiet, g, forgetting, tuning)
+        return _adapt_one(e, sig_e, ok, quiet, g, lam_lo, lam_hi, consts)
+    return _adapt_arrays(e, sig_e, ok, quiet, g, lam_lo, lam_hi, consts)
 
 
 def _adapt_arrays(
@@ -201,19 +207,21 @@ def _adapt_arrays(
     ok: BoolArray,
     quiet: bool | BoolArray,
     g: float,
-    forgetting: Forgetting,
-    tuning: EstimatorTuning,
+    lam_lo: float,
+    lam_hi: float,
+    consts: InnovationConstants,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """:func:`adapt_innovation` over arrays (``g``: the RMS's EWMA gain this tick)."""
-    sig = np.maximum(sig_e, tuning.e_floor_V)
-    lim = tuning.innovation_clip_sigmas * sig
+    """:func:`adapt_with_gain` over arrays."""
+    floor, clip_sigmas, base_sigmas, base = consts
+    sig = np.maximum(sig_e, floor)
+    lim = clip_sigmas * sig
     e_c = np.minimum(np.maximum(e, -lim), lim)
     s2 = sig_e**2
     sig_new = np.sqrt(s2 + g * (e_c**2 - s2))
     if np.count_nonzero(ok) < ok.size:  # the masks only where some cell does not learn
         sig_new = np.where(ok, sig_new, sig_e)
-    e_base = np.maximum(tuning.e_base_sigmas * sig, tuning.e_floor_V)
-    lam = adaptive_lambda(e_c, e_base, forgetting.lam_lo, forgetting.lam_hi, tuning.forgetting_base)
+    e_base = np.maximum(base_sigmas * sig, floor)
+    lam = adaptive_lambda(e_c, e_base, lam_lo, lam_hi, base)
     if not isinstance(quiet, np.ndarray):  # one current for the pack: one answer, no mask
         return e_c, sig_new, np.ones(lam.shape) if quiet else lam
     return e_c, sig_new, np.asarray(np.where(quiet, 1.0, lam))
@@ -225,28 +233,28 @@ def _adapt_one(
     ok: BoolArray,
     quiet: bool | BoolArray,
     g: float,
-    forgetting: Forgetting,
-    tuning: EstimatorTuning,
+    lam_lo: float,
+    lam_hi: float,
+    consts: InnovationConstants,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """:func:`_adapt_arrays` of one cell in Python floats: the same IEEE operations in the same
     order (+ - * / and sqrt round alike; np.power kept: libm's pow differs in the last bit), the
     same bits (``tests/estimate/test_stage_paths.py``); a quarter of the numpy calls' time."""
-    floor = tuning.e_floor_V
+    floor, clip_sigmas, base_sigmas, base = consts
     err, s = float(e[0]), float(sig_e[0])
     sig = _maximum(s, floor)
-    lim = tuning.innovation_clip_sigmas * sig
+    lim = clip_sigmas * sig
     e_c = _minimum(_maximum(err, -lim), lim)
     if ok[0]:
         s2 = s * s  # what ndarray ** 2 computes
         v = s2 + g * (e_c * e_c - s2)
         s = math.sqrt(v) if v >= 0.0 else float(np.sqrt(v))  # numpy's NaN below 0 and for NaN
-    e_base = _maximum(tuning.e_base_sigmas * sig, floor)
+    e_base = _maximum(base_sigmas * sig, floor)
     # adaptive_lambda: eps = rint((e / e_base)^2 * 100) / 100 (round: half to even, as rint)
     q = e_c / e_base
     x = q * q * 100.0
     eps = _minimum((float(round(x)) if math.isfinite(x) else x) / 100.0, 1.0e3)
-    lo, hi = forgetting.lam_lo, forgetting.lam_hi
-    lam = lo + (hi - lo) * float(np.power(tuning.forgetting_base, eps))
+    lam = lam_lo + (lam_hi - lam_lo) * float(np.power(base, eps))
     if quiet[0] if isinstance(quiet, np.ndarray) else quiet:
         lam = 1.0
     return np.array([e_c]), np.array([s]), np.array([lam])
