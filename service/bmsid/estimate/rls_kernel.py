@@ -272,9 +272,7 @@ def _fusion_source(
         e = v[c] - vm
         out[0, c] = e if ok[c] else 0.0
         quiet = abs(i) < rest_A[c] and abs(i - ip) < rest_A[c]
-        e_c, sig_e[c], lam[c] = _adapt_cell(
-            e, sig_e[c], learn[c], quiet, g, lam_lo, lam_hi, consts
-        )
+        e_c, sig_e[c], lam[c] = _adapt_cell(e, sig_e[c], learn[c], quiet, g, lam_lo, lam_hi, consts)
         for k in range(m):
             phi[k] *= phi_sc[c, k]
         tr[c] = _rls_row(theta[c], P[c], phi, e_c, lam[c], theta_n[c], P_n[c], pphi)
