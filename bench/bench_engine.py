@@ -9,9 +9,10 @@ worst and the 99.9th-percentile single ``update`` call of a 96-cell bank with th
 and what the SOC observer costs (issue 11: at most 30 % of the bank's throughput): the same runs
 with ``observer.enabled`` off, alternated with on in this one process, best of two each.
 Throughputs feed the run as one ``SampleBlock`` (``update_block``, as the daemon and offline
-identification do); the per-call figures come from a second, sample-by-sample run. The fused
-variant runs twice, with the compiled swarm window fits and with their numpy reference
-(``estimate/varpro_kernel.py``); the ARX variants have no window fits (one column).
+identification do); the per-call figures come from a second, sample-by-sample run. Every
+benchmark runs twice: every kernel compiled (``estimate/jit.py``: the window fits, the state and
+observer steps, the RLS ticks, the guard and the average) and every kernel on its numpy
+reference, alternated in one process.
 """
 
 from __future__ import annotations
@@ -66,34 +67,32 @@ def main() -> None:
     single = paper_dst_case(n_single)
     spread = np.random.default_rng(0).uniform(0.8, 1.3, 96)
     pack = paper_dst_case(n_bank, r0_spread=spread)
-    rows: list[tuple[str, str, str]] = []
-    dt = _run_block(single, "hy-affrls")
-    rows.append(("single cell `hy-affrls`", f"{n_single / dt:,.0f} samples/s", "-"))
-    dt = _run_block(pack, "hy-affrls")
-    rows.append((
-        "96-cell bank `hy-affrls` (no swarm)", f"{96 * n_bank / dt:,.0f} cell-samples/s", "-"
-    ))  # fmt: skip
-    # The fusion's swarm window fits with each kernel, alternated in this one process.
-    lpso: dict[str, list[str]] = {}
+    # Every kernel (jit.py) compiled and the numpy reference, alternated in this one process.
+    res: dict[str, list[str]] = {}
     for kernel in ("numpy", "compiled"):
         jit.select(kernel)
+        dt = _run_block(single, "hy-affrls")
+        out = [f"{n_single / dt:,.0f} samples/s"]
+        dt = _run_block(pack, "hy-affrls")
+        out.append(f"{96 * n_bank / dt:,.0f} cell-samples/s")
         dt = _run_block(single, "hy-affrls-lpso")
-        res = [f"{dt:.2f} s"]
+        out.append(f"{dt:.2f} s")
         dt = _run_block(pack, "hy-affrls-lpso")
-        res.append(f"{96 * n_bank / dt:,.0f} cell-samples/s")
+        out.append(f"{96 * n_bank / dt:,.0f} cell-samples/s")
         # A second run, sample by sample: the same computation, timed per call.
         calls = _update_calls(pack, "hy-affrls-lpso")
-        res += [f"{calls.max() * 1e3:.1f} ms", f"{np.quantile(calls, 0.999) * 1e3:.1f} ms"]
-        lpso[kernel] = res
+        out += [f"{calls.max() * 1e3:.1f} ms", f"{np.quantile(calls, 0.999) * 1e3:.1f} ms"]
+        res[kernel] = out
     names = (
+        "single cell `hy-affrls`",
+        "96-cell bank `hy-affrls` (no swarm)",
         f"single cell `hy-affrls-lpso`, {n_single}-sample DST",
         "96-cell bank `hy-affrls-lpso`",
         "  worst single `update` call (swarms active)",
         "  99.9th percentile `update` call",
     )
-    rows += [(n, c, r) for n, r, c in zip(names, lpso["numpy"], lpso["compiled"], strict=True)]
-    print("| benchmark | compiled window fits | numpy reference |\n|---|---|---|")
-    for name, compiled, ref in rows:
+    print("| benchmark | compiled kernels | numpy reference |\n|---|---|---|")
+    for name, compiled, ref in zip(names, res["compiled"], res["numpy"], strict=True):
         print(f"| {name} | {compiled} | {ref} |")
     print()
     _observer_cost(single, pack, n_single, n_bank)

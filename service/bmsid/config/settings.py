@@ -123,9 +123,10 @@ class EstimatorSettings(_Strict):
     """Run the bank in a child process (the event loop keeps its 5 ms budget under load) or in
     a thread of the daemon (platforms that cannot spawn processes)."""
     kernels: Literal["compiled", "numpy"] = "compiled"
-    """Swarm window fits by numba's compiled kernel (where it compiles; else numpy) or by the
-    numpy reference: results equal to rounding. ``numpy`` where a sandbox forbids writable
-    executable memory (systemd's MemoryDenyWriteExecute, as the shipped unit sets)."""
+    """The estimator's per-tick kernels and swarm window fits compiled by numba (where it
+    compiles; else numpy) or run on their numpy reference (``estimate/jit.py``): results equal
+    to rounding, decisions alike. ``numpy`` where a sandbox forbids writable executable memory
+    (systemd's MemoryDenyWriteExecute, as the shipped unit sets)."""
 
     def load_cell(self) -> CellConfig:
         if self.cell is None:
