@@ -20,9 +20,9 @@ c2) for fixed time constants: a grid over (tau1, tau2) and a least-squares solve
 best kept, re-linearised until dz settles. The relaxation and the load are explained by the
 branches; what they cannot explain, a level that follows the OCV slope, is SOC. Pure numpy.
 
-Measured (``bench/starts_real.py``): the four polarised 25 C starts read 77.6 / 77.9 / 43.9 /
-43.4 % from their first voltages for 80 / 80 / 50 / 50 %; fitted over 1,800 s, 81.2 / 81.7 /
-49.4 / 49.4 %. On starts that are at rest and relaxed the first voltage is better (0 C DST
+Measured (``bench/starts_real.py``): the four polarised 25 C starts read 77.6 / 77.9 / 43.4 /
+43.9 % from their first voltages for 80 / 80 / 50 / 50 %; fitted over 20 min, 80.5 / 81.8 /
+49.8 / 50.2 %. On starts that are at rest and relaxed the first voltage is better (0 C DST
 from 50 %: 55.0 % read, 52.0 % fitted, 54.8 % true: the 0 C model's error biases the fit), so
 the fit is used only where the first voltage is known to mislead.
 """
@@ -39,7 +39,9 @@ from bmsid.model.ecm import hysteresis_kappa, hysteresis_step
 
 FloatArray = npt.NDArray[np.float64]
 
-#: The window fitted, s: the swarm's window (a few of the slow branch's time constants).
+#: The window fitted, s: a few slow time constants, and little SOC swing for the OCV curve's
+#: own error to act on (README: 10 and 20 min alike on the CALCE starts, 30 min one record
+#: 1.2 mV worse than its known start, 60 min reads 80 % starts at 85 %).
 WINDOW_S = 1200.0
 #: Points of each time constant's grid, log-spaced over the cell's bounds (the fit's error is
 #: flat in log tau); the slow branch at most half the window: a slower one is a level there,

@@ -22,6 +22,7 @@ import numpy.typing as npt
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
+from bmsid.estimate.start_fit import WINDOW_S as START_WINDOW_S
 from bmsid.offline.accumulate import PLOT_SERIES
 from bmsid.offline.plots import plot_parameters, plot_voltage
 from bmsid.offline.scoring import EvalWindow, IdentifyResult
@@ -159,8 +160,9 @@ def soc_init_text(result: IdentifyResult, rest_limit_A: float | None = None) -> 
         "ocv_ir_corrected": "from the first voltage plus R0 x current through the OCV curve "
         "(a current flowed; the SOC observer refines it)",
         "config": "the config's soc0 (soc_init.policy fixed)",
-        "window_fit": "fitted with the model over the record's first 30 min (it opens under "
-        "load or still relaxing, which the first voltage misreads; the SOC observer refines it)",
+        "window_fit": f"fitted with the model over the record's first {START_WINDOW_S / 60:.0f} "
+        "min (it opens under load or still relaxing, which the first voltage misreads; the SOC "
+        "observer refines it)",
         "pending": "none: no cell carried a valid voltage",
     }.get(result.soc_init_method, result.soc_init_method)
     return f"initial SOC {socs}: {how}"
