@@ -3,6 +3,7 @@ a compiled engine, kept equal to the reference to float tolerance)."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from typing import Any
 
@@ -14,6 +15,7 @@ from hypothesis import strategies as st
 from bmsid.config.engine import build_bank
 from bmsid.estimate import jit, rls_kernel
 from bmsid.estimate.fields import FIELD_NAMES
+from bmsid.estimate.jit_helpers import register
 from bmsid.estimate.rls_reference import arx_tick_numpy, fusion_tick_numpy
 from bmsid.estimate.tuning import Variant
 from bmsid.model.arx import params_to_theta, theta_to_rows
@@ -181,13 +183,27 @@ ANY = st.floats(allow_nan=True, allow_infinity=True, width=64)
 NEAR = st.floats(-3.0, 3.0)
 
 
+@functools.cache
+def _compiled_map() -> Any:
+    """``_map_row`` as the kernels compile it (a helper compiled into its caller)."""
+    import numba
+
+    register()
+    map_row = rls_kernel._map_row
+
+    @numba.njit(cache=False)  # type: ignore[misc]
+    def call(a1: float, a2: float, b0: float, b1: float, b2: float, T: float) -> Any:
+        return map_row(a1, a2, b0, b1, b2, T)
+
+    return call
+
+
 @settings(max_examples=2000, deadline=None)
 @given(theta=st.lists(st.one_of(NEAR, ANY), min_size=5, max_size=5), T=st.sampled_from([1.0, 0.1]))
 def test_the_kernels_map_equals_theta_to_rows_to_the_bit(theta: list[float], T: float) -> None:
     """``_map_row`` (compiled with the kernels) against the model's map, any theta."""
-    rls_kernel._compile_helpers()
     rows, status = theta_to_rows(np.array([theta]), T)
-    got = rls_kernel._map_row(*theta, T)
+    got = _compiled_map()(*theta, T)
     assert int(got[0]) == int(status[0])
     assert np.array(got[1:]).tobytes() == rows[:, 0].tobytes()
 

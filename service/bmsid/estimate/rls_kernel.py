@@ -14,11 +14,11 @@ same bits as ``model.arx``'s; libm's exp and pow and the RLS's plain sums differ
 vectorised exp, pow and BLAS products in the last bits, 1e-15 relative a tick, ~1e-12 over a
 run, and the same accept/reject decisions and quality codes on the reference DST).
 
-The helpers are plain Python (they run uncompiled too); :func:`_compile_helpers` replaces each
-in this module's namespace by its numba dispatcher before a kernel first compiles (numba looks a
-kernel's global names up then, at the first call that ``warm`` makes), so numba is imported
-only where a kernel is compiled. Helpers and kernels stay in this one file: numba's cache of a
-kernel is invalidated by changes to the kernel's own file only, not to the files it calls into.
+The helpers are plain Python marked ``@helper`` (``jit_helpers.py``: they run uncompiled too,
+and are compiled into the kernels that call them when a kernel's ``warm`` first runs, so numba
+is imported only where a kernel is compiled). Helpers and kernels stay in this one file:
+numba's cache of a kernel is invalidated by changes to the kernel's own file only, not to the
+files it calls into.
 """
 
 from __future__ import annotations
@@ -29,27 +29,32 @@ from typing import Any
 import numpy as np
 
 from bmsid.estimate import jit
+from bmsid.estimate.jit_helpers import helper, register
 from bmsid.estimate.rls_reference import arx_tick_numpy, fusion_tick_numpy
 
 # ------------------------------------------------------------------ helpers (shared)
 
 
+@helper
 def _maximum(a: float, b: float) -> float:
     """np.maximum of two floats: NaN propagates."""
     return a if a >= b or math.isnan(a) else b
 
 
+@helper
 def _minimum(a: float, b: float) -> float:
     """np.minimum of two floats: NaN propagates."""
     return a if a <= b or math.isnan(a) else b
 
 
+@helper
 def _branch(x: float, tau: float, i: float, dt: float) -> float:
     """A unit-gain RC branch state over ``dt`` > 0 at the held current ``i`` (Eq. 8)."""
     a = np.exp(-dt / tau)
     return a * x + (1.0 - a) * i  # type: ignore[no-any-return]
 
 
+@helper
 def _adapt_cell(
     e: float, s: float, ok: bool, quiet: bool, g: float, lam_lo: float, lam_hi: float,
     consts: tuple[float, float, float, float],
@@ -69,6 +74,7 @@ def _adapt_cell(
     return e_c, s, lam
 
 
+@helper
 def _rls_row(
     theta: Any, P: Any, phi: Any, e: float, lam: float, theta_out: Any, P_out: Any, pphi: Any
 ) -> float:
@@ -99,6 +105,7 @@ def _rls_row(
     return tr
 
 
+@helper
 def _cap_and_mask(
     theta: Any, P: Any, theta_new: Any, P_new: Any, tr: Any, active: Any, trace_max: float
 ) -> None:
@@ -120,6 +127,7 @@ def _cap_and_mask(
                     P_new[c, r, q] *= f
 
 
+@helper
 def _map_row(
     t1: float, t2: float, t3: float, t4: float, t5: float, T: float
 ) -> tuple[float, float, float, float, float, float]:
@@ -154,22 +162,6 @@ def _map_row(
             and math.isfinite(tau_s)):  # fmt: skip
         return 1.0, 0.0, 0.0, 0.0, 0.0, 0.0
     return 0.0, m1, r_fast, r_slow, tau_s, tau_f
-
-
-_HELPERS = ("_maximum", "_minimum", "_branch", "_adapt_cell", "_rls_row", "_cap_and_mask",
-            "_map_row")  # fmt: skip
-
-
-def _compile_helpers() -> None:
-    """Bind each helper's name here to its numba dispatcher (compiled lazily, with the first
-    kernel that calls it; cached). Idempotent."""
-    import numba  # noqa: PLC0415 (optional: the references run without it)
-
-    space = globals()
-    for name in _HELPERS:
-        fn = space[name]
-        if not isinstance(fn, numba.core.dispatcher.Dispatcher):
-            space[name] = numba.njit(cache=True, nogil=True)(fn)
 
 
 # ------------------------------------------------------------------ the stages' kernels
@@ -317,7 +309,7 @@ def _f() -> Any:
 
 def _warm_arx(kernel: Any) -> object:
     """One cell, every argument of the type the stage passes."""
-    _compile_helpers()
+    register()
     th, P, flag = np.ones((1, 5)), np.eye(5)[None], np.ones(1, bool)
     bounds = np.stack([np.zeros((5, 1)), np.full((5, 1), 1e9)])
     return kernel(
@@ -328,7 +320,7 @@ def _warm_arx(kernel: Any) -> object:
 
 
 def _warm_fusion(kernel: Any) -> object:
-    _compile_helpers()
+    register()
     th, P, flag = np.ones((1, 5)), np.eye(5)[None], np.ones(1, bool)
     lin = np.stack([th, th, th * 0.0, th * 2.0, th * 1e-12])
     return kernel(
