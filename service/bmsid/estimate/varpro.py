@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate import varpro_kernel
-from bmsid.model.ecm import rc_decay, rc_filter
+from bmsid.model.ecm import rc_decay
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -94,8 +94,8 @@ def fixed_rmse(
     a1, a2 = float(rc_decay(w.dt_s, tau1_s)), float(rc_decay(w.dt_s, tau2_s))
     pred = (
         -theta[0] * w.current_A
-        - theta[1] * rc_filter(w.current_A, a1)
-        - theta[2] * rc_filter(w.current_A, a2)
+        - theta[1] * varpro_kernel.RC_FILTER.impl(w.current_A, a1)
+        - theta[2] * varpro_kernel.RC_FILTER.impl(w.current_A, a2)
     )
     if w.use_hysteresis:
         pred = pred + theta[3] * w.hm_V
