@@ -26,7 +26,6 @@ from bmsid.config.cell import OcvCurve
 from bmsid.errors import UserError
 from bmsid.estimate.startvalues import median_step_resistance
 from bmsid.model.ocv import eval_docv_dz
-from bmsid.offline.ocv_fit import fit_eq4
 from bmsid.offline.plausibility import (
     FloatArray,
     cell_mean_min,
@@ -97,6 +96,10 @@ def pseudo_ocv(
         return None
     use = (z >= lo) & (z <= hi) & np.isfinite(v_eq)
     try:
+        # imported here: ocv_fit brings scipy.optimize and stats (~50 MB resident), which a run
+        # that reads no pseudo-OCV (an NMC record, or any with a config) never needs
+        from bmsid.offline.ocv_fit import fit_eq4  # noqa: PLC0415
+
         fit = fit_eq4(z[use], v_eq[use])
     except UserError:
         return None
