@@ -69,3 +69,28 @@ def test_identify_fits_a_loaded_start_and_keeps_a_rested_one(tmp_path: Path) -> 
             assert abs(float(first["soc"][0][0]) - truth) < 0.01
         else:
             assert res.soc_init_method == "ocv_at_rest"
+
+
+def test_a_dead_tap_or_a_late_cell_gets_no_fit_and_does_not_stop_the_others(
+    tmp_path: Path,
+) -> None:
+    """A cell without voltages (a dead tap) or with only its first few: no fit for it, no
+    error, the others fitted; ``identify`` then keeps the engine's start, which leaves a cell
+    without a first voltage pending until its own first reading."""
+    run, k = _mid_drive(2016, n_cells=3)
+    v = run.voltages_V[k].copy()
+    v[:, 1] = np.nan
+    v[5:, 2] = np.nan
+    model = build_bank(run.cell, 3, "hy-affrls").model
+    truth = float(run.soc_true[k][0])
+    fit = fit_start_soc(run.t_s[k], run.current_A[k], v, model, np.full(3, truth - 0.05))
+    assert abs(fit.soc0[0] - truth) < 0.01
+    assert np.isnan(fit.soc0[1:]).all()
+    path = tmp_path / "dead.csv"
+    write_tester_csv(
+        TesterData(t_s=run.t_s[k] - run.t_s[k][0], current_A=run.current_A[k], cell_voltages_V=v,
+                   cell_names=["v_cell_01", "v_cell_02", "v_cell_03"]),
+        path,
+    )  # fmt: skip
+    res = identify_file(path, IdentifySpec(cell=run.cell, variant="hy-affrls"))
+    assert res.soc_init_method != WINDOW_FIT

@@ -51,6 +51,8 @@ GRID_POINTS = 10
 TAU_RATIO_MIN = 2.0
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
+#: Valid voltages a cell needs in the window (ten per column fitted).
+MIN_SAMPLES = 60
 #: The window must move SOC by this much for the slope column to be more than an offset.
 MIN_SOC_SWING = 0.02
 #: A fit whose dz needs more than this is no correction of a first voltage but a different
@@ -82,7 +84,7 @@ def fit_start_soc(
     n = v.shape[1]
     soc0 = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
-    if t.shape[0] < 60 or t[-1] - t[0] < 0.5 * window_s:
+    if t.shape[0] < MIN_SAMPLES or t[-1] - t[0] < 0.5 * window_s:
         return StartFit(soc0, rmse, window_s)
     dt = np.diff(t)
     i_held = i[:-1]  # the current held over each step (the engine's ZOH)
@@ -101,8 +103,8 @@ def fit_start_soc(
             continue
         ok = np.isfinite(v[:, c])
         q_As = float(model.capacity_As[c])
-        if np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
-            continue
+        if np.count_nonzero(ok) < MIN_SAMPLES or np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
+            continue  # a dead tap, a cell that came in late, or too little charge moved
         h = _hysteresis(i_held, dt, model, c)
         fit = None
         for _ in range(MAX_ITER):

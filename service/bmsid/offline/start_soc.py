@@ -61,6 +61,9 @@ def fitted_start_soc(
         return None
     guess = first.cells["soc"][0]
     fit = fit_start_soc(b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess)
-    if not np.count_nonzero(np.isfinite(fit.soc0)):
+    soc0 = np.where(np.isfinite(fit.soc0), fit.soc0, guess)
+    # No fit anywhere, or a cell without a first voltage (it must start at its own first valid
+    # reading, which only the engine's start does): the engine's start for every cell.
+    if not np.count_nonzero(np.isfinite(fit.soc0)) or not np.all(np.isfinite(soc0)):
         return None
-    return np.where(np.isfinite(fit.soc0), fit.soc0, guess)
+    return soc0
