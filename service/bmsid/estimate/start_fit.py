@@ -71,23 +71,29 @@ class StartFit:
 
 def fit_start_soc(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, model: CellModel,
-    soc_guess: FloatArray, window_s: float = WINDOW_S,
+    soc_guess: FloatArray, window_s: float = WINDOW_S, gap_s: float = 30.0,
 ) -> StartFit:  # fmt: skip
     """The start SOC of each cell fitted over the first ``window_s`` of the record (module
     docstring), from ``soc_guess`` (the first voltage's reading). Samples (s, A with + =
-    discharge, V (samples, cells)); NaN voltages are left out. NaN where the window is too
-    short, moves SOC too little, or the fit is unphysical (a negative resistance)."""
+    discharge, V (samples, cells)); NaN voltages are left out, and so are samples with a NaN
+    current (the branches and the count hold the current before through them); a step longer
+    than ``gap_s`` (s) carries no current (a rest, as the engine assumes over a gap). NaN where
+    the window is too short, moves SOC too little, or the fit is unphysical (a negative
+    resistance). The fit starts h at 0, as the engine does: on the paper cell entered mid-DST,
+    where h had gone towards -1, it reads ~1 SOC point low (a start-h column was tried: 1.4)."""
     t = np.asarray(t_s, dtype=np.float64)
     keep = t <= t[0] + window_s
-    t, i = t[keep], np.nan_to_num(np.asarray(current_A, dtype=np.float64)[keep])
+    i_raw = np.asarray(current_A, dtype=np.float64)[keep]
+    t, i = t[keep], _held(i_raw)
+    i_read = np.isfinite(i_raw)  # a sample without its current has no R0 term: not fitted
     v = np.asarray(voltages_V, dtype=np.float64).reshape(keep.shape[0], -1)[keep]
     n = v.shape[1]
     soc0 = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
     if t.shape[0] < MIN_SAMPLES or t[-1] - t[0] < 0.5 * window_s:
         return StartFit(soc0, rmse, window_s)
-    dt = np.diff(t)
-    i_held = i[:-1]  # the current held over each step (the engine's ZOH)
+    dt = np.maximum(np.diff(t), 0.0)
+    i_held = np.where(dt > gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
     for c in range(n):
         lo1, hi1 = (float(b[c]) for b in model.bound("tau1_s"))
@@ -101,7 +107,7 @@ def fit_start_soc(
         z0 = float(soc_guess[c])
         if not np.isfinite(z0):
             continue
-        ok = np.isfinite(v[:, c])
+        ok = np.isfinite(v[:, c]) & i_read
         q_As = float(model.capacity_As[c])
         if np.count_nonzero(ok) < MIN_SAMPLES or np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
             continue  # a dead tap, a cell that came in late, or too little charge moved
@@ -122,6 +128,13 @@ def fit_start_soc(
         if fit is not None and abs(z0 - float(soc_guess[c])) <= MAX_DZ:
             soc0[c], rmse[c] = z0, fit[0]
     return StartFit(soc0, rmse, window_s)
+
+
+def _held(current_A: FloatArray) -> FloatArray:
+    """NaN currents replaced by the last valid one before them (0 before the first)."""
+    valid = np.isfinite(current_A)
+    last = np.maximum.accumulate(np.where(valid, np.arange(current_A.shape[0]), -1))
+    return np.where(last >= 0, current_A[np.maximum(last, 0)], 0.0)
 
 
 def _branch_states(i_held: FloatArray, dt: FloatArray, taus: FloatArray) -> FloatArray:

@@ -60,7 +60,8 @@ def fitted_start_soc(
     if not (loaded or relaxing):
         return None
     guess = first.cells["soc"][0]
-    fit = fit_start_soc(b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess)
+    gap_s = bank.tuning.gap_s
+    fit = fit_start_soc(b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess, gap_s=gap_s)
     soc0 = np.where(np.isfinite(fit.soc0), fit.soc0, guess)
     # No fit anywhere, or a cell without a first voltage (it must start at its own first valid
     # reading, which only the engine's start does): the engine's start for every cell.
