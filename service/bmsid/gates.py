@@ -34,6 +34,7 @@ says what it refused in thinned log lines.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Self
 
@@ -410,6 +411,19 @@ class InputGate:
                     "missing_cells, not published as cells (check can.n_cells)",
                     ", ".join(map(str, after.missing)),
                 )
+
+
+def gated_head(
+    blocks: Iterable[SampleBlock], span_s: float, gate: InputGate | None = None
+) -> SampleBlock | None:
+    """The record's first ``span_s`` seconds (whole blocks, through ``gate`` when given: fresh
+    gates, so that the run's own start from scratch), or None for a record without blocks."""
+    head: list[SampleBlock] = []
+    for block in blocks:
+        head.append(block if gate is None else gate.apply(block))
+        if len(block) and block.t_s[-1] - head[0].t_s[0] >= span_s:
+            break
+    return SampleBlock.concat(head) if head else None
 
 
 def _decade(before: IntArray, after: IntArray) -> BoolArray:

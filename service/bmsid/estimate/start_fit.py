@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.ecm import hysteresis_kappa, hysteresis_step
 
 FloatArray = npt.NDArray[np.float64]
@@ -47,8 +48,6 @@ WINDOW_S = 1200.0
 #: flat in log tau); the slow branch at most half the window: a slower one is a level there,
 #: which the SOC column is too (at 45 C BJDST it took tau2 = 2,151 s and 2.4 SOC points).
 GRID_POINTS = 10
-#: tau2 >= this x tau1 (``EstimatorTuning.tau_ratio_min``): two branches that are really two.
-TAU_RATIO_MIN = 2.0
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
 #: Valid voltages a cell needs in the window (ten per column fitted).
@@ -71,16 +70,18 @@ class StartFit:
 
 def fit_start_soc(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, model: CellModel,
-    soc_guess: FloatArray, window_s: float = WINDOW_S, gap_s: float = 30.0,
+    soc_guess: FloatArray, window_s: float = WINDOW_S, tuning: EstimatorTuning | None = None,
 ) -> StartFit:  # fmt: skip
     """The start SOC of each cell fitted over the first ``window_s`` of the record (module
     docstring), from ``soc_guess`` (the first voltage's reading). Samples (s, A with + =
     discharge, V (samples, cells)); NaN voltages are left out, and so are samples with a NaN
     current (the branches and the count hold the current before through them); a step longer
-    than ``gap_s`` (s) carries no current (a rest, as the engine assumes over a gap). NaN where
+    than ``tuning.gap_s`` carries no current (a rest, as the engine assumes over a gap); the
+    grid keeps tau2 >= ``tuning.tau_ratio_min`` tau1 (None: the defaults). NaN where
     the window is too short, moves SOC too little, or the fit is unphysical (a negative
     resistance). The fit starts h at 0, as the engine does: on the paper cell entered mid-DST,
     where h had gone towards -1, it reads ~1 SOC point low (a start-h column was tried: 1.4)."""
+    tun = tuning or EstimatorTuning()
     t = np.asarray(t_s, dtype=np.float64)
     keep = t <= t[0] + window_s
     i_raw = np.asarray(current_A, dtype=np.float64)[keep]
@@ -93,7 +94,7 @@ def fit_start_soc(
     if t.shape[0] < MIN_SAMPLES or t[-1] - t[0] < 0.5 * window_s:
         return StartFit(soc0, rmse, window_s)
     dt = np.maximum(np.diff(t), 0.0)
-    i_held = np.where(dt > gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
+    i_held = np.where(dt > tun.gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
     for c in range(n):
         lo1, hi1 = (float(b[c]) for b in model.bound("tau1_s"))
@@ -103,7 +104,7 @@ def fit_start_soc(
         x1, x2 = _branch_states(i_held, dt, tau1), _branch_states(i_held, dt, tau2)
         d1 = np.exp(-(t - t[0])[None, :] / tau1[:, None])
         d2 = np.exp(-(t - t[0])[None, :] / tau2[:, None])
-        pairs = tau2[None, :] >= TAU_RATIO_MIN * tau1[:, None]
+        pairs = tau2[None, :] >= tun.tau_ratio_min * tau1[:, None]
         z0 = float(soc_guess[c])
         if not np.isfinite(z0):
             continue

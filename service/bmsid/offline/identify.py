@@ -46,7 +46,7 @@ from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_r
 from bmsid.estimate.ticks import TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
-from bmsid.gates import GateConfig, InputGate
+from bmsid.gates import GateConfig, InputGate, gated_head
 from bmsid.offline.csvio import ColumnMap, TesterData
 from bmsid.offline.inputs import DEFAULT_BLOCK_SIZE, InputSource, LoadedInput, open_input
 from bmsid.offline.outputs import (
@@ -288,14 +288,9 @@ def probe_start_values(
     (fresh plausibility gates) when given."""
     if cell.initial is not None and cell.bounds is not None:
         return None
-    head: list[SampleBlock] = []
-    for block in blocks:
-        head.append(block if gate is None else gate.apply(block))
-        if len(block) and block.t_s[-1] - head[0].t_s[0] >= PROBE_S:
-            break
-    if not head:
+    b = gated_head(blocks, PROBE_S, gate)
+    if b is None:
         return None
-    b = SampleBlock.concat(head)
     return start_values_from_record(b.t_s, b.current_A, b.cell_voltages_V)
 
 

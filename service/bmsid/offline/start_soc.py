@@ -19,7 +19,7 @@ from bmsid.config.engine import build_bank
 from bmsid.estimate.start_fit import WINDOW_S, fit_start_soc
 from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.gates import InputGate
+from bmsid.gates import InputGate, gated_head
 from bmsid.offline.plausibility import check_start_relaxation
 from bmsid.samples import SampleBlock
 
@@ -38,14 +38,9 @@ def fitted_start_soc(
     no fit holds (cells without one keep their first voltage's reading)."""
     if cell.soc_init.policy != "ocv_at_rest":
         return None
-    head: list[SampleBlock] = []
-    for block in blocks:
-        head.append(block if gate is None else gate.apply(block))
-        if len(block) and block.t_s[-1] - head[0].t_s[0] >= WINDOW_S:
-            break
-    if not head:
+    b = gated_head(blocks, WINDOW_S, gate)
+    if b is None:
         return None
-    b = SampleBlock.concat(head)
     bank = build_bank(cell, b.n_cells, "hy-affrls", tuning, start=start)
     first = bank.update_block(SampleBlock.from_arrays(b.t_s[:2], b.current_A[:2],
                                                       b.cell_voltages_V[:2]))  # fmt: skip
@@ -60,8 +55,9 @@ def fitted_start_soc(
     if not (loaded or relaxing):
         return None
     guess = first.cells["soc"][0]
-    gap_s = bank.tuning.gap_s
-    fit = fit_start_soc(b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess, gap_s=gap_s)
+    fit = fit_start_soc(
+        b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess, tuning=bank.tuning
+    )
     soc0 = np.where(np.isfinite(fit.soc0), fit.soc0, guess)
     # No fit anywhere, or a cell without a first voltage (it must start at its own first valid
     # reading, which only the engine's start does): the engine's start for every cell.
