@@ -16,6 +16,8 @@ import logging
 import os
 import sys
 
+from bmsid.quiet_logs import quiet_libraries
+
 #: -v/-q steps, most verbose first
 LEVELS = (logging.DEBUG, logging.INFO, logging.WARNING, logging.ERROR)
 #: syslog priorities (RFC 5424) of the logging levels
@@ -29,8 +31,6 @@ _SYSLOG_PRIORITY = {
 TERMINAL_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 JOURNAL_FORMAT = "%(levelname)s %(name)s: %(message)s"
 _HANDLER_NAME = "bmsid-cli"
-#: libraries whose INFO lines say nothing a bmsid user acts on (python-can's bus set-up)
-QUIET_LIBRARIES = ("can",)
 
 
 def log_level(default: int, verbose: int, quiet: int) -> int:
@@ -72,5 +72,4 @@ def configure(level: int, *, journal: bool | None = None) -> None:
     # replace only our own handler: a host's (pytest's capture, an embedding program's) stays
     root.handlers[:] = [h for h in root.handlers if h.get_name() != _HANDLER_NAME] + [handler]
     root.setLevel(level)
-    for name in QUIET_LIBRARIES:
-        logging.getLogger(name).setLevel(max(level, logging.WARNING))
+    quiet_libraries(level)

@@ -68,6 +68,7 @@ from bmsid.daemon.checkpoint import (
     save_checkpoint,
     state_problem,
 )
+from bmsid.daemon.start_refit import StartHead
 from bmsid.daemon.statedir import atomic_write, quarantine
 from bmsid.errors import UserError
 from bmsid.estimate.startvalues import StartValues, start_values_from_record
@@ -76,6 +77,7 @@ from bmsid.estimate.types import Estimates
 from bmsid.gates import GateConfig, InputGate
 from bmsid.publish import payloads
 from bmsid.publish.outbox import OutMessage
+from bmsid.quiet_logs import quiet_libraries
 from bmsid.samples import SampleBlock
 
 if TYPE_CHECKING:
@@ -226,6 +228,8 @@ class BankHost:
     start_values: StartValues | None = None
     _probe: list[SampleBlock] = field(default_factory=list)
     _probing: bool = False
+    #: a fresh start's first samples, for the start SOC fit (``daemon/start_refit.py``)
+    _head: StartHead | None = None
     #: called between ticks of a long call, at most every HEARTBEAT_S (set by the worker)
     beat: Callable[[], None] = field(default=lambda: None, repr=False)
     _beat_t: float = 0.0
@@ -253,6 +257,9 @@ class BankHost:
         # A config without start values or bounds: measure them on the first samples, as
         # offline identification does on a record, before the estimators start.
         self._probing = self.spec.cell.initial is None or self.spec.cell.bounds is None
+        if self.spec.soc0 is None and self.spec.cell.soc_init.policy == "ocv_at_rest":
+            self._head = StartHead()
+        self.counters["start_refits"] = 0
 
     def _fresh_bank(self) -> EstimatorBank:
         from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
@@ -318,6 +325,7 @@ class BankHost:
             else:
                 restored = True
                 self._probing = False
+                self._head = None  # the restore re-anchors from the voltage at restart
                 t_s = float(t_raw) if t_raw is not None else None
         self.seq = max(ck_seq, self._read_seq_file())
         self._seq_reserved = self.seq
@@ -405,6 +413,7 @@ class BankHost:
                     estimates, messages, self._counters(), self.seq, self.gate.state.report()
                 )
             block = held
+        head = self._head.add(block) if self._head is not None else None
         step = samples_per_tick(block.t_s, self.spec.tuning.id_period_s)
         for start in range(0, len(block), step):
             chunk = block.slice(start, start + step)
@@ -423,9 +432,46 @@ class BankHost:
             if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
                 self._beat_t = now
                 self.beat()
+        if head is not None:
+            self._head = None
+            self._refit_start(head)
         return BatchResult(
             estimates, messages, self._counters(), self.seq, self.gate.state.report()
         )
+
+    def _refit_start(self, head: SampleBlock) -> None:
+        """Where the start SOC fitted over ``head`` holds, a bank from it that has replayed
+        ``head`` replaces the running one (``daemon/start_refit.py``)."""
+        from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
+        from bmsid.estimate.start_fit import WINDOW_S  # noqa: PLC0415
+        from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc  # noqa: PLC0415
+
+        s = self.spec
+        soc0 = fitted_start_soc([head], s.cell, s.tuning, self.start_values)
+        if soc0 is None:
+            log.info(
+                "start SOC kept after %.0f s (%s): the first voltage was at rest and relaxed, "
+                "or no start fit held", WINDOW_S, self.bank.soc_init_method,
+            )  # fmt: skip
+            return
+        bank = build_bank(s.cell, s.n_cells, s.variant, s.tuning, soc0=soc0,
+                          start=self.start_values)  # fmt: skip
+        step = 64 * samples_per_tick(head.t_s, s.tuning.id_period_s)
+        for start in range(0, len(head), step):
+            bank.update_block(head.slice(start, start + step))
+            if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
+                self._beat_t = now
+                self.beat()
+        bank.state.soc_init_method = WINDOW_FIT
+        log.info(
+            "start SOC fitted over the first %.0f s (it opened %s): %.1f %% (mean of %d cells); "
+            "the bank replayed those samples from there: SOC now %.1f %% (was %.1f %%)",
+            WINDOW_S, {"ocv_ir_corrected": "under load"}.get(self.bank.soc_init_method, "relaxing"),
+            100 * float(soc0.mean()), s.n_cells, 100 * float(bank.state.z.mean()),
+            100 * float(self.bank.state.z.mean()),
+        )  # fmt: skip
+        self.bank = bank
+        self.counters["start_refits"] += 1
 
     @property
     def state_dir_failing(self) -> bool:
@@ -593,6 +639,7 @@ def _child_main(
     pipe = _PipeQueue(log_conn)
     root.handlers[:] = [logging.handlers.QueueHandler(pipe)]  # type: ignore[arg-type]
     root.setLevel(level)
+    quiet_libraries(level)  # a child process: the parent's logger levels do not carry over
     if not _die_with_parent():
         threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
     if os.getppid() != parent_pid:  # died before the kernel was asked: nobody to serve

@@ -1,0 +1,62 @@
+"""The daemon's start SOC, fitted over its first window once that window has been seen.
+
+Offline, ``bmsid identify`` reads a record's first ``WINDOW_S`` before it starts the engine and
+fits the start SOC there when the first voltage misleads (``offline/start_soc.py``: a start
+under load, or at rest with the voltage still relaxing). A gateway cannot wait 20 minutes
+before it publishes, so the daemon starts at once from the first voltage (IR-corrected, the
+observer converging) and keeps the samples it fed; when they span the window it makes the same
+fit, and where one holds it builds a new bank from the fitted start, replays the kept samples
+through it and carries on with that bank: from then on the daemon's estimates are those an
+offline run of the same record gives. What was published during the window stays published;
+the step at the swap is logged and counted (``start_refits``).
+
+Only a fresh start without a configured ``soc0`` is refitted (a restore re-anchors from the
+voltage at restart: ``estimate/state.py``), and only while the kept samples stay within
+``MAX_HEAD_CELL_SAMPLES`` (32 MB of voltages: 1,200 s of 96 cells at 30 Hz); a faster bus keeps
+the first voltage's start, and says so.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from bmsid.estimate.start_fit import WINDOW_S
+from bmsid.samples import SampleBlock
+
+log = logging.getLogger(__name__)
+
+#: Cell-samples kept at most for the refit (8 bytes each).
+MAX_HEAD_CELL_SAMPLES = 4_000_000
+
+
+@dataclass
+class StartHead:
+    """The samples a fresh bank was fed, until they span ``WINDOW_S`` (see the module doc)."""
+
+    blocks: list[SampleBlock] = field(default_factory=list)
+    cell_samples: int = 0
+    #: False once the window is complete or given up: nothing more is kept
+    open: bool = True
+
+    def add(self, block: SampleBlock) -> SampleBlock | None:
+        """Keep ``block``; the whole head once the kept samples span ``WINDOW_S``, else None."""
+        if not self.open or not len(block):
+            return None
+        self.blocks.append(block)
+        self.cell_samples += len(block) * block.n_cells
+        span = float(block.t_s[-1] - self.blocks[0].t_s[0])
+        if span >= WINDOW_S:
+            self.open = False
+            head = SampleBlock.concat(self.blocks)
+            self.blocks = []
+            return head
+        if self.cell_samples > MAX_HEAD_CELL_SAMPLES:
+            log.warning(
+                "start SOC not refitted: %d cell-samples in the first %.0f s are more than the "
+                "%d kept for it (a fast bus); SOC goes on from the first voltage and the observer",
+                self.cell_samples, span, MAX_HEAD_CELL_SAMPLES,
+            )  # fmt: skip
+            self.open = False
+            self.blocks = []
+        return None

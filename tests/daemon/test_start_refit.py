@@ -1,0 +1,99 @@
+"""The daemon's start SOC fitted over its first window (issue 11, "start from anywhere" live):
+a gateway that starts mid-drive publishes at once from the first voltage, then continues from
+the fitted start exactly as an offline run of the same record does."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bmsid.config.engine import build_bank
+from bmsid.daemon import start_refit
+from bmsid.daemon.bank_worker import BankHost, BankSpec
+from bmsid.daemon.checkpoint import CheckpointKey
+from bmsid.daemon.start_refit import StartHead
+from bmsid.estimate.start_fit import WINDOW_S
+from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
+from bmsid.samples import SampleBlock
+from bmsid.synthetic import SyntheticRun, paper_dst_case
+
+N_CELLS = 2
+ENTER_S = 2016  # into the paper cell's DST: loaded, branches charged (as test_start_fit)
+
+
+def _record(enter_s: int) -> tuple[SyntheticRun, SampleBlock]:
+    run = paper_dst_case(ENTER_S + 3000, soc0=0.9, r0_spread=np.linspace(1.0, 1.3, N_CELLS))
+    k = slice(enter_s, None)
+    return run, SampleBlock.from_arrays(run.t_s[k], run.current_A[k], run.voltages_V[k])
+
+
+def _host(tmp_path: Path, run: SyntheticRun, **kw: object) -> BankHost:
+    base: dict[str, object] = {
+        "cell": run.cell, "n_cells": N_CELLS, "variant": "hy-affrls-lpso",
+        "tuning": build_bank(run.cell, N_CELLS).tuning, "soc0": None, "restore": False,
+        "ckpt_path": tmp_path / "p.ckpt.npz", "ckpt_key": CheckpointKey("p", N_CELLS, "h"),
+        "pack_id": "p", "topic_prefix": "bmsid", "mqtt_enabled": False, "qos": 1,
+        "publish_period_s": 0.0,
+    }  # fmt: skip
+    host = BankHost(BankSpec(**(base | kw)))  # type: ignore[arg-type]
+    host.start()
+    return host
+
+
+def _feed(host: BankHost, block: SampleBlock, batch: int = 97) -> None:
+    for a in range(0, len(block), batch):
+        host.update(block.slice(a, a + batch))
+
+
+def test_a_start_mid_drive_continues_from_the_fitted_start_as_offline(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    run, block = _record(ENTER_S)
+    host = _host(tmp_path, run)
+    assert host.bank.soc_init_method == "pending"
+    truth = run.soc_true[ENTER_S]
+    with caplog.at_level(logging.INFO, logger="bmsid.daemon.bank_worker"):
+        _feed(host, block)
+    assert host.counters["start_refits"] == 1
+    assert host.bank.soc_init_method == WINDOW_FIT
+    assert "start SOC fitted over the first 1200 s (it opened under load)" in caplog.text
+    # Offline: the fit over the record's first window, then one bank over the whole record.
+    soc0 = fitted_start_soc([block], run.cell, host.spec.tuning, None)
+    assert soc0 is not None
+    assert np.all(np.abs(soc0 - truth) < 0.015), (soc0, truth)
+    ref = build_bank(run.cell, N_CELLS, "hy-affrls-lpso", host.spec.tuning, soc0=soc0)
+    ref.update_block(block)
+    np.testing.assert_allclose(host.bank.state.z, ref.state.z, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(host.bank.params.outputs()["R0_ohm"],
+                               ref.params.outputs()["R0_ohm"], rtol=1e-12)  # fmt: skip
+    assert np.all(np.abs(host.bank.state.z - run.soc_true[-1]) < 0.015)
+
+
+def test_a_rested_start_a_given_soc0_and_a_restore_keep_their_start(tmp_path: Path) -> None:
+    run, block = _record(0)  # paper_dst_case opens with a rest: the first voltage is an OCV
+    host = _host(tmp_path / "rested", run)
+    _feed(host, block.slice(0, int(WINDOW_S) + 200))
+    assert host.counters["start_refits"] == 0
+    assert host.bank.soc_init_method == "ocv_at_rest"
+    assert host._head is None  # the window was seen: nothing more is kept
+    given = _host(tmp_path / "given", run, soc0=0.9)
+    assert given._head is None
+    given.checkpoint(clean=True)
+    restored = _host(tmp_path / "given", run, restore=True)
+    assert restored._head is None
+
+
+def test_a_fast_bus_keeps_the_first_voltage_start_and_says_so(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    _, block = _record(ENTER_S)
+    monkeypatch.setattr(start_refit, "MAX_HEAD_CELL_SAMPLES", 500)
+    head = StartHead()
+    with caplog.at_level(logging.WARNING, logger="bmsid.daemon.start_refit"):
+        got = [head.add(block.slice(a, a + 100)) for a in range(0, 1300, 100)]
+    assert all(g is None for g in got)
+    assert not head.open and not head.blocks
+    assert "start SOC not refitted" in caplog.text
