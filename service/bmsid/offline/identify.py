@@ -15,7 +15,7 @@ Two ways to keep what the metrics and plots need (``IdentifySpec.keep_trace``):
 - kept (the library's default: ``compare``, the benches): the blocks are concatenated into the
   whole trace, scored at the end;
 - streamed (``bmsid identify``): a first pass over the input counts the ticks the bank will make
-  (:func:`scan_record`: the plausibility gates and the tick assembler alone, no estimator),
+  (:func:`scan_record`: the tick assembler's clock alone, no estimator),
   then each block of estimates goes to a :class:`~bmsid.offline.scoring.RunScorer` (running
   sums, min-max plot decimation) and is dropped: memory is bounded by the estimator's windows
   and the input's pieces, not by the record's length.
@@ -27,7 +27,6 @@ Pure apart from reading the input, writing into ``out`` and the clock read for t
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import ExitStack
@@ -43,7 +42,6 @@ from bmsid.config.engine import build_bank, cell_model
 from bmsid.estimate.cellmodel import BOUNDED, INITIAL
 from bmsid.estimate.guard import WATCHED
 from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_record
-from bmsid.estimate.ticks import TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.gates import GateConfig, InputGate, gated_head
@@ -58,6 +56,7 @@ from bmsid.offline.outputs import (
 )
 from bmsid.offline.scoring import EvalWindow, IdentifyResult, RunScorer, metrics_document
 from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
+from bmsid.offline.tick_count import count_tick_times
 from bmsid.offline.writers import ParamsSink, open_params_writer
 from bmsid.samples import Sample, SampleBlock
 
@@ -232,7 +231,7 @@ def run_blocks(
 @dataclass(frozen=True)
 class RecordScan:
     """What one pass over a recording found before the run: input samples, the ticks the bank
-    will make of them (after the plausibility gates) and the first and last tick's time (s;
+    will make of them and the first and last tick's time (s;
     NaN without ticks)."""
 
     n_samples: int
@@ -246,37 +245,13 @@ class RecordScan:
         return self.t_last_s - self.t_first_s if self.n_ticks > 1 else 0.0
 
 
-def count_ticks(
-    blocks: Iterable[SampleBlock], n_cells: int, gate: InputGate, tuning: EstimatorTuning | None
-) -> RecordScan:
-    """The ticks a bank would make of ``blocks`` (through fresh gates ``gate``): the bank's own
-    tick assembler run alone, so the count is exact (gaps, bins, dropped times)."""
-    ticks = TickAssembler(n_cells, tuning or EstimatorTuning())
-    n = k = 0
-    t_first = t_last = math.nan
-    for raw in blocks:
-        block = gate.apply(raw)
-        n += len(block)
-        v = block.cell_voltages_V
-        temps = (
-            [math.nan] * len(block) if block.temperature_C is None else block.temperature_C.tolist()
-        )
-        for j, (t, i) in enumerate(zip(block.t_s.tolist(), block.current_A.tolist(), strict=True)):
-            tick = ticks.push(t, i, v[j], temps[j])
-            if tick is not None:
-                if k == 0:
-                    t_first = tick.t_s
-                t_last = tick.t_s
-                k += 1
-    return RecordScan(n, k, t_first, t_last)
-
-
 def scan_record(source: InputSource, spec: IdentifySpec) -> RecordScan:
-    """One pass over ``source`` (:func:`count_ticks` with the spec's cell, tuning and gates);
-    a streamed source knows its sample count, gaps and merges afterwards. Raises the reader's
-    ``UserError`` for a bad row anywhere in the file, before any estimation."""
-    gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
-    return count_ticks(source.blocks(spec.block_size), source.n_cells, gate, spec.tuning)
+    """One pass over ``source``: its samples, and the ticks the bank will make of them
+    (``offline/tick_count.py``: the tick assembler's clock alone, exact); a streamed source
+    knows its sample count, gaps and merges afterwards. Raises the reader's ``UserError`` for
+    a bad row anywhere in the file, before any estimation."""
+    clock = count_tick_times((b.t_s for b in source.blocks(spec.block_size)), spec.tuning)
+    return RecordScan(clock.n_samples, clock.n_ticks, clock.t_first_s, clock.t_last_s)
 
 
 def probe_start_values(
