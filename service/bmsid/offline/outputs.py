@@ -24,7 +24,6 @@ from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
 from bmsid.estimate.start_fit import WINDOW_S as START_WINDOW_S
 from bmsid.offline.accumulate import PLOT_SERIES
-from bmsid.offline.plots import plot_parameters, plot_voltage
 from bmsid.offline.scoring import EvalWindow, IdentifyResult
 from bmsid.offline.writers import EveryMode, ParamsFormat
 
@@ -121,6 +120,9 @@ def write_plots(
 ) -> None:
     """Fig. 10 (``parameters.png``) and Fig. 11 (``voltage*.png``) of the chosen cells, drawn
     from the run's min-max decimation (every tick of a record up to ``PLOT_BINS`` ticks)."""
+    # matplotlib only now: pyplot is ~40 MB of resident memory a run's estimation never needs
+    from bmsid.offline.plots import plot_parameters, plot_voltage  # noqa: PLC0415
+
     names = result.cell_names
     if result.n_ticks == 0:
         return  # nothing to draw
