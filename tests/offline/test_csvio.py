@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.errors import UserError
+from bmsid.offline import csvio
 from bmsid.offline.csvio import (
     MAX_TIME_RESTARTS,
     RESTART_GAP_S,
@@ -290,3 +291,71 @@ def test_time_as_text_loads_like_seconds_and_other_text_is_refused(tmp_path: Pat
         p = _write(tmp_path / "bad.csv", f"t_s,current_A,voltage_V\n{bad},0,3.6\n")
         with pytest.raises(UserError, match=r"column 't_s' has empty, NaN or non-numeric"):
             read_tester_csv(p)
+
+
+#: cells a tester export may hold: numbers in several spellings, quoted or padded, and the
+#: exceptions (blank, NaN, text) that must leave the fast whole-piece parse to the per-cell one
+_CELL = st.one_of(
+    st.floats(-50.0, 50.0, allow_nan=False).map(repr),
+    st.floats(2.5, 4.2, allow_nan=False).map(lambda x: f"{x:.6e}"),
+    st.floats(2.5, 4.2, allow_nan=False).map(lambda x: f' "{x:.4f}" '),
+    st.sampled_from(["", "nan", "NaN", "abc", "1,5", "inf"]),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.lists(st.tuples(_CELL, _CELL, _CELL), min_size=1, max_size=40),
+       chunk=st.integers(1, 9), missing_ok=st.booleans(), blank_at=st.integers(-1, 45))  # fmt: skip
+def test_the_fast_piece_parse_reads_what_the_per_cell_parse_reads(
+    tmp_path_factory: pytest.TempPathFactory, rows: list[tuple[str, str, str]], chunk: int,
+    missing_ok: bool, blank_at: int,
+) -> None:  # fmt: skip
+    """Pieces after the first are parsed whole in C when every field is a finite number
+    (``_finite_numbers``): the same arrays, counts and errors as the per-cell parse."""
+    lines = [f"{k},{i},{v},{c}" for k, (i, v, c) in enumerate(rows)]
+    if 0 <= blank_at < len(lines):
+        lines.insert(blank_at, "")
+    path = tmp_path_factory.mktemp("fast") / "rec.csv"
+    path.write_text("t_s,current_A,voltage_V,note\n" + "\n".join(lines) + "\n")
+
+    def read(fast: bool) -> list[TesterData] | str:
+        with pytest.MonkeyPatch.context() as mp:
+            if not fast:
+                mp.setattr(csvio, "_finite_numbers", lambda *a: None)
+            try:
+                return list(csvio.iter_tester_csv(path, chunk_rows=chunk, missing_ok=missing_ok))
+            except UserError as exc:
+                return str(exc)
+
+    slow, quick = read(False), read(True)
+    if isinstance(slow, str) or isinstance(quick, str):
+        assert slow == quick
+        return
+    assert len(slow) == len(quick)
+    for a, b in zip(slow, quick, strict=True):
+        for key, x in a.__dict__.items():
+            y = b.__dict__[key]
+            if isinstance(x, np.ndarray):
+                np.testing.assert_array_equal(x, y)
+            elif isinstance(x, dict):
+                assert x.keys() == y.keys()
+                for name in x:
+                    np.testing.assert_array_equal(x[name], y[name])
+            else:
+                assert x == y, key
+
+
+def test_a_blank_or_nan_line_in_a_later_piece_is_still_named(tmp_path: Path) -> None:
+    """The whole-piece parse skips blank lines and reads NaN: a later piece with either goes
+    to the per-cell parse, which refuses (or, with ``missing_ok``, counts) it by line."""
+    lines = [f"{k},{0.5 * k},3.7" for k in range(12)]
+    path = tmp_path / "blank.csv"
+    path.write_text("t_s,current_A,voltage_V\n" + "\n".join([*lines[:7], "", *lines[7:]]) + "\n")
+    with pytest.raises(UserError, match=r"line\(s\) 9 are empty"):
+        list(csvio.iter_tester_csv(path, chunk_rows=3))
+    lines[8] = "8,nan,3.7"
+    path.write_text("t_s,current_A,voltage_V\n" + "\n".join(lines) + "\n")
+    with pytest.raises(UserError, match=r"line\(s\) 10"):
+        list(csvio.iter_tester_csv(path, chunk_rows=3))
+    pieces = list(csvio.iter_tester_csv(path, chunk_rows=3, missing_ok=True))
+    assert sum(p.missing_values for p in pieces) == 1

@@ -40,6 +40,7 @@ import io
 import itertools
 import logging
 import re
+import warnings
 import zlib
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -199,6 +200,23 @@ def _parse_column(
     raise UserError(
         f"{path}: column {name!r} has {what} values on line(s) {_lines_text(bad)}{hint}"
     )
+
+
+def _finite_numbers(lines: list[str], sep: str, n_fields: int) -> FloatArray | None:
+    """``lines`` as a (rows, n_fields) float64 array when every field of every line is a finite
+    number (quotes and spaces around it allowed, as the per-cell parse allows them), else None.
+    numpy's C reader rounds as ``float()`` does: the same values, ~5x faster."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # "empty input" and the like: not this path
+            arr = np.loadtxt(lines, delimiter=sep, dtype=np.float64, comments=None,
+                             quotechar='"', ndmin=2)  # fmt: skip
+    except (ValueError, UserWarning):
+        return None
+    # loadtxt skips blank lines, which are bad rows here
+    if arr.shape != (len(lines), n_fields) or not bool(np.isfinite(arr).all()):
+        return None
+    return arr
 
 
 def _separator(header_line: str) -> str:
@@ -427,9 +445,13 @@ def iter_tester_csv(
         body = list(itertools.islice(lines, rows_per_piece))
         if not body:
             break
+        # Once the first piece read the time as numbers: a piece of finite numbers in every
+        # field is parsed in C; anything else (a bad row, a blank, a NaN, text) takes the
+        # per-cell path below, which names the lines.
+        fast = _finite_numbers(body, lay.sep, n_fields) if time_form == "numbers" else None
         rows: list[list[str]] = []
         bad_rows: list[int] = []
-        for k, line in enumerate(body):
+        for k, line in enumerate(body if fast is None else ()):
             parts = line.split(lay.sep)
             if len(parts) != n_fields:
                 bad_rows.append(row0 + k + 2)
@@ -452,9 +474,8 @@ def iter_tester_csv(
             piece read as such."""
             nonlocal time_form
             j = keys.index("t_s")
-            values = cells_of(j, text)
             if time_form != "numbers":
-                read = seconds_from_text(values)
+                read = seconds_from_text(cells_of(j, text))
                 if read is not None:
                     if time_form is None:
                         log.info("%s: column %r read as %s", p, header[j], read[1])
@@ -465,13 +486,18 @@ def iter_tester_csv(
             return required("t_s")  # numbers, or the error that names the lines that are not
 
         def required(name: str, text: list[tuple[str, ...]] = columns_text,
-                     first_line: int = row0 + 2) -> FloatArray:  # fmt: skip
+                     first_line: int = row0 + 2,
+                     numbers: FloatArray | None = fast) -> FloatArray:  # fmt: skip
             nonlocal missing
             j = keys.index(name.lower())
-            # a blank or NaN reading is a missing one (the time stamp must be there)
-            ok_missing = missing_ok and name.lower() != "t_s"
-            arr = _parse_column(cells_of(j, text), header[j], p, first_line, True, ok_missing)
-            assert arr is not None
+            if numbers is not None:
+                arr = np.ascontiguousarray(numbers[:, j])
+            else:
+                # a blank or NaN reading is a missing one (the time stamp must be there)
+                ok_missing = missing_ok and name.lower() != "t_s"
+                got = _parse_column(cells_of(j, text), header[j], p, first_line, True, ok_missing)
+                assert got is not None
+                arr = got
             missing += int(np.count_nonzero(np.isnan(arr)))
             return arr * lay.scales[j] if j in lay.scales else arr
 
@@ -498,7 +524,11 @@ def iter_tester_csv(
         for j, name in enumerate(header):
             if j in used or not name:
                 continue
-            arr = _parse_column(cells_of(j), name, p, row0 + 2, False)
+            arr = (
+                np.ascontiguousarray(fast[:, j])
+                if fast is not None
+                else _parse_column(cells_of(j), name, p, row0 + 2, False)
+            )
             if arr is not None:
                 extra[name] = arr
         piece = TesterData(
