@@ -150,8 +150,11 @@ def test_status_payloads_validate() -> None:
             "seq": 0,
         },
         mqtt={"state": "connected", "last_error": None},
+        soc_init="window_fit",
     )
     jsonschema.validate(online, schema)
+    with pytest.raises(jsonschema.ValidationError):  # how SOC started is one of the engine's
+        jsonschema.validate({**online, "soc_init": "default 50 %"}, schema)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({**online, "counters": {}}, schema)
     with pytest.raises(jsonschema.ValidationError):

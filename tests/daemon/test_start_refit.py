@@ -43,9 +43,12 @@ def _host(tmp_path: Path, run: SyntheticRun, **kw: object) -> BankHost:
     return host
 
 
-def _feed(host: BankHost, block: SampleBlock, batch: int = 97) -> None:
+def _feed(host: BankHost, block: SampleBlock, batch: int = 97) -> str:
+    """Feed ``block`` in batches; the ``soc_init`` the last batch reported."""
+    soc_init = ""
     for a in range(0, len(block), batch):
-        host.update(block.slice(a, a + batch))
+        soc_init = host.update(block.slice(a, a + batch)).soc_init
+    return soc_init
 
 
 def test_a_start_mid_drive_continues_from_the_fitted_start_as_offline(
@@ -56,7 +59,7 @@ def test_a_start_mid_drive_continues_from_the_fitted_start_as_offline(
     assert host.bank.soc_init_method == "pending"
     truth = run.soc_true[ENTER_S]
     with caplog.at_level(logging.INFO, logger="bmsid.daemon.bank_worker"):
-        _feed(host, block)
+        assert _feed(host, block) == WINDOW_FIT  # what the daemon's status payload says
     assert host.counters["start_refits"] == 1
     assert host.bank.soc_init_method == WINDOW_FIT
     assert "start SOC fitted over the first 1200 s (it opened under load)" in caplog.text
@@ -75,7 +78,7 @@ def test_a_start_mid_drive_continues_from_the_fitted_start_as_offline(
 def test_a_rested_start_a_given_soc0_and_a_restore_keep_their_start(tmp_path: Path) -> None:
     run, block = _record(0)  # paper_dst_case opens with a rest: the first voltage is an OCV
     host = _host(tmp_path / "rested", run)
-    _feed(host, block.slice(0, int(WINDOW_S) + 200))
+    assert _feed(host, block.slice(0, int(WINDOW_S) + 200)) == "ocv_at_rest"
     assert host.counters["start_refits"] == 0
     assert host.bank.soc_init_method == "ocv_at_rest"
     assert host._head is None  # the window was seen: nothing more is kept

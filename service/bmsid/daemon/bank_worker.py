@@ -208,6 +208,8 @@ class BatchResult:
     seq: int
     #: what the plausibility gates refused, missing and no-data cells (``GateState.report``)
     inputs: dict[str, Any] = field(default_factory=dict)
+    #: how the bank's SOC started (``EstimatorBank.soc_init_method``)
+    soc_init: str = "pending"
 
 
 @dataclass
@@ -410,7 +412,12 @@ class BankHost:
             held = self._probe_block(block)
             if held is None:
                 return BatchResult(
-                    estimates, messages, self._counters(), self.seq, self.gate.state.report()
+                    estimates,
+                    messages,
+                    self._counters(),
+                    self.seq,
+                    self.gate.state.report(),
+                    self.bank.soc_init_method,
                 )
             block = held
         head = self._head.add(block) if self._head is not None else None
@@ -436,7 +443,12 @@ class BankHost:
             self._head = None
             self._refit_start(head)
         return BatchResult(
-            estimates, messages, self._counters(), self.seq, self.gate.state.report()
+            estimates,
+            messages,
+            self._counters(),
+            self.seq,
+            self.gate.state.report(),
+            self.bank.soc_init_method,
         )
 
     def _refit_start(self, head: SampleBlock) -> None:

@@ -146,6 +146,7 @@ class Daemon:
         self.latest: Estimates | None = None
         #: what the plausibility gates refused per cell, missing and no-data cells (status)
         self.inputs: dict[str, object] | None = None
+        self.soc_init: str | None = None
         self.restored = False
         self.seq = 0
         self.can_state = "starting"
@@ -569,6 +570,7 @@ class Daemon:
                 self._last_sample_mono = time.monotonic()
                 self.seq = result.seq
                 self.inputs = result.inputs
+                self.soc_init = result.soc_init
                 jumps = self.bank_counters.get("time_jumps_back", 0)
                 self._merge_bank_counters(result.counters)
                 if self.bank_counters.get("time_jumps_back", 0) > jumps:
@@ -677,6 +679,7 @@ class Daemon:
                     else None
                 ),
                 state_dir="failing" if self.state_dir_failing else "ok",
+                soc_init=self.soc_init,
             )
         )
 
@@ -707,6 +710,7 @@ class Daemon:
             "checkpoints_refused": self.bank_counters.get("checkpoints_refused", 0),
             "seq_file_errors": self.bank_counters.get("seq_file_errors", 0),
             "mqtt_withheld": self.bank_counters.get("mqtt_withheld", 0),
+            "start_refits": self.bank_counters.get("start_refits", 0),
             "loop_lag_max_ms": round(self.loop_lag_max_s * 1e3, 3),
             "seq": self.seq,
         }

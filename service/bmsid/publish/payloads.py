@@ -209,12 +209,14 @@ def status_payload(
     mqtt: dict[str, str | None] | None = None,
     inputs: dict[str, Any] | None = None,
     state_dir: str | None = None,
+    soc_init: str | None = None,
 ) -> dict[str, Any]:
     """``online``/``offline`` with the daemon's counters (the will carries ``offline`` only);
     ``mqtt`` is the connection's ``{"state", "last_error"}`` (never a secret); ``inputs`` what
     the plausibility gates refused per cell, and the missing and no-data cells
     (``bmsid.gates.GateState.report``); ``state_dir`` ``"ok"`` or ``"failing"``
-    (:data:`HEALTH_STATE_DIR`)."""
+    (:data:`HEALTH_STATE_DIR`); ``soc_init`` how the bank's SOC started
+    (``EstimatorBank.soc_init_method``)."""
     out: dict[str, Any] = {"schema": SCHEMA_VERSION, "state": state, "pack_id": pack_id}
     if version:
         out["version"] = version
@@ -224,6 +226,8 @@ def status_payload(
             out["mqtt"] = dict(mqtt)
         if state_dir is not None:
             out["state_dir"] = state_dir
+        if soc_init is not None:
+            out["soc_init"] = soc_init
         out["uptime_s"] = round(float(uptime_s), 3)
         out["counters"] = dict(counters or {})
         if inputs is not None:
