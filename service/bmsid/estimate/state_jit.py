@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bmsid.estimate import observer_kernel as ok_
-from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
+from bmsid.estimate.stage import BoolArray, FloatArray, TickContext, nnz
 from bmsid.model.ocv import OcvModel
 
 if TYPE_CHECKING:
@@ -50,7 +50,10 @@ def ocv_params(ocv: OcvModel) -> FloatArray:
 class Packed:
     """A stage's constants in the kernels' layout, and what they were packed from."""
 
-    __slots__ = ("cells", "key", "knots", "m_V", "m_soc", "ocv", "q_key", "qb_coef", "tun", "utun")
+    __slots__ = (
+        "cells", "key", "knots", "m_V", "m_soc", "ocv", "one_step", "q_key", "qb_coef", "tun",
+        "utun",
+    )  # fmt: skip
 
     def __init__(self, st: CoulombState) -> None:
         ocv = st.model.ocv
@@ -70,6 +73,7 @@ class Packed:
         self.q_key: Any = None
         self.qb_coef = 0.0
         self.utun: FloatArray | None = None
+        self.one_step = np.zeros((1, 2))  # a tick's one coulomb step (read by the kernel only)
 
 
 def _cell_sources(st: CoulombState) -> tuple[Any, ...]:
@@ -95,14 +99,16 @@ def _packed(st: CoulombState) -> Packed:
 def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     """The tick's state step by the compiled kernel (``jit.select``); False (nothing done)
     where the stage runs its own code: the numpy mode, or a cell that starts this tick."""
-    if ok_.STEP.kind != "compiled" or np.count_nonzero(st._pending):
+    if ok_.STEP.kind != "compiled" or nnz(st._pending):
         return False
     tick = ctx.tick
     pk = _packed(st)
-    steps = (
-        np.array(tick.coulomb_steps, dtype=np.float64).reshape(-1, 2)
-        if tick.coulomb_steps else _NO_STEPS
-    )  # fmt: skip
+    cs = tick.coulomb_steps
+    if len(cs) == 1:  # the usual tick: one raw step, into the stage's buffer (no array built)
+        steps = pk.one_step
+        steps[0, 0], steps[0, 1] = cs[0]
+    else:
+        steps = np.array(cs, dtype=np.float64).reshape(-1, 2) if cs else _NO_STEPS
     if observer:
         obs: ObserverState = st  # type: ignore[assignment]
         b = obs.b
