@@ -40,7 +40,8 @@ from bmsid.estimate.stage import (
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.estimate.varpro import Window, fit_linear, fixed_rmse, solve_linear
+from bmsid.estimate.varpro import Window, fit_columns, fit_linear, fixed_rmse
+from bmsid.estimate.varpro_kernel import FITNESS
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
@@ -248,17 +249,16 @@ class FusionStage:
         return float((sig * self.scale[c, 4] / self.tuning.ocv_offset_prior_V) ** 2)
 
     def _fitness(self, c: int, window: Window, weights: FloatArray, taus: FloatArray) -> FloatArray:
-        tun, sc = self.tuning, self.scale[c]
         t_lo = np.minimum(taus[:, 0], taus[:, 1])
         t_hi = np.maximum(taus[:, 0], taus[:, 1])
-        theta, rmse_V, _, _ = solve_linear(
-            window, t_lo, t_hi, sc, weights, self._offset_prior(c), False
-        )
-        viol = (
-            np.maximum(self._lin_lo[c] - theta, 0.0) + np.maximum(theta - self._lin_hi[c], 0.0)
-        ) / self._abs_scale[c]
-        viol_r = np.maximum(tun.tau_ratio_min / (t_hi / t_lo) - 1.0, 0.0)
-        return np.asarray(rmse_V * (1.0 + 10.0 * (viol.sum(axis=1) + viol_r)))
+        # the window fit (varpro.fit_linear) and its penalty in one kernel call
+        a1, a2, s_full, idx, j_off = fit_columns(window, t_lo, t_hi, self.scale[c])
+        return FITNESS.impl(
+            window.current_A, window.y_V, window.hm_V, weights, a1, a2, s_full, idx,
+            window.use_hysteresis, window.use_offset, self._offset_prior(c), j_off,
+            self._lin_lo[c], self._lin_hi[c], self._abs_scale[c], t_lo, t_hi,
+            self.tuning.tau_ratio_min,
+        )  # fmt: skip
 
     def _swarm_fits(self, c: int, cs: CellSwarm, budget: int) -> None:
         """Evaluate up to ``budget`` particles; when all are evaluated, move the swarm."""

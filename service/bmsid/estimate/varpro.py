@@ -68,35 +68,26 @@ def fit_linear(
     offset to 0 along the direction the data cannot resolve (offset vs R2 x2 under a steady mean
     current). The covariance is only computed when ``with_cov``.
     """
-    theta, rmse, x_last, cov5 = solve_linear(
-        w, tau1_s, tau2_s, scale, weights, offset_prior, with_cov
-    )
-    return LinearFit(theta=theta, rmse_V=rmse, x_last=x_last, cov=cov5)
-
-
-def solve_linear(
-    w: Window,
-    tau1_s: FloatArray,
-    tau2_s: FloatArray,
-    scale: FloatArray,
-    weights: FloatArray | None,
-    offset_prior: float,
-    with_cov: bool,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`fit_linear`'s (theta, RMSE, branch states, covariance) as a plain tuple: what the
-    swarm's fitness calls, several times a tick (a frozen dataclass costs a microsecond)."""
-    a1 = rc_decay(w.dt_s, tau1_s)
-    a2 = rc_decay(w.dt_s, tau2_s)
-    idx = _active_columns(w.use_hysteresis, w.use_offset)
-    s_full = np.concatenate((scale, _TWO_ONES))[idx]
+    a1, a2, s_full, idx, j_off = fit_columns(w, tau1_s, tau2_s, scale)
     wts = np.ones(w.current_A.shape[0]) if weights is None else weights
     G, b, x_last = varpro_kernel.normal_equations(
         w.current_A, w.y_V, w.hm_V, wts, a1, a2, s_full, w.use_hysteresis, w.use_offset
     )
-    j_off = 3 + int(w.use_hysteresis) if w.use_offset else -1
-    return varpro_kernel.SOLVE.impl(
+    theta, rmse, x_last, cov5 = varpro_kernel.SOLVE.impl(
         G, b, x_last, w.y_V, wts, a1, a2, s_full, idx, offset_prior, j_off, with_cov
     )
+    return LinearFit(theta=theta, rmse_V=rmse, x_last=x_last, cov=cov5)
+
+
+def fit_columns(
+    w: Window, tau1_s: FloatArray, tau2_s: FloatArray, scale: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.intp], int]:
+    """What the window kernels take besides the window: the poles (a1, a2), the active
+    columns' scales and indices, and the offset's column (-1: none)."""
+    idx = _active_columns(w.use_hysteresis, w.use_offset)
+    j_off = 3 + int(w.use_hysteresis) if w.use_offset else -1
+    s_full = np.concatenate((scale, _TWO_ONES))[idx]
+    return rc_decay(w.dt_s, tau1_s), rc_decay(w.dt_s, tau2_s), s_full, idx, j_off
 
 
 _TWO_ONES = np.ones(2)  # the scales of the two window-start columns
