@@ -40,6 +40,7 @@ from bmsid.estimate.fusion import FusionStage
 from bmsid.estimate.guard import PublishGuard
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.publish_average import PublishAverage
+from bmsid.estimate.publish_kernel import TAIL, publish
 from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, nnz, per_cell_limit
 from bmsid.estimate.state import CoulombState, without_data
 from bmsid.estimate.ticks import Tick, TickAssembler
@@ -48,6 +49,7 @@ from bmsid.estimate.types import VARIANTS, EstimateBlock, Estimates, Quality
 from bmsid.samples import SampleBlock
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
 
 #: Quality codes as plain ints: numpy assigns an IntEnum member into an array ~5x slower.
 _CONVERGED, _CONVERGING = int(Quality.CONVERGED), int(Quality.CONVERGING)
@@ -121,6 +123,8 @@ class EstimatorBank:
         # copied each tick: a seventh of np.full's cost
         self._q_converged = np.full(n, _CONVERGED, dtype=np.int64)
         self._q_poorly = np.full(n, _POORLY_EXCITED, dtype=np.int64)
+        # ``excited`` as the compiled tail takes it, for one capacity: [not excited, excited]
+        self._excited = (np.zeros(n, dtype=bool), np.ones(n, dtype=bool))
 
     # ------------------------------------------------------------------ public API
     @property
@@ -230,6 +234,27 @@ class EstimatorBank:
         cells.update(p_out)
         v_meas = cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
         cells["v_error_V"] = v_meas - cells["v_model_V"]
+        if TAIL.kind == "compiled":  # the codes, guard, average and flag: one kernel call
+            ex = excited if isinstance(excited, np.ndarray) else self._excited[bool(excited)]
+            cells, q, reinit = publish(
+                guard, self.average, tick.t_s, tick.dt_s, cells, ex, params.clamped,
+                params.converged, ctx.learn,
+            )  # fmt: skip
+        else:
+            cells, q, reinit = self._publish(tick, cells, excited, ctx.learn)
+        if nnz(state.no_data):  # no valid reading since the (re)start
+            cells, q = without_data(cells, q, state.no_data)
+        if nnz(reinit):
+            self.reset(reinit)
+        return cells, q
+
+    def _publish(
+        self, tick: Tick, cells: dict[str, FloatArray], excited: bool | BoolArray,
+        learn: BoolArray,
+    ) -> tuple[dict[str, FloatArray], npt.NDArray[np.int64], BoolArray]:  # fmt: skip
+        """The tick's quality codes, guard and average by the stages' own calls (the numpy
+        mode; ``publish_kernel.TAIL`` compiled runs the same in one call)."""
+        params, guard = self.params, self.guard
         if isinstance(excited, np.ndarray):
             q = self._q_converged.copy()
             q[~excited] = _POORLY_EXCITED
@@ -243,7 +268,7 @@ class EstimatorBank:
         n_conv = nnz(converged)
         if n_conv < self.n:
             q[~converged] = _CONVERGING
-        cells, q, reinit = guard.apply(tick.t_s, cells, q, clamped, ctx.learn)
+        cells, q, reinit = guard.apply(tick.t_s, cells, q, clamped, learn)
         cells = self.average.apply(cells, q, tick.dt_s)
         # A converging cell on a bound is a finding too (a bound never shows silently: quality
         # OUT_OF_BOUNDS where on_bound names it; its branch is held by the guard), flagged only
@@ -252,11 +277,7 @@ class EstimatorBank:
             flag = (q == _CONVERGING) & (guard.bound_bits > 0)
             if nnz(flag):
                 q[flag] = _OUT_OF_BOUNDS
-        if nnz(state.no_data):  # no valid reading since the (re)start
-            cells, q = without_data(cells, q, state.no_data)
-        if nnz(reinit):
-            self.reset(reinit)
-        return cells, q
+        return cells, q, reinit
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

@@ -71,8 +71,9 @@ class FusionStage:
         self.cell_ids = cell_ids
         self.counters: dict[str, int] = {"swarms": 0, "clamped": 0, "swarms_rejected": 0}
         cols = [BOUNDED.index(name) for name in _LINEAR_BOUNDS]
-        self._lin_lo = model.lo[:, cols]
-        self._lin_hi = model.hi[:, cols]
+        # C-contiguous (a column selection is not): each cell's row goes to a compiled kernel
+        self._lin_lo = np.ascontiguousarray(model.lo[:, cols])
+        self._lin_hi = np.ascontiguousarray(model.hi[:, cols])
         r0, r1, r2 = model.start("R0_ohm"), model.start("R1_ohm"), model.start("R2_ohm")
         # Normalisation of the linear parameters (R0, R1, R2, M scale, offset).
         self.scale = np.stack([r0, r1, r2, np.ones(n), np.full(n, 0.05)], axis=1)
