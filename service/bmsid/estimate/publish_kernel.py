@@ -35,12 +35,18 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
 
+if HELD != ("R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F", "tau1_s", "tau2_s", "ocv_offset_V"):
+    raise RuntimeError("publish_kernel: the kernels' parameter arguments no longer match HELD")
 #: A literal, read by the compiled kernel (checked against its source below).
 CONVERGED = 1
 if CONVERGED != Quality.CONVERGED:
     raise RuntimeError("publish_kernel: CONVERGED no longer matches Quality.CONVERGED")
 #: The rows of the guarded parameters (``HELD``) that the average reads (``AVERAGED``).
 AVG_ROWS = tuple(HELD.index(k) for k in AVERAGED)
+#: Rows of the kernels' float result: the guard's published HELD rows, its SOC, the average's
+#: PUBLISHED rows.
+SOC_ROW = len(HELD)
+N_FLOATS = SOC_ROW + 1 + len(PUBLISHED)
 
 
 def _codes(excited: BoolArray, clamped: BoolArray, converged: BoolArray) -> IntArray:
@@ -53,27 +59,33 @@ def _codes(excited: BoolArray, clamped: BoolArray, converged: BoolArray) -> IntA
 
 
 def tail_numpy(
-    dt_guard: float, soc: FloatArray, params: FloatArray, err: FloatArray, excited: BoolArray,
-    clamped: BoolArray, converged: BoolArray, learn: BoolArray, stats: FloatArray,
-    good: FloatArray, good_soc: FloatArray, episode: BoolArray, cause: IntArray,
-    bound_bits: IntArray, near: FloatArray, has_near: bool, consts: FloatArray, avg: FloatArray,
-    restart: BoolArray, dt_s: float, tau1_multiple: float,
+    dt_guard: float, soc: FloatArray, r0: FloatArray, r1: FloatArray, c1: FloatArray,
+    r2: FloatArray, c2: FloatArray, tau1: FloatArray, tau2: FloatArray, offset: FloatArray,
+    err: FloatArray, excited: BoolArray, clamped: BoolArray, converged: BoolArray,
+    learn: BoolArray, stats: FloatArray, good: FloatArray, good_soc: FloatArray,
+    episode: BoolArray, cause: IntArray, bound_bits: IntArray, near: FloatArray, has_near: bool,
+    consts: FloatArray, avg: FloatArray, restart: BoolArray, dt_s: float, tau1_multiple: float,
 ) -> tuple[Any, ...]:  # fmt: skip
-    """The reference: the codes, ``guard_kernel.guard_step_numpy`` (its state arguments updated
-    in place), ``publish_average.average_numpy`` on the guarded R1, R2, tau1, tau2 (``avg`` in
-    place; skipped when ``tau1_multiple`` <= 0: the published rows are then not set), the flag.
-    Returns the guard's seven results and the average's published rows (6, n)."""
+    """The reference: the codes, ``guard_kernel.guard_step_numpy`` on the :data:`HELD`
+    parameters ``r0`` .. ``offset`` (its state arguments updated in place),
+    ``publish_average.average_numpy`` on the guarded R1, R2, tau1, tau2 (``avg`` in place;
+    skipped when ``tau1_multiple`` <= 0: its rows are then NaN), the flag. Returns (the floats
+    (15, n): the guard's published HELD rows, its SOC, the average's PUBLISHED rows; the
+    quality codes; the cells to re-initialise; the guard's counts and whether it held any)."""
+    params = np.array([r0, r1, c1, r2, c2, tau1, tau2, offset], dtype=np.float64)
     q = _codes(excited, clamped, converged)
     published, soc_out, q, reinit, n_reinit, n_held, masked = guard_kernel.guard_step_numpy(
         dt_guard, soc, params, err, q, clamped, learn, stats, good, good_soc, episode, cause,
         bound_bits, near, has_near, consts,
     )  # fmt: skip
-    pub = np.full((len(PUBLISHED), soc.shape[0]), np.nan)
+    floats = np.full((N_FLOATS, soc.shape[0]), np.nan)
+    floats[: len(HELD)] = published
+    floats[SOC_ROW] = soc_out
     if tau1_multiple > 0.0:
         raw = np.array(published[list(AVG_ROWS)], dtype=np.float64)
-        pub = average_numpy(avg, raw, q, restart, dt_s, tau1_multiple)
+        floats[SOC_ROW + 1 :] = average_numpy(avg, raw, q, restart, dt_s, tau1_multiple)
     q[(q == CONVERGING) & (bound_bits > 0)] = OUT_OF_BOUNDS
-    return published, soc_out, q, reinit, n_reinit, n_held, masked, pub
+    return floats, q, reinit, n_reinit, n_held, masked
 
 
 #: The compiled guard and average, called by the compiled tail (bound by its warm-up, before it
@@ -83,14 +95,20 @@ _AVERAGE: Callable[..., FloatArray] | None = None
 
 
 def _tail_source(
-    dt_guard: float, soc: FloatArray, params: FloatArray, err: FloatArray, excited: BoolArray,
-    clamped: BoolArray, converged: BoolArray, learn: BoolArray, stats: FloatArray,
-    good: FloatArray, good_soc: FloatArray, episode: BoolArray, cause: IntArray,
-    bound_bits: IntArray, near: FloatArray, has_near: bool, consts: FloatArray, avg: FloatArray,
-    restart: BoolArray, dt_s: float, tau1_multiple: float,
+    dt_guard: float, soc: FloatArray, r0: FloatArray, r1: FloatArray, c1: FloatArray,
+    r2: FloatArray, c2: FloatArray, tau1: FloatArray, tau2: FloatArray, offset: FloatArray,
+    err: FloatArray, excited: BoolArray, clamped: BoolArray, converged: BoolArray,
+    learn: BoolArray, stats: FloatArray, good: FloatArray, good_soc: FloatArray,
+    episode: BoolArray, cause: IntArray, bound_bits: IntArray, near: FloatArray, has_near: bool,
+    consts: FloatArray, avg: FloatArray, restart: BoolArray, dt_s: float, tau1_multiple: float,
 ) -> tuple[Any, ...]:  # fmt: skip
-    """The same in one call (compiled by numba)."""
+    """The same in one call (compiled by numba): the parameters come as separate rows and the
+    floats leave as one array (each array built or returned costs the Python side more than
+    the loops here)."""
     n = soc.shape[0]
+    params = np.empty((len(HELD), n))
+    params[0], params[1], params[2], params[3] = r0, r1, c1, r2
+    params[4], params[5], params[6], params[7] = c2, tau1, tau2, offset
     q = np.empty(n, dtype=np.int64)
     for i in range(n):
         code = CONVERGED
@@ -105,16 +123,18 @@ def _tail_source(
         dt_guard, soc, params, err, q, clamped, learn, stats, good, good_soc, episode, cause,
         bound_bits, near, has_near, consts,
     )  # fmt: skip
-    pub = np.full((len(PUBLISHED), n), np.nan)
+    floats = np.full((N_FLOATS, n), np.nan)
+    floats[: len(HELD)] = published
+    floats[SOC_ROW] = soc_out
     if tau1_multiple > 0.0:
         raw = np.empty((len(AVG_ROWS), n))
         for r in range(len(AVG_ROWS)):
             raw[r] = published[AVG_ROWS[r]]
-        pub = _AVERAGE(avg, raw, q, restart, dt_s, tau1_multiple)  # type: ignore[misc]
+        floats[SOC_ROW + 1 :] = _AVERAGE(avg, raw, q, restart, dt_s, tau1_multiple)  # type: ignore[misc]
     for i in range(n):
         if q[i] == CONVERGING and bound_bits[i] > 0:
             q[i] = OUT_OF_BOUNDS
-    return published, soc_out, q, reinit, n_reinit, n_held, masked, pub
+    return floats, q, reinit, n_reinit, n_held, masked
 
 
 def _warm(kernel: Callable[..., tuple[Any, ...]]) -> object:
@@ -126,7 +146,7 @@ def _warm(kernel: Callable[..., tuple[Any, ...]]) -> object:
         ones, f = np.ones(n), np.zeros(n, dtype=bool)
         i = np.zeros(n, dtype=np.int64)
         for has_near in (False, True):
-            kernel(1.0, ones * 0.5, np.ones((8, n)), ones * 1e-3, ~f, f, ~f, ~f,
+            kernel(1.0, ones * 0.5, *([ones] * len(HELD)), ones * 1e-3, ~f, f, ~f, ~f,
                    np.zeros((5, n)), np.ones((8, n)), ones, f.copy(), i.copy(), i.copy(),
                    np.ones((2, 5, n)), has_near,
                    np.array([0.02, 60.0, 3600.0, 3600.0, 25.0, 1e-6]),
@@ -149,9 +169,10 @@ def publish(
     ``PublishGuard.apply`` and ``PublishAverage.apply`` do around their kernels, with ``cells``
     (the bank's own dict of the tick) updated in place. Returns (cells, quality, cells to
     re-initialise)."""
-    params = np.array([cells[k] for k in HELD], dtype=np.float64)
-    published, soc, q, reinit, n_reinit, n_held, masked, pub = TAIL.impl(
-        guard._data_dt(t_s), cells["soc"], params, cells["v_error_V"], excited, clamped,
+    floats, q, reinit, n_reinit, n_held, masked = TAIL.impl(
+        guard._data_dt(t_s), cells["soc"], cells["R0_ohm"], cells["R1_ohm"], cells["C1_F"],
+        cells["R2_ohm"], cells["C2_F"], cells["tau1_s"], cells["tau2_s"], cells["ocv_offset_V"],
+        cells["v_error_V"], excited, clamped,
         converged, learn, guard._stats, guard.good, guard.good_soc, guard.episode, guard.cause,
         guard.bound_bits, guard._near, guard._has_near, guard._consts, average.avg,
         average.restart, dt_s, average.tau1_multiple,
@@ -163,12 +184,12 @@ def publish(
     cells["on_bound"] = guard.bound_bits.astype(np.float64)
     if masked:  # else the stages' own arrays are published
         for j, k in enumerate(HELD):
-            cells[k] = published[j]
-    guard.good = published
-    cells["soc"] = guard.good_soc = soc
+            cells[k] = floats[j]
+    guard.good = floats[: len(HELD)]  # (C-contiguous rows: the kernel's type next tick too)
+    cells["soc"] = guard.good_soc = floats[SOC_ROW]
     if average.tau1_multiple > 0.0:
         if nnz(average.restart):
             average.restart = np.zeros(average.n, dtype=bool)
         for j, k in enumerate(PUBLISHED):
-            cells[k] = pub[j]
+            cells[k] = floats[SOC_ROW + 1 + j]
     return cells, q, reinit
