@@ -87,11 +87,12 @@ def test_compiled_and_reference_tails_agree(
             guard.good, guard.good_soc = res[0][:8], res[0][8]
             out.append(res)
         new, ref = out
-        # the guard's results (published, SOC, codes, re-initialisations, counts): the same bits
-        np.testing.assert_array_equal(new[0][:9], ref[0][:9])
+        # the guard's results (published, SOC, bits, codes, re-initialisations, counts): the
+        # same bits
+        np.testing.assert_array_equal(new[0][:10], ref[0][:10])
         for j in range(1, 6):
             np.testing.assert_array_equal(new[j], ref[j], err_msg=str(j))
-        np.testing.assert_allclose(new[0][9:], ref[0][9:], rtol=1e-13, atol=0, equal_nan=True)
+        np.testing.assert_allclose(new[0][10:], ref[0][10:], rtol=1e-13, atol=0, equal_nan=True)
         if multiple > 0.0:
             np.testing.assert_allclose(avgs[0].avg, avgs[1].avg, rtol=1e-13, equal_nan=True)
         for k in ("episode", "cause", "bound_bits"):

@@ -43,10 +43,10 @@ if CONVERGED != Quality.CONVERGED:
     raise RuntimeError("publish_kernel: CONVERGED no longer matches Quality.CONVERGED")
 #: The rows of the guarded parameters (``HELD``) that the average reads (``AVERAGED``).
 AVG_ROWS = tuple(HELD.index(k) for k in AVERAGED)
-#: Rows of the kernels' float result: the guard's published HELD rows, its SOC, the average's
-#: PUBLISHED rows.
-SOC_ROW = len(HELD)
-N_FLOATS = SOC_ROW + 1 + len(PUBLISHED)
+#: Rows of the kernels' float result: the guard's published HELD rows, its SOC, its bound bits
+#: (as floats: the ``on_bound`` field), the average's PUBLISHED rows.
+SOC_ROW, BITS_ROW, AVG_ROW = len(HELD), len(HELD) + 1, len(HELD) + 2
+N_FLOATS = AVG_ROW + len(PUBLISHED)
 
 
 def _codes(excited: BoolArray, clamped: BoolArray, converged: BoolArray) -> IntArray:
@@ -70,8 +70,9 @@ def tail_numpy(
     parameters ``r0`` .. ``offset`` (its state arguments updated in place),
     ``publish_average.average_numpy`` on the guarded R1, R2, tau1, tau2 (``avg`` in place;
     skipped when ``tau1_multiple`` <= 0: its rows are then NaN), the flag. Returns (the floats
-    (15, n): the guard's published HELD rows, its SOC, the average's PUBLISHED rows; the
-    quality codes; the cells to re-initialise; the guard's counts and whether it held any)."""
+    (N_FLOATS, n): the guard's published HELD rows, its SOC and bound bits, the average's
+    PUBLISHED rows; the quality codes; the cells to re-initialise; the guard's counts and
+    whether it held any)."""
     params = np.array([r0, r1, c1, r2, c2, tau1, tau2, offset], dtype=np.float64)
     q = _codes(excited, clamped, converged)
     published, soc_out, q, reinit, n_reinit, n_held, masked = guard_kernel.guard_step_numpy(
@@ -81,9 +82,10 @@ def tail_numpy(
     floats = np.full((N_FLOATS, soc.shape[0]), np.nan)
     floats[: len(HELD)] = published
     floats[SOC_ROW] = soc_out
+    floats[BITS_ROW] = bound_bits
     if tau1_multiple > 0.0:
         raw = np.array(published[list(AVG_ROWS)], dtype=np.float64)
-        floats[SOC_ROW + 1 :] = average_numpy(avg, raw, q, restart, dt_s, tau1_multiple)
+        floats[AVG_ROW:] = average_numpy(avg, raw, q, restart, dt_s, tau1_multiple)
     q[(q == CONVERGING) & (bound_bits > 0)] = OUT_OF_BOUNDS
     return floats, q, reinit, n_reinit, n_held, masked
 
@@ -126,11 +128,13 @@ def _tail_source(
     floats = np.full((N_FLOATS, n), np.nan)
     floats[: len(HELD)] = published
     floats[SOC_ROW] = soc_out
+    for i in range(n):
+        floats[BITS_ROW, i] = bound_bits[i]
     if tau1_multiple > 0.0:
         raw = np.empty((len(AVG_ROWS), n))
         for r in range(len(AVG_ROWS)):
             raw[r] = published[AVG_ROWS[r]]
-        floats[SOC_ROW + 1 :] = _AVERAGE(avg, raw, q, restart, dt_s, tau1_multiple)  # type: ignore[misc]
+        floats[AVG_ROW:] = _AVERAGE(avg, raw, q, restart, dt_s, tau1_multiple)  # type: ignore[misc]
     for i in range(n):
         if q[i] == CONVERGING and bound_bits[i] > 0:
             q[i] = OUT_OF_BOUNDS
@@ -181,7 +185,7 @@ def publish(
         guard.counters["diverged"] += n_reinit
     if n_held:
         guard.counters["held_on_bound"] += n_held
-    cells["on_bound"] = guard.bound_bits.astype(np.float64)
+    cells["on_bound"] = floats[BITS_ROW]
     if masked:  # else the stages' own arrays are published
         for j, k in enumerate(HELD):
             cells[k] = floats[j]
@@ -191,5 +195,5 @@ def publish(
         if nnz(average.restart):
             average.restart = np.zeros(average.n, dtype=bool)
         for j, k in enumerate(PUBLISHED):
-            cells[k] = floats[SOC_ROW + 1 + j]
+            cells[k] = floats[AVG_ROW + j]
     return cells, q, reinit

@@ -13,7 +13,6 @@ stage reads them).
 
 from __future__ import annotations
 
-from operator import is_
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -77,9 +76,11 @@ class Packed:
 
 
 def _cell_sources(st: CoulombState) -> tuple[Any, ...]:
+    d = st.__dict__  # instance attributes: a dict lookup each, cheaper than getattr every tick
+    cap, eff = d["_capacity_As"], d["_efficiency"]
     return (
-        st._capacity_As, st._efficiency, st._kappa_discharge, st._kappa_charge,
-        getattr(st, "_q_As", st._capacity_As), getattr(st, "_eff", st._efficiency),
+        cap, eff, d["_kappa_discharge"], d["_kappa_charge"], d.get("_q_As", cap),
+        d.get("_eff", eff),
     )  # fmt: skip
 
 
@@ -87,8 +88,11 @@ def _packed(st: CoulombState) -> Packed:
     pk: Packed | None = st.__dict__.get("_packed")
     if pk is None:
         pk = st.__dict__["_packed"] = Packed(st)
-    src = _cell_sources(st)
-    if len(src) != len(pk.key) or not all(map(is_, src, pk.key)):
+    src, key = _cell_sources(st), pk.key
+    if not key or not (
+        src[0] is key[0] and src[1] is key[1] and src[2] is key[2] and src[3] is key[3]
+        and src[4] is key[4] and src[5] is key[5]
+    ):  # fmt: skip
         for row, x in zip((ok_.CAP, ok_.EFF, ok_.KAPPA_D, ok_.KAPPA_C, ok_.Q_OBS, ok_.EFF_OBS),
                           src, strict=True):  # fmt: skip
             pk.cells[row] = x
