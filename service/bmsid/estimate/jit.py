@@ -65,11 +65,15 @@ class Kernel(Generic[F]):
             try:
                 import numba  # noqa: PLC0415 (optional: the reference runs without it)
 
+                cache = True
                 if self._depends:  # a cache entry per version of the files it embeds
-                    digest = hashlib.sha1(b"".join(Path(f).read_bytes() for f in self._depends))
-                    name = self._source.__name__
-                    self._source.__qualname__ = f"{name}_{digest.hexdigest()[:16]}"
-                jitted = numba.njit(cache=True, nogil=True, fastmath=self._fastmath)(self._source)
+                    try:
+                        data = b"".join(Path(f).read_bytes() for f in self._depends)
+                    except OSError:  # not readable (a zipped install): compiled, not cached
+                        cache, data = False, b""
+                    digest = hashlib.sha1(data).hexdigest()[:16]
+                    self._source.__qualname__ = f"{self._source.__name__}_{digest}"
+                jitted = numba.njit(cache=cache, nogil=True, fastmath=self._fastmath)(self._source)
                 fn = cast(F, jitted)
                 self._warm(fn)
                 self._compiled = fn
