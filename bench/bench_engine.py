@@ -10,8 +10,9 @@ and what the SOC observer costs (issue 11: at most 30 % of the bank's throughput
 with ``observer.enabled`` off, alternated with on in this one process, best of two each.
 Throughputs feed the run as one ``SampleBlock`` (``update_block``, as the daemon and offline
 identification do); the per-call figures come from a second, sample-by-sample run. Every
-benchmark runs twice: every kernel compiled (``estimate/jit.py``: the window fits, the state and
-observer steps, the RLS ticks, the guard and the average) and every kernel on its numpy
+benchmark runs twice: every kernel compiled (``estimate/jit.py``: the window fits and the swarm
+fitness, the state and observer steps, the RLS ticks, the guard and the average, and the tick's
+tail of codes, guard and average in one call) and every kernel on its numpy
 reference, alternated in one process.
 """
 

@@ -40,7 +40,8 @@ from bmsid.estimate.fusion import FusionStage
 from bmsid.estimate.guard import PublishGuard
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.publish_average import PublishAverage
-from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, per_cell_limit
+from bmsid.estimate.publish_kernel import TAIL, publish
+from bmsid.estimate.stage import ParameterStage, TickContext, is_excited, nnz, per_cell_limit
 from bmsid.estimate.state import CoulombState, without_data
 from bmsid.estimate.ticks import Tick, TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
@@ -48,6 +49,7 @@ from bmsid.estimate.types import VARIANTS, EstimateBlock, Estimates, Quality
 from bmsid.samples import SampleBlock
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
 
 #: Quality codes as plain ints: numpy assigns an IntEnum member into an array ~5x slower.
 _CONVERGED, _CONVERGING = int(Quality.CONVERGED), int(Quality.CONVERGING)
@@ -120,6 +122,9 @@ class EstimatorBank:
         self.average = PublishAverage(n, self.tuning.publish_average_tau1)
         # copied each tick: a seventh of np.full's cost
         self._q_converged = np.full(n, _CONVERGED, dtype=np.int64)
+        self._q_poorly = np.full(n, _POORLY_EXCITED, dtype=np.int64)
+        # ``excited`` as the compiled tail takes it, for one capacity: [not excited, excited]
+        self._excited = (np.zeros(n, dtype=bool), np.ones(n, dtype=bool))
 
     # ------------------------------------------------------------------ public API
     @property
@@ -149,21 +154,21 @@ class EstimatorBank:
             raise ValueError(f"block has {block.n_cells} cells, the bank {self.n}")
         times: list[float] = []
         currents: list[float] = []
-        cols: dict[str, list[FloatArray]] = {k: [] for k in FIELD_NAMES}
+        ticks: list[dict[str, FloatArray]] = []
         quality: list[npt.NDArray[np.int64]] = []
         v = block.cell_voltages_V
         temps = (
             [math.nan] * len(block) if block.temperature_C is None else block.temperature_C.tolist()
         )
+        push, run_tick = self.ticks.push, self._run_tick  # bound once: the loop runs per sample
         for k, (t, i) in enumerate(zip(block.t_s.tolist(), block.current_A.tolist(), strict=True)):
-            tick = self.ticks.push(t, i, v[k], temps[k])
+            tick = push(t, i, v[k], temps[k])
             if tick is None:
                 continue
             currents.append(tick.current_A)  # as measured: the observer corrects a copy
-            cells, q = self._run_tick(tick)
+            cells, q = run_tick(tick)
             times.append(tick.t_s)
-            for name, col in cols.items():
-                col.append(cells[name])
+            ticks.append(cells)
             quality.append(q)
         if not times:
             return EstimateBlock.empty(self.n)
@@ -171,7 +176,7 @@ class EstimatorBank:
             t_s=np.array(times),
             current_A=np.array(currents),
             # np.array of a list of equal rows: a third of np.stack's cost on 8k small rows
-            cells={name: np.array(col) for name, col in cols.items()},
+            cells={name: np.array([c[name] for c in ticks]) for name in FIELD_NAMES},
             quality=np.array(quality),
         )
 
@@ -206,7 +211,8 @@ class EstimatorBank:
     def _run_tick(self, tick: Tick) -> tuple[dict[str, FloatArray], npt.NDArray[np.int64]]:
         """The stages over one tick: every output field (n_cells,) and the quality codes."""
         ctx = TickContext(tick)
-        self.state.step(ctx)
+        state, params, guard = self.state, self.params, self.guard
+        state.step(ctx)
         # Converged cells learn only while excited (a constant-current charge or a rest holds
         # nothing to learn R0 from, and a slow OCV error would drift into it) and while the
         # observer is sure enough of SOC (a SOC error would be learnt as R2), unless a
@@ -214,39 +220,64 @@ class EstimatorBank:
         # anchor SOC the gate may stay shut for hours (a start mid-drive froze tau2 on its
         # bound for the whole record: 20.7 mV instead of 1.3).
         excited = is_excited(tick, self._excitation_limit_A)
-        gate = self.state.learn_gate
-        if np.count_nonzero(self.guard.bound_bits):
-            gate = gate | (self.guard.bound_bits > 0)
-        may_learn = gate & excited
-        if may_learn is not True:
-            ctx.learn = ctx.learn & (may_learn | ~self.params.converged)
-        self.params.step(ctx)
-        p_out = self.params.outputs()
-        self.state.correct(ctx, p_out, self.params.converged)
-        cells = {**self.state.outputs(), **p_out}
-        cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
-        cells["v_error_V"] = cells["v_meas_V"] - cells["v_model_V"]
-        q = self._q_converged.copy()
+        gate = state.learn_gate
+        if nnz(guard.bound_bits):
+            gate = gate | (guard.bound_bits > 0)
+        may_learn = gate if excited is True else gate & excited  # (x & True: x's values)
+        # every cell may learn (the usual tick): the stage's learn mask as it is
+        if may_learn is not True and nnz(may_learn) < self.n:
+            ctx.learn = ctx.learn & (may_learn | ~params.converged)
+        params.step(ctx)
+        p_out = params.outputs()
+        state.correct(ctx, p_out, params.converged)
+        cells = state.outputs()
+        cells.update(p_out)
+        v_meas = cells["v_meas_V"] = np.asarray(tick.v_V, dtype=np.float64)
+        cells["v_error_V"] = v_meas - cells["v_model_V"]
+        if TAIL.kind == "compiled":  # the codes, guard, average and flag: one kernel call
+            ex = excited if isinstance(excited, np.ndarray) else self._excited[bool(excited)]
+            cells, q, reinit = publish(
+                guard, self.average, tick.t_s, tick.dt_s, cells, ex, params.clamped,
+                params.converged, ctx.learn,
+            )  # fmt: skip
+        else:
+            cells, q, reinit = self._publish(tick, cells, excited, ctx.learn)
+        if nnz(state.no_data):  # no valid reading since the (re)start
+            cells, q = without_data(cells, q, state.no_data)
+        if nnz(reinit):
+            self.reset(reinit)
+        return cells, q
+
+    def _publish(
+        self, tick: Tick, cells: dict[str, FloatArray], excited: bool | BoolArray,
+        learn: BoolArray,
+    ) -> tuple[dict[str, FloatArray], npt.NDArray[np.int64], BoolArray]:  # fmt: skip
+        """The tick's quality codes, guard and average by the stages' own calls (the numpy
+        mode; ``publish_kernel.TAIL`` compiled runs the same in one call)."""
+        params, guard = self.params, self.guard
         if isinstance(excited, np.ndarray):
+            q = self._q_converged.copy()
             q[~excited] = _POORLY_EXCITED
-        elif not excited:  # one capacity for the pack: one comparison, no mask
-            q[:] = _POORLY_EXCITED
-        q[self.params.clamped] = _OUT_OF_BOUNDS
-        q[~self.params.converged] = _CONVERGING
-        cells, q, reinit = self.guard.apply(tick.t_s, cells, q, self.params.clamped, ctx.learn)
+        else:  # one capacity for the pack: one comparison, no mask
+            q = (self._q_converged if excited else self._q_poorly).copy()
+        # the masks only where a cell is clamped or converging (most ticks: none)
+        clamped = params.clamped
+        if nnz(clamped):
+            q[clamped] = _OUT_OF_BOUNDS
+        converged = params.converged  # after the step: it marks the cells converged now
+        n_conv = nnz(converged)
+        if n_conv < self.n:
+            q[~converged] = _CONVERGING
+        cells, q, reinit = guard.apply(tick.t_s, cells, q, clamped, learn)
         cells = self.average.apply(cells, q, tick.dt_s)
         # A converging cell on a bound is a finding too (a bound never shows silently: quality
         # OUT_OF_BOUNDS where on_bound names it; its branch is held by the guard), flagged only
         # after the average, which publishes converging cells raw.
-        flag = (q == _CONVERGING) & (self.guard.bound_bits > 0)
-        if np.count_nonzero(flag):
-            q[flag] = _OUT_OF_BOUNDS
-        # np.count_nonzero: a fifth of ndarray.any()'s cost on these short masks
-        if np.count_nonzero(self.state.no_data):  # no valid reading since the (re)start
-            cells, q = without_data(cells, q, self.state.no_data)
-        if np.count_nonzero(reinit):
-            self.reset(reinit)
-        return cells, q
+        if n_conv < self.n and nnz(guard.bound_bits):
+            flag = (q == _CONVERGING) & (guard.bound_bits > 0)
+            if nnz(flag):
+                q[flag] = _OUT_OF_BOUNDS
+        return cells, q, reinit
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

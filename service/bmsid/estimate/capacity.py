@@ -59,6 +59,17 @@ class CapacityTracker:
         # sample clock is Unix time on a gateway, and fade since 1970 would void the prior
         self.t_s = math.nan
         self.counters: dict[str, int] = {"capacity_updates": 0, "capacity_rejected": 0}
+        self._std_of: FloatArray | None = None  # the var_Ah2 that _std is the root of
+        self._std = np.zeros(0)
+
+    @property
+    def std_Ah(self) -> FloatArray:
+        """sqrt(var_Ah2), Ah: computed again only when var_Ah2 is rebound (an anchor, a
+        restore; it is never written in place), the same array every tick in between."""
+        var = self.var_Ah2
+        if var is not self._std_of:
+            self._std_of, self._std = var, np.sqrt(var)
+        return self._std
 
     def count(self, dq_Ah: float | FloatArray) -> None:
         """Add the charge moved this step (Ah, + = discharge, efficiency applied)."""

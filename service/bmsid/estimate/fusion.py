@@ -40,7 +40,8 @@ from bmsid.estimate.stage import (
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.estimate.varpro import Window, fit_linear, fixed_rmse
+from bmsid.estimate.varpro import Window, fit_columns, fit_linear, fixed_rmse
+from bmsid.estimate.varpro_kernel import FITNESS
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
@@ -70,13 +71,15 @@ class FusionStage:
         self.cell_ids = cell_ids
         self.counters: dict[str, int] = {"swarms": 0, "clamped": 0, "swarms_rejected": 0}
         cols = [BOUNDED.index(name) for name in _LINEAR_BOUNDS]
-        self._lin_lo = model.lo[:, cols]
-        self._lin_hi = model.hi[:, cols]
+        # C-contiguous (a column selection is not): each cell's row goes to a compiled kernel
+        self._lin_lo = np.ascontiguousarray(model.lo[:, cols])
+        self._lin_hi = np.ascontiguousarray(model.hi[:, cols])
         r0, r1, r2 = model.start("R0_ohm"), model.start("R1_ohm"), model.start("R2_ohm")
         # Normalisation of the linear parameters (R0, R1, R2, M scale, offset).
         self.scale = np.stack([r0, r1, r2, np.ones(n), np.full(n, 0.05)], axis=1)
         self._theta0 = np.stack([r0, r1, r2, np.ones(n), np.zeros(n)], axis=1) / self.scale
-        self._clamp_tol = 1e-12 * np.abs(self.scale)  # a clamp that moves less is no clamp
+        self._abs_scale = np.abs(self.scale)
+        self._clamp_tol = 1e-12 * self._abs_scale  # a clamp that moves less is no clamp
         size = int(np.ceil(tuning.window_s / tuning.id_period_s)) + 1
         self.buffer = WindowBuffer(size=size, n_cells=n)
         self.schedule = SwarmSchedule(
@@ -103,6 +106,10 @@ class FusionStage:
         self._rest_A = np.full(n, per_cell_limit(tuning.rest_current_C, model))
         self._excitation_limit_A = per_cell_limit(tuning.excitation_C, model)
         self._step_A = float(np.min(self._excitation_limit_A))  # a current step, A
+        self._swarm_params = lpso.SwarmParams(
+            c1=tuning.c1, c2=tuning.c2, w_max=tuning.w_max, w_min=tuning.w_min,
+            shape=tuning.inertia_shape, vmax_frac=tuning.velocity_max_frac,
+        )  # fmt: skip
         self._start_values()
 
     def _start_values(self) -> None:
@@ -243,31 +250,26 @@ class FusionStage:
         return float((sig * self.scale[c, 4] / self.tuning.ocv_offset_prior_V) ** 2)
 
     def _fitness(self, c: int, window: Window, weights: FloatArray, taus: FloatArray) -> FloatArray:
-        tun, sc = self.tuning, self.scale[c]
         t_lo = np.minimum(taus[:, 0], taus[:, 1])
         t_hi = np.maximum(taus[:, 0], taus[:, 1])
-        th = fit_linear(window, t_lo, t_hi, sc, weights, self._offset_prior(c))
-        viol = (
-            np.maximum(self._lin_lo[c] - th.theta, 0.0)
-            + np.maximum(th.theta - self._lin_hi[c], 0.0)
-        ) / np.abs(sc)
-        viol_r = np.maximum(tun.tau_ratio_min / (t_hi / t_lo) - 1.0, 0.0)
-        return np.asarray(th.rmse_V * (1.0 + 10.0 * (viol.sum(axis=1) + viol_r)))
+        # the window fit (varpro.fit_linear) and its penalty in one kernel call
+        a1, a2, s_full, idx, j_off = fit_columns(window, t_lo, t_hi, self.scale[c])
+        return FITNESS.impl(
+            window.current_A, window.y_V, window.hm_V, weights, a1, a2, s_full, idx,
+            window.use_hysteresis, window.use_offset, self._offset_prior(c), j_off,
+            self._lin_lo[c], self._lin_hi[c], self._abs_scale[c], t_lo, t_hi,
+            self.tuning.tau_ratio_min,
+        )  # fmt: skip
 
     def _swarm_fits(self, c: int, cs: CellSwarm, budget: int) -> None:
         """Evaluate up to ``budget`` particles; when all are evaluated, move the swarm."""
-        tun = self.tuning
         n_p = cs.swarm.x.shape[0]
         j0, j1 = cs.done_fits, min(cs.done_fits + budget, n_p)
         cs.fitness[j0:j1] = self._fitness(c, cs.window, cs.weights, np.exp(cs.swarm.x[j0:j1]))
         cs.done_fits = j1
         if j1 < n_p:
             return
-        params = lpso.SwarmParams(
-            c1=tun.c1, c2=tun.c2, w_max=tun.w_max, w_min=tun.w_min, shape=tun.inertia_shape,
-            vmax_frac=tun.velocity_max_frac,
-        )  # fmt: skip
-        cs.swarm = lpso.swarm_tell(cs.swarm, cs.fitness, cs.rng, params)
+        cs.swarm = lpso.swarm_tell(cs.swarm, cs.fitness, cs.rng, self._swarm_params)
         cs.done_fits = 0
 
     def _apply_swarm(self, c: int, cs: CellSwarm) -> None:

@@ -226,8 +226,10 @@ class PublishGuard:
             np.asarray(on_bound, dtype=bool), learn_, self._stats, self.good, self.good_soc,
             self.episode, self.cause, self.bound_bits, self._near, self._has_near, self._consts,
         )  # fmt: skip
-        self.counters["diverged"] += n_reinit
-        self.counters["held_on_bound"] += n_held
+        if n_reinit:  # (both usually 0)
+            self.counters["diverged"] += n_reinit
+        if n_held:
+            self.counters["held_on_bound"] += n_held
         out = dict(cells)
         out["on_bound"] = self.bound_bits.astype(np.float64)
         if masked:  # else the cells' own arrays are published

@@ -16,8 +16,10 @@ Kernels agree with their reference to float tolerance (each has a property test)
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Generic, TypeVar, cast
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -32,18 +34,21 @@ class Kernel(Generic[F]):
     """One compiled kernel and its reference; call ``impl`` (the implementation in use).
 
     ``warm`` calls a candidate once with small arguments of every type the kernel is used with,
-    so that compiling happens at ``select``, not in the middle of a run.
+    so that compiling happens at ``select``, not in the middle of a run. ``depends`` names the
+    other source files whose compiled code the kernel embeds (kernels it calls): numba's cache
+    follows the kernel's own file only, so the cache entry is named after their contents too.
     """
 
     def __init__(
         self, name: str, reference: F, source: Callable[..., Any], warm: Callable[[F], object],
-        *, fastmath: bool = False,
+        *, fastmath: bool = False, depends: tuple[str, ...] = (),
     ) -> None:  # fmt: skip
         self.name = name
         self.reference = reference
         self._source = source
         self._warm = warm
         self._fastmath = fastmath
+        self._depends = depends
         self._compiled: F | None = None
         self._tried = False
         self.impl: F = reference
@@ -60,7 +65,15 @@ class Kernel(Generic[F]):
             try:
                 import numba  # noqa: PLC0415 (optional: the reference runs without it)
 
-                jitted = numba.njit(cache=True, nogil=True, fastmath=self._fastmath)(self._source)
+                cache = True
+                if self._depends:  # a cache entry per version of the files it embeds
+                    try:
+                        data = b"".join(Path(f).read_bytes() for f in self._depends)
+                    except OSError:  # not readable (a zipped install): compiled, not cached
+                        cache, data = False, b""
+                    digest = hashlib.sha1(data).hexdigest()[:16]
+                    self._source.__qualname__ = f"{self._source.__name__}_{digest}"
+                jitted = numba.njit(cache=cache, nogil=True, fastmath=self._fastmath)(self._source)
                 fn = cast(F, jitted)
                 self._warm(fn)
                 self._compiled = fn

@@ -358,7 +358,7 @@ class ObserverState(CoulombState):
             "h": self.h,
             "soc_std": np.sqrt(np.maximum(self.P.diagonal()[:n], 0.0)),
             "capacity_Ah": self.capacity.q_Ah,
-            "capacity_std_Ah": np.sqrt(self.capacity.var_Ah2),
+            "capacity_std_Ah": self.capacity.std_Ah,  # never written: shared between ticks
             "current_offset_A": np.full(n, self.b),
         }
 

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from numpy._core.multiarray import count_nonzero as nnz  # np.count_nonzero less its dispatch
 
 from bmsid.estimate import jit
 from bmsid.estimate.statedict import load_arrays
@@ -170,7 +171,7 @@ class PublishAverage:
             self.avg, raw, np.asarray(quality, dtype=np.int64), self.restart, float(dt_s),
             self.tau1_multiple,
         )  # fmt: skip
-        if np.count_nonzero(self.restart):
+        if nnz(self.restart):
             self.restart = np.zeros(self.n, dtype=bool)
         for j, k in enumerate(PUBLISHED):
             out[k] = pub[j]

@@ -13,13 +13,12 @@ stage reads them).
 
 from __future__ import annotations
 
-from operator import is_
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bmsid.estimate import observer_kernel as ok_
-from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
+from bmsid.estimate.stage import BoolArray, FloatArray, TickContext, nnz
 from bmsid.model.ocv import OcvModel
 
 if TYPE_CHECKING:
@@ -50,7 +49,10 @@ def ocv_params(ocv: OcvModel) -> FloatArray:
 class Packed:
     """A stage's constants in the kernels' layout, and what they were packed from."""
 
-    __slots__ = ("cells", "key", "knots", "m_V", "m_soc", "ocv", "q_key", "qb_coef", "tun", "utun")
+    __slots__ = (
+        "cells", "key", "knots", "m_V", "m_soc", "ocv", "one_step", "q_key", "qb_coef", "tun",
+        "utun",
+    )  # fmt: skip
 
     def __init__(self, st: CoulombState) -> None:
         ocv = st.model.ocv
@@ -70,12 +72,15 @@ class Packed:
         self.q_key: Any = None
         self.qb_coef = 0.0
         self.utun: FloatArray | None = None
+        self.one_step = np.zeros((1, 2))  # a tick's one coulomb step (read by the kernel only)
 
 
 def _cell_sources(st: CoulombState) -> tuple[Any, ...]:
+    d = st.__dict__  # instance attributes: a dict lookup each, cheaper than getattr every tick
+    cap, eff = d["_capacity_As"], d["_efficiency"]
     return (
-        st._capacity_As, st._efficiency, st._kappa_discharge, st._kappa_charge,
-        getattr(st, "_q_As", st._capacity_As), getattr(st, "_eff", st._efficiency),
+        cap, eff, d["_kappa_discharge"], d["_kappa_charge"], d.get("_q_As", cap),
+        d.get("_eff", eff),
     )  # fmt: skip
 
 
@@ -83,8 +88,11 @@ def _packed(st: CoulombState) -> Packed:
     pk: Packed | None = st.__dict__.get("_packed")
     if pk is None:
         pk = st.__dict__["_packed"] = Packed(st)
-    src = _cell_sources(st)
-    if len(src) != len(pk.key) or not all(map(is_, src, pk.key)):
+    src, key = _cell_sources(st), pk.key
+    if not key or not (
+        src[0] is key[0] and src[1] is key[1] and src[2] is key[2] and src[3] is key[3]
+        and src[4] is key[4] and src[5] is key[5]
+    ):  # fmt: skip
         for row, x in zip((ok_.CAP, ok_.EFF, ok_.KAPPA_D, ok_.KAPPA_C, ok_.Q_OBS, ok_.EFF_OBS),
                           src, strict=True):  # fmt: skip
             pk.cells[row] = x
@@ -95,14 +103,16 @@ def _packed(st: CoulombState) -> Packed:
 def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     """The tick's state step by the compiled kernel (``jit.select``); False (nothing done)
     where the stage runs its own code: the numpy mode, or a cell that starts this tick."""
-    if ok_.STEP.kind != "compiled" or np.count_nonzero(st._pending):
+    if ok_.STEP.kind != "compiled" or nnz(st._pending):
         return False
     tick = ctx.tick
     pk = _packed(st)
-    steps = (
-        np.array(tick.coulomb_steps, dtype=np.float64).reshape(-1, 2)
-        if tick.coulomb_steps else _NO_STEPS
-    )  # fmt: skip
+    cs = tick.coulomb_steps
+    if len(cs) == 1:  # the usual tick: one raw step, into the stage's buffer (no array built)
+        steps = pk.one_step
+        steps[0, 0], steps[0, 1] = cs[0]
+    else:
+        steps = np.array(cs, dtype=np.float64).reshape(-1, 2) if cs else _NO_STEPS
     if observer:
         obs: ObserverState = st  # type: ignore[assignment]
         b = obs.b

@@ -14,6 +14,7 @@ is far better conditioned than mapping ARX coefficients back through Eq. 22.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import numpy.typing as npt
@@ -67,20 +68,37 @@ def fit_linear(
     offset to 0 along the direction the data cannot resolve (offset vs R2 x2 under a steady mean
     current). The covariance is only computed when ``with_cov``.
     """
-    a1 = rc_decay(w.dt_s, tau1_s)
-    a2 = rc_decay(w.dt_s, tau2_s)
-    active = np.array([True, True, True, w.use_hysteresis, w.use_offset, True, True])
-    s_full = np.concatenate([scale, [1.0, 1.0]])[active]
+    a1, a2, s_full, idx, j_off = fit_columns(w, tau1_s, tau2_s, scale)
     wts = np.ones(w.current_A.shape[0]) if weights is None else weights
     G, b, x_last = varpro_kernel.normal_equations(
         w.current_A, w.y_V, w.hm_V, wts, a1, a2, s_full, w.use_hysteresis, w.use_offset
     )
-    j_off = 3 + int(w.use_hysteresis) if w.use_offset else -1
     theta, rmse, x_last, cov5 = varpro_kernel.SOLVE.impl(
-        G, b, x_last, w.y_V, wts, a1, a2, s_full, np.flatnonzero(active), offset_prior, j_off,
-        with_cov,
-    )  # fmt: skip
+        G, b, x_last, w.y_V, wts, a1, a2, s_full, idx, offset_prior, j_off, with_cov
+    )
     return LinearFit(theta=theta, rmse_V=rmse, x_last=x_last, cov=cov5)
+
+
+def fit_columns(
+    w: Window, tau1_s: FloatArray, tau2_s: FloatArray, scale: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.intp], int]:
+    """What the window kernels take besides the window: the poles (a1, a2), the active
+    columns' scales and indices, and the offset's column (-1: none)."""
+    idx = _active_columns(w.use_hysteresis, w.use_offset)
+    j_off = 3 + int(w.use_hysteresis) if w.use_offset else -1
+    s_full = np.concatenate((scale, _TWO_ONES))[idx]
+    return rc_decay(w.dt_s, tau1_s), rc_decay(w.dt_s, tau2_s), s_full, idx, j_off
+
+
+_TWO_ONES = np.ones(2)  # the scales of the two window-start columns
+
+
+@lru_cache(maxsize=4)
+def _active_columns(use_hysteresis: bool, use_offset: bool) -> npt.NDArray[np.intp]:
+    """Indices of the active columns of (R0, R1, R2, M scale, offset, c1, c2): the same four
+    arrays again (never written: the solve only reads them)."""
+    active = np.array([True, True, True, use_hysteresis, use_offset, True, True])
+    return np.flatnonzero(active)
 
 
 def fixed_rmse(

@@ -21,6 +21,7 @@ reference.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -253,6 +254,82 @@ def _warm_solve(kernel: Solve) -> object:
 
 
 SOLVE = jit.Kernel("window solves", solve_numpy, _solve_source, _warm_solve)
+
+
+# ------------------------------------------------------------------ one swarm fitness call
+
+
+def fitness_numpy(
+    current_A: FloatArray, y_V: FloatArray, hm_V: FloatArray, wts: FloatArray, a1: FloatArray,
+    a2: FloatArray, s_full: FloatArray, idx: npt.NDArray[np.int64], use_hysteresis: bool,
+    use_offset: bool, offset_prior: float, j_off: int, lin_lo: FloatArray, lin_hi: FloatArray,
+    abs_scale: FloatArray, t_lo: FloatArray, t_hi: FloatArray, tau_ratio_min: float,
+) -> FloatArray:  # fmt: skip
+    """The reference of ``FusionStage._fitness`` after the poles: the window fit (normal
+    equations and solves, references) of each candidate, its RMSE penalised by 10x the linear
+    parameters' bound violations (in units of ``abs_scale``) and the taus' ratio shortfall."""
+    G, b, last = normal_equations_numpy(
+        current_A, y_V, hm_V, wts, a1, a2, s_full, use_hysteresis, use_offset
+    )
+    theta, rmse, _, _ = solve_numpy(
+        G, b, last, y_V, wts, a1, a2, s_full, idx, offset_prior, j_off, False
+    )
+    viol = (np.maximum(lin_lo - theta, 0.0) + np.maximum(theta - lin_hi, 0.0)) / abs_scale
+    viol_r = np.maximum(tau_ratio_min / (t_hi / t_lo) - 1.0, 0.0)
+    return np.asarray(rmse * (1.0 + 10.0 * (viol.sum(axis=1) + viol_r)))
+
+
+#: The compiled normal equations and solves, called by the compiled fitness (set by its warm-up,
+#: before it compiles: the same compiled code, and its fastmath flags, as when called alone).
+_NORMAL: Callable[..., tuple[FloatArray, FloatArray, FloatArray]] | None = None
+_SOLVE: Callable[..., tuple[FloatArray, FloatArray, FloatArray, FloatArray]] | None = None
+
+
+def _fitness_source(
+    current_A: FloatArray, y_V: FloatArray, hm_V: FloatArray, wts: FloatArray, a1: FloatArray,
+    a2: FloatArray, s_full: FloatArray, idx: npt.NDArray[np.int64], use_hysteresis: bool,
+    use_offset: bool, offset_prior: float, j_off: int, lin_lo: FloatArray, lin_hi: FloatArray,
+    abs_scale: FloatArray, t_lo: FloatArray, t_hi: FloatArray, tau_ratio_min: float,
+) -> FloatArray:  # fmt: skip
+    """The same in one call (compiled by numba): the two compiled kernels, then the penalty per
+    candidate in the reference's operations and order (its row sums add left to right, as
+    numpy's over five columns), so the same bits as the kernels called one by one."""
+    G, b, last = _NORMAL(current_A, y_V, hm_V, wts, a1, a2, s_full, use_hysteresis, use_offset)  # type: ignore[misc]
+    theta, rmse, _, _ = _SOLVE(  # type: ignore[misc]
+        G, b, last, y_V, wts, a1, a2, s_full, idx, offset_prior, j_off, False
+    )
+    p, m = theta.shape
+    out = np.empty(p)
+    for j in range(p):
+        total = 0.0
+        for k in range(m):
+            lo = lin_lo[k] - theta[j, k]
+            hi = theta[j, k] - lin_hi[k]
+            # np.maximum(x, 0.0): NaN propagates
+            lo = lo if lo >= 0.0 or math.isnan(lo) else 0.0
+            hi = hi if hi >= 0.0 or math.isnan(hi) else 0.0
+            v = (lo + hi) / abs_scale[k]
+            total = v if k == 0 else total + v
+        r = tau_ratio_min / (t_hi[j] / t_lo[j]) - 1.0
+        r = r if r >= 0.0 or math.isnan(r) else 0.0
+        out[j] = rmse[j] * (1.0 + 10.0 * (total + r))
+    return out
+
+
+def _warm_fitness(kernel: Callable[..., FloatArray]) -> object:
+    global _NORMAL, _SOLVE  # the compiled callees, bound before this kernel compiles
+    _NORMAL, _SOLVE = KERNEL.compiled(), SOLVE.compiled()
+    if _NORMAL is None or _SOLVE is None:
+        raise RuntimeError("the window kernels did not compile")
+    one = np.ones(4)
+    idx = np.array([0, 1, 2, 5, 6], dtype=np.int64)
+    return kernel(one, one, one, one, one[:2] * 0.5, one[:2] * 0.9, np.ones(5), idx, False,
+                  False, 0.0, -1, one[:5] * 0.0, one[:5] * 2.0, np.ones(5), one[:2], one[:2] * 2,
+                  1.5)  # fmt: skip
+
+
+#: One swarm fitness evaluation (``FusionStage._fitness``): the window fit and its penalty.
+FITNESS = jit.Kernel("swarm fitness", fitness_numpy, _fitness_source, _warm_fitness)
 
 
 def _rc_filter_source(current_A: FloatArray, a: float) -> FloatArray:
