@@ -411,14 +411,7 @@ class BankHost:
         if self._probing:
             held = self._probe_block(block)
             if held is None:
-                return BatchResult(
-                    estimates,
-                    messages,
-                    self._counters(),
-                    self.seq,
-                    self.gate.state.report(),
-                    self.bank.soc_init_method,
-                )
+                return self._result(estimates, messages)
             block = held
         head = self._head.add(block) if self._head is not None else None
         step = samples_per_tick(block.t_s, self.spec.tuning.id_period_s)
@@ -442,14 +435,13 @@ class BankHost:
         if head is not None:
             self._head = None
             self._refit_start(head)
+        return self._result(estimates, messages)
+
+    def _result(self, estimates: list[Estimates], messages: list[OutMessage]) -> BatchResult:
         return BatchResult(
-            estimates,
-            messages,
-            self._counters(),
-            self.seq,
-            self.gate.state.report(),
+            estimates, messages, self._counters(), self.seq, self.gate.state.report(),
             self.bank.soc_init_method,
-        )
+        )  # fmt: skip
 
     def _refit_start(self, head: SampleBlock) -> None:
         """Where the start SOC fitted over ``head`` holds, a bank from it that has replayed
