@@ -47,13 +47,6 @@ FAST = EstimatorTuning(
 )  # fmt: skip
 
 
-@pytest.fixture
-def restore_kernel() -> Iterator[None]:
-    before = jit.MODE
-    yield
-    jit.restore(before)
-
-
 @contextmanager
 def using(kernel: jit.Kernel[Any], impl: Any) -> Iterator[None]:
     """Run ``kernel`` by ``impl`` inside the block (the process-wide choice left alone)."""

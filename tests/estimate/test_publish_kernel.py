@@ -4,36 +4,21 @@ random ticks (the guard's and the average's tolerances, ``test_guard_kernel.py``
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_guard_kernel import FAST, START  # the guard's own cases drive its compiled tail
 
 from bmsid.config.engine import build_bank
 from bmsid.estimate import jit, publish_kernel
 from bmsid.estimate.guard import WATCHED, PublishGuard
 from bmsid.estimate.publish_average import AVERAGED, PublishAverage
-from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import paper_dst_case
 
 BOUNDS = {"R0_ohm": (1e-4, 0.1), "R1_ohm": (1e-4, 0.1), "R2_ohm": (1e-4, 0.1),
           "tau1_s": (0.5, 200.0), "tau2_s": (20.0, 8000.0)}  # fmt: skip
-START = {"R0_ohm": 1e-3, "R1_ohm": 5e-4, "R2_ohm": 5e-4, "tau1_s": 10.0, "tau2_s": 300.0,
-         "ocv_offset_V": 0.0, "C1_F": 10.0 / 5e-4, "C2_F": 300.0 / 5e-4}  # fmt: skip
-FAST = EstimatorTuning(
-    id_period_s=1.0, gap_s=10.0, divergence_fast_s=2.0, divergence_scale_s=20.0,
-    divergence_hold_s=5.0,
-)  # fmt: skip
-
-
-@pytest.fixture
-def restore_kernel() -> Iterator[None]:
-    before = jit.MODE
-    yield
-    jit.restore(before)
 
 
 def test_the_compiled_tail_is_available() -> None:

@@ -4,7 +4,6 @@ a compiled engine, kept equal to the reference to float tolerance)."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -23,13 +22,6 @@ from bmsid.samples import SampleBlock
 from bmsid.synthetic import paper_dst_case
 
 CONSTS = (0.5e-3, 6.0, 3.0, 0.5)
-
-
-@pytest.fixture
-def restore_kernel() -> Iterator[None]:
-    before = jit.MODE
-    yield
-    jit.restore(before)
 
 
 def _compiled(kernel: jit.Kernel[Any]) -> Any:

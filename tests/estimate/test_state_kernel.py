@@ -7,7 +7,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -31,13 +30,6 @@ from bmsid.synthetic.multiday import MultidayOptions, generate
 
 PAPER = np.asarray(PAPER_OCV_MEAN)
 M_SOC, M_V = [0.0, 0.3, 0.7, 1.0], [0.02, 0.012, 0.01, 0.015]
-
-
-@pytest.fixture
-def restore_kernel() -> Iterator[None]:
-    before = jit.MODE
-    yield
-    jit.restore(before)
 
 
 def test_the_compiled_kernels_are_available() -> None:

@@ -3,10 +3,7 @@ equal to the reference to float tolerance)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,13 +11,6 @@ from bmsid.config.engine import build_bank
 from bmsid.estimate import jit, varpro_kernel
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import paper_dst_case
-
-
-@pytest.fixture
-def restore_kernel() -> Iterator[None]:
-    before = jit.MODE
-    yield
-    jit.restore(before)
 
 
 def test_every_compiled_kernel_is_available() -> None:

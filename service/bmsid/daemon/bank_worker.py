@@ -71,6 +71,7 @@ from bmsid.daemon.checkpoint import (
 from bmsid.daemon.start_refit import StartHead
 from bmsid.daemon.statedir import atomic_write, quarantine
 from bmsid.errors import UserError
+from bmsid.estimate.start_fit import WINDOW_S
 from bmsid.estimate.startvalues import StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
@@ -447,7 +448,6 @@ class BankHost:
         """Where the start SOC fitted over ``head`` holds, a bank from it that has replayed
         ``head`` replaces the running one (``daemon/start_refit.py``)."""
         from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
-        from bmsid.estimate.start_fit import WINDOW_S  # noqa: PLC0415
         from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc  # noqa: PLC0415
 
         s = self.spec
