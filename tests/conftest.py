@@ -245,6 +245,16 @@ class MosquittoBroker:
         return self.start()
 
 
+@pytest.fixture
+def restore_kernel() -> Iterator[None]:
+    """Put back the process's kernel choice (``jit.select``) that a kernel test changes."""
+    from bmsid.estimate import jit  # here: numba only for the tests that use it
+
+    before = jit.MODE
+    yield
+    jit.restore(before)
+
+
 #: Tests count every message their subscriber (another process) gets. Under load it can fall
 #: behind a burst, and Mosquitto's default then drops all past 1000 queued for it, silently:
 #: the broker's loss, not the daemon's, so the test brokers queue without a limit.
