@@ -126,9 +126,15 @@ def test_each_tick_publishes_with_the_completion_time_of_its_own_sample(tmp_path
     msgs = [
         m for a, b in itertools.pairwise(cuts) for m in other.update(block.slice(a, b)).messages
     ]
-    assert [(m.payload, m.t_sample_mono) for m in msgs] == [
-        (m.payload, m.t_sample_mono) for m in result.messages
-    ]
+    want_msgs = [(m.payload, m.t_sample_mono) for m in result.messages]
+    assert [(m.payload, m.t_sample_mono) for m in msgs] == want_msgs
+    # Nor does a host alone in its process, which feeds the bank many ticks per call.
+    alone = BankHost(_spec(tmp_path / "c", restore=False, keep_all_estimates=True))
+    alone.shares_gil = False
+    alone.start()
+    got = alone.update(block)
+    assert [e.t_s for e in got.estimates] == times
+    assert [(m.payload, m.t_sample_mono) for m in got.messages] == want_msgs
 
 
 def test_only_the_newest_estimate_returns_unless_all_are_kept(tmp_path: Path) -> None:
