@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import jit
+from bmsid.estimate import block_run, jit
 from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
@@ -152,6 +152,8 @@ class EstimatorBank:
         of every tick the block completes (possibly none). Never raises on bad numbers."""
         if block.n_cells != self.n:
             raise ValueError(f"block has {block.n_cells} cells, the bank {self.n}")
+        if block_run.compiled():  # the block's ticks at once, ordinary ones in one compiled loop
+            return block_run.update_block(self, block)
         times: list[float] = []
         currents: list[float] = []
         ticks: list[dict[str, FloatArray]] = []
