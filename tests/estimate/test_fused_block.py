@@ -27,7 +27,12 @@ from bmsid.synthetic import SyntheticRun, paper_dst_case
 
 NO_OBSERVER = EstimatorTuning(observer=ObserverTuning(enabled=False))
 #: Shorter anchors, updates and divergence holds, so that a short run holds them.
-_FAST_GUARD = {"divergence_hold_s": 20.0, "divergence_fast_s": 5.0, "divergence_scale_s": 300.0}
+#: (and short swarms: the fusion's loop stops for each)
+_FAST_GUARD: dict[str, Any] = {
+    "divergence_hold_s": 20.0, "divergence_fast_s": 5.0, "divergence_scale_s": 300.0,
+    "window_s": 120.0, "min_window_s": 40.0, "swarm_period_s": 60.0, "n_iter": 3,
+    "n_iter_first": 4, "n_particles": 4, "swarm_min_steps": 0,
+}  # fmt: skip
 QUICK = EstimatorTuning(
     observer=ObserverTuning(anchor_min_rest_s=60.0, anchor_rest_taus=0.5, update_period_s=5.0),
     **_FAST_GUARD,
@@ -158,7 +163,7 @@ def test_update_block_equals_the_per_tick_path(
     _assert_same(_by_block(a, t, i, v, temp, cuts), _by_sample(b, t, i, v, temp), a, b)
 
 
-@pytest.mark.parametrize("variant", ["non-hy-affrls", "hy-affrls"])
+@pytest.mark.parametrize("variant", ["non-hy-affrls", "hy-affrls", "hy-affrls-lpso"])
 @pytest.mark.parametrize("tuning", [QUICK, QUICK_NO_OBSERVER])
 def test_events_go_through_the_python_path_and_back(
     restore_kernel: None, variant: Variant, tuning: EstimatorTuning
@@ -185,13 +190,21 @@ def test_events_go_through_the_python_path_and_back(
     assert c["gaps"] >= 2 and c["time_jumps_back"] >= 1 and c["diverged"] >= 1
     if tuning.observer.enabled:
         assert c["anchors"] >= 1 and c["observer_updates"] >= 10
-    assert 0 < n_python < 0.5 * c["ticks"]
+    if variant == "hy-affrls-lpso":  # swarms and temperatures: the Python path, often
+        assert c["swarms"] >= 10 and n_python < c["ticks"]
+    else:
+        assert 0 < n_python < 0.5 * c["ticks"]
 
 
-def test_the_loop_runs_nearly_every_tick_of_a_drive(restore_kernel: None) -> None:
+@pytest.mark.parametrize(("variant", "share"), [("hy-affrls", 0.002), ("hy-affrls-lpso", 0.2)])
+def test_the_loop_runs_nearly_every_tick_of_a_drive(
+    restore_kernel: None, variant: Variant, share: float
+) -> None:
+    """A drive without events: the ARX variants' loop runs all but the first ticks, the
+    fusion's all but the swarms' (and both give the per-tick path's bits)."""
     jit.select("compiled")
     run = _run(2000, 1)
-    bank = _bank("hy-affrls", 1, EstimatorTuning(), False)
+    bank = _bank(variant, 1, EstimatorTuning(), False)
     n_python = 0
     run_tick = bank._run_tick
 
@@ -201,5 +214,9 @@ def test_the_loop_runs_nearly_every_tick_of_a_drive(restore_kernel: None) -> Non
         return run_tick(tick)
 
     bank._run_tick = counted  # type: ignore[method-assign]
-    est = bank.update_block(SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V))
-    assert len(est) == 2000 and n_python <= 3
+    t, i, v = run.t_s, run.current_A, run.voltages_V
+    blocks = _by_block(bank, t, i, v, None, [0, 2000])
+    other = _bank(variant, 1, EstimatorTuning(), False)
+    _assert_same(blocks, _by_sample(other, t, i, v, None), bank, other)
+    assert len(blocks[0]) == 2000 and n_python <= share * 2000
+    assert variant != "hy-affrls-lpso" or bank.counters["swarms"] >= 2

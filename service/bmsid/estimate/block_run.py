@@ -1,6 +1,6 @@
 """``EstimatorBank.update_block`` in compiled mode (issue 12): a block's ticks assembled at once
 (``tick_block.py``), runs of ordinary ticks of the ARX variants in one compiled loop
-(``fused_arx_kernel.py``), every other tick by the bank's own ``_run_tick``.
+(``fused_kernel.py``), every other tick by the bank's own ``_run_tick``.
 
 The loop returns here for a tick that needs the stages' Python code; this module checks, before
 each call, what the loop cannot see (a cell to start, the start's relaxation watch, a re-anchor
@@ -16,12 +16,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bmsid.estimate import fused_arx_kernel as fk
+from bmsid.estimate import fused_kernel as fk
 from bmsid.estimate import observer_kernel, publish_kernel, rls_kernel, state_jit, tick_block
 from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.fields import FIELD_NAMES
+from bmsid.estimate.fusion import FusionStage
 from bmsid.estimate.observer import ObserverState
-from bmsid.estimate.stage import Forgetting, innovation_gain, nnz
+from bmsid.estimate.stage import Forgetting, innovation_gain, is_excited, nnz
 from bmsid.estimate.state import CoulombState
 from bmsid.estimate.tick_block import TickArrays
 from bmsid.estimate.types import EstimateBlock
@@ -39,8 +40,10 @@ def compiled() -> bool:
 def fusable(bank: EstimatorBank) -> bool:
     """Whether the bank's ordinary ticks can run in the fused loop."""
     return (
-        isinstance(bank.params, ArxRlsStage) and type(bank.state) in (CoulombState, ObserverState)
-        and fk.FUSED_ARX.kind == "compiled" and observer_kernel.STEP.kind == "compiled"
+        isinstance(bank.params, ArxRlsStage | FusionStage)
+        and type(bank.state) in (CoulombState, ObserverState)
+        and rls_kernel.FUSION_TICK.kind == "compiled"
+        and fk.FUSED_TICKS.kind == "compiled" and observer_kernel.STEP.kind == "compiled"
         and observer_kernel.UPDATE.kind == "compiled" and rls_kernel.ARX_TICK.kind == "compiled"
         and publish_kernel.TAIL.kind == "compiled"
     )  # fmt: skip
@@ -54,11 +57,17 @@ def update_block(bank: EstimatorBank, block: SampleBlock) -> EstimateBlock:
         return EstimateBlock.empty(n)
     o = np.empty((len(FIELD_NAMES), n_t, n))
     oq = np.empty((n_t, n), dtype=np.int64)
+    done: list[tuple[int, dict[str, Any], Any]] = []  # the ticks _run_tick ran, stored at the end
     if not fusable(bank):
         for k in range(n_t):
-            _python_tick(bank, ta, k, o, oq)
+            _python_tick(bank, ta, k, done)
     else:
-        _run_fused(bank, ta, o, oq)
+        _run_fused(bank, ta, o, oq, done)
+    if done:  # per field, one array of the rows (a list of dicts would take a copy per row)
+        rows = [k for k, _, _ in done]
+        for j, name in enumerate(FIELD_NAMES):
+            o[j, rows] = np.array([c[name] for _, c, _ in done])
+        oq[rows] = np.array([q for _, _, q in done])
     return EstimateBlock(
         t_s=ta.tf[:, tick_block.T].copy(),
         current_A=ta.tf[:, tick_block.CUR].copy(),  # as measured: the observer corrects a copy
@@ -67,11 +76,12 @@ def update_block(bank: EstimatorBank, block: SampleBlock) -> EstimateBlock:
     )
 
 
-def _python_tick(bank: EstimatorBank, ta: TickArrays, k: int, o: Any, oq: Any) -> None:
+def _python_tick(
+    bank: EstimatorBank, ta: TickArrays, k: int, done: list[tuple[int, dict[str, Any], Any]]
+) -> None:
+    """Tick ``k`` by the stages' own code; its outputs kept in ``done``."""
     cells, q = bank._run_tick(ta.tick(k))
-    for j, name in enumerate(FIELD_NAMES):
-        o[j, k] = cells[name]
-    oq[k] = q
+    done.append((k, cells, q))
 
 
 class _DtPeriod:
@@ -101,15 +111,20 @@ def _per_tick(bank: EstimatorBank, ta: TickArrays) -> tuple[Any, Any]:
 
 def _python_needed(bank: EstimatorBank) -> bool:
     """A tick the loop cannot run: a cell to start, or the observer's watch or restart."""
-    st = bank.state
+    st, pa = bank.state, bank.params
     if nnz(st._pending):
+        return True
+    if isinstance(pa, FusionStage) and pa.schedule.n_running():
         return True
     if isinstance(st, ObserverState):
         return bool(st._relax.active or st._widen or st._reanchor)
     return False
 
 
-def _run_fused(bank: EstimatorBank, ta: TickArrays, o: Any, oq: Any) -> None:
+def _run_fused(
+    bank: EstimatorBank, ta: TickArrays, o: Any, oq: Any,
+    done: list[tuple[int, dict[str, Any], Any]],
+) -> None:  # fmt: skip
     per_tick, lam_exp = _per_tick(bank, ta)
     n_t = ta.n
     o_lam = np.empty((n_t, bank.n))
@@ -117,7 +132,7 @@ def _run_fused(bank: EstimatorBank, ta: TickArrays, o: Any, oq: Any) -> None:
     k = 0
     while k < n_t:
         if _python_needed(bank):
-            _python_tick(bank, ta, k, o, oq)
+            _python_tick(bank, ta, k, done)
             k += 1
             continue
         k_new, stop, reinit = _call(bank, ta, k, per_tick, lam_exp, o, oq, o_lam)
@@ -126,7 +141,7 @@ def _run_fused(bank: EstimatorBank, ta: TickArrays, o: Any, oq: Any) -> None:
         if stop == fk.STOP_REINIT:
             bank.reset(reinit)
         elif stop == fk.STOP_TICK:
-            _python_tick(bank, ta, k, o, oq)
+            _python_tick(bank, ta, k, done)
             k += 1
     # lambda per second: ArxRlsStage.outputs' power, per distinct exponent
     lam_out = o[fk.LAMF]
@@ -141,8 +156,9 @@ def _call(
 ) -> tuple[int, int, Any]:  # fmt: skip
     """One call of the fused loop from tick ``k0``, the stages' state packed from and written
     back to them. Returns (the next tick, why it stopped, the cells to re-initialise)."""
-    st, pa, gd, av = bank.state, bank.params, bank.guard, bank.average
-    assert isinstance(pa, ArxRlsStage)
+    st, gd, av = bank.state, bank.guard, bank.average
+    pa = bank.params
+    assert isinstance(pa, ArxRlsStage | FusionStage)  # (fusable)
     n = bank.n
     pk = state_jit.packed(st)
     obs = st if isinstance(st, ObserverState) else None
@@ -173,19 +189,18 @@ def _call(
     ex_lim = np.array(np.broadcast_to(bank._excitation_limit_A, (n,)), dtype=np.float64)
     counts = np.zeros(fk.N_C, dtype=np.int64)
     tun_b = bank.tuning
-    res = fk.FUSED_ARX.impl(
-        k0, ta.tf, ta.v, ta.ok, ta.off, ta.steps, per_tick, ex_lim, *obs_args,
-        pa.x1, pa.x2, pa.tau1, pa.tau2, pa.R0, pa.R1, pa.R2, pa.lam, pa.sig_e, pa.theta_arx,
-        pa.P_arx, pa.ue_hist, pa.arx_scale, pa.i_hist, pa._bounds, pa._rest_A, pa.clamped,
-        pa.arx_ok, float(pa.T_arx), int(pa.hist_n), float(tun_b.trace_max), pa._consts,
-        pa.hysteresis, pa.arx_err, pa.v_model, f64(pa._m_table, dtype=np.float64),
-        gd._stats, f64(gd.good, dtype=np.float64), gd.good_soc, gd.episode, gd.cause,
-        gd.bound_bits, gd._near, gd._has_near, gd._consts,
+    arx_args, fusion_args = _param_args(pa, n)
+    res = fk.FUSED_TICKS.impl(
+        k0, ta.tf, ta.v, ta.ok, ta.off, ta.steps, per_tick, ex_lim, *obs_args, *arx_args,
+        float(tun_b.trace_max), pa._consts, getattr(pa, "hysteresis", True), pa.arx_err,
+        pa.v_model, f64(pa._m_table, dtype=np.float64), gd._stats, f64(gd.good, dtype=np.float64),
+        gd.good_soc, gd.episode, gd.cause, gd.bound_bits, gd._near, gd._has_near, gd._consts,
         math.nan if gd.t_prev is None else gd.t_prev, float(gd.tuning.gap_s),
         float(gd.tuning.id_period_s), av.avg, av.restart, av.tau1_multiple, o, oq, o_lam, counts,
+        *fusion_args,
     )  # fmt: skip
     (stop, k, z, h, tau_load, learn_gate, d, anchored, R0, R1, R2, tau1, tau2, arx_err, v_model,
-     m_table, hist_n, good, good_soc, t_prev, restart, reinit) = res  # fmt: skip
+     m_table, hist_n, good, good_soc, t_prev, restart, reinit, ms, off_v) = res  # fmt: skip
     if k == k0:
         return k, stop, reinit
     st.z, st.h = z, h
@@ -194,13 +209,62 @@ def _call(
         obs.b, obs._qb, obs._since_s, obs._rest_s = (float(x) for x in so[: fk.QB_COEF])
         obs.counters["observer_updates"] += int(counts[fk.C_UPD])
         obs.counters["observer_gated"] += int(counts[fk.C_GATED])
-    pa.R0, pa.R1, pa.R2, pa.tau1, pa.tau2 = R0, R1, R2, tau1, tau2
-    pa.arx_err, pa.v_model, pa._m_table, pa.hist_n = arx_err, v_model, m_table, int(hist_n)
+    pa.R0, pa.R1, pa.R2 = R0, R1, R2
+    pa.arx_err, pa.v_model, pa._m_table = arx_err, v_model, m_table
     pa.lam_exp = float(lam_exp[k - 1])
-    pa.counters["arx_rejected"] += int(counts[fk.C_REJ])
+    if isinstance(pa, ArxRlsStage):
+        pa.tau1, pa.tau2, pa.hist_n = tau1, tau2, int(hist_n)
+        pa.counters["arx_rejected"] += int(counts[fk.C_REJ])
+    else:  # the fusion: its taus are its own arrays (a swarm writes them in place)
+        pa.Ms, pa.off = ms, off_v
+        pa._period_s = float(ta.tf[k - 1, tick_block.PERIOD])
+        pa._excited = is_excited(_Std(float(ta.tf[k - 1, tick_block.STD])),  # type: ignore[arg-type]
+                                 pa._excitation_limit_A)  # fmt: skip
+        pa.buffer.head, pa.buffer.count = (int(x) for x in fusion_args[8])
+        pa.counters["clamped"] += int(counts[fk.C_CLAMP])
     gd.good, gd.good_soc = good, good_soc
     gd.t_prev = None if math.isnan(t_prev) else float(t_prev)
     gd.counters["diverged"] += int(counts[fk.C_DIV])
     gd.counters["held_on_bound"] += int(counts[fk.C_HELD])
     av.restart = restart
     return k, stop, reinit
+
+
+class _Std:
+    """What ``is_excited`` reads of a tick."""
+
+    __slots__ = ("current_std_A",)
+
+    def __init__(self, current_std_A: float) -> None:
+        self.current_std_A = current_std_A
+
+
+def _param_args(pa: ArxRlsStage | FusionStage, n: int) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """The parameter stage's arguments of the loop: the ARX stage's (theta, P, histories; the
+    fusion's own theta, P and scale in their place) and the fusion's (constants, window buffer,
+    when the next swarm is due; placeholders for the ARX stage)."""
+    f = np.zeros(n)
+    if isinstance(pa, ArxRlsStage):
+        arx = (
+            pa.x1, pa.x2, pa.tau1, pa.tau2, pa.R0, pa.R1, pa.R2, pa.lam, pa.sig_e, pa.theta_arx,
+            pa.P_arx, pa.ue_hist, pa.arx_scale, pa.i_hist, pa._bounds, pa._rest_A, pa.clamped,
+            pa.arx_ok, float(pa.T_arx), int(pa.hist_n),
+        )  # fmt: skip
+        fusion = (
+            False, np.zeros((5, n, 5)), False, False, np.zeros(1), np.zeros((n, 1)),
+            np.zeros((n, 1)), np.zeros((n, 1), dtype=bool), np.zeros(2, dtype=np.int64), 0.0,
+            f, f,
+        )  # fmt: skip
+        return arx, fusion
+    buf = pa.buffer
+    arx = (
+        pa.x1, pa.x2, pa.tau1, pa.tau2, pa.R0, pa.R1, pa.R2, pa.lam, pa.sig_e, pa.theta, pa.P,
+        np.zeros((n, 2)), pa.scale, np.zeros(2), np.zeros((2, 5, n)), pa._rest_A, pa.clamped,
+        pa.fused, 1.0, 0,
+    )  # fmt: skip
+    fusion = (
+        True, pa._lin, bool(pa._fit_scale), bool(pa.tuning.identify_ocv_offset), buf.current_A,
+        buf.y_V, buf.hm_V, buf.valid, np.array([buf.head, buf.count], dtype=np.int64),
+        float(pa.schedule._first_due_s), pa.Ms, pa.off,
+    )  # fmt: skip
+    return arx, fusion

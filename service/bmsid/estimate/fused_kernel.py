@@ -1,21 +1,24 @@
-"""The ARX variants' ticks in one compiled loop (issue 12): ``bank._run_tick`` for a run of
-ordinary ticks, compiled.
+"""The engine's ordinary ticks in one compiled loop (issue 12): ``bank._run_tick`` for a run of
+ticks, compiled.
 
-``FUSED_ARX`` runs ``EstimatorBank._run_tick`` of ``non-hy-affrls`` and ``hy-affrls`` (the state
-stage with or without the observer, the learn gate, the AFFRLS step, the observer's periodic
-update, the tail of codes, guard and average) over ticks ``k0 ..`` of a block's tick arrays
-(``tick_block.py``), writing every published field into preallocated arrays. It calls the
-stages' own compiled kernels (``observer_kernel.STEP`` and ``UPDATE``, ``rls_kernel.ARX_TICK``,
-``publish_kernel.TAIL``: the same compiled code, the same bits) and does between them, in
-loops, what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'s rest
-clock, ``ArxRlsStage.step`` and ``outputs``, ``publish_kernel.publish``).
+``FUSED_TICKS`` runs ``EstimatorBank._run_tick`` (the state stage with or without the observer,
+the learn gate, the parameter stage, the observer's periodic update, the tail of codes, guard
+and average) over ticks ``k0 ..`` of a block's tick arrays (``tick_block.py``), writing every
+published field into preallocated arrays. The parameter stage is the AFFRLS on the ARX model
+(``non-hy-affrls``, ``hy-affrls``) or the fusion's per-tick AFFRLS and window buffer
+(``hy-affrls-lpso``, between swarms). It calls the stages' own compiled kernels
+(``observer_kernel.STEP`` and ``UPDATE``, ``rls_kernel.ARX_TICK`` or ``FUSION_TICK``,
+``publish_kernel.TAIL``: the same compiled code, the same bits) and does between them, in loops,
+what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'s rest clock,
+``ArxRlsStage.step`` or ``FusionStage.step`` and their ``outputs``, ``publish_kernel.publish``).
 
 It stops before a tick that needs the stages' Python code (``STOP_TICK``): a new segment (the
 first sample, a gap, a time jump), the first tick with a step (the ARX period is seeded), a
-rest long enough for an anchor; the caller checks the rest (a cell to start, the start's
-relaxation watch, a re-anchor) before each call. It stops after a tick whose guard asks for a
-re-initialisation (``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the
-caller (``lam`` per tick: numpy's power, as ``ArxRlsStage.outputs``).
+rest long enough for an anchor, a swarm due or a temperature to carry (the fusion); the caller
+checks the rest (a cell to start, the start's relaxation watch, a re-anchor, a swarm running)
+before each call. It stops after a tick whose guard asks for a re-initialisation
+(``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the caller (``lam``
+per tick: numpy's power, as the stages' ``outputs``).
 
 Its cache entry is named after the files whose compiled code it embeds (``jit.Kernel``'s
 ``depends``).
@@ -40,6 +43,7 @@ from bmsid.estimate import (
     tick_block,
 )
 from bmsid.estimate.fields import FIELD_NAMES
+from bmsid.estimate.jit_helpers import helper, register
 from bmsid.estimate.observer_kernel import REST_LIMIT
 from bmsid.estimate.publish_kernel import AVG_ROW, BITS_ROW, SOC_ROW
 
@@ -55,7 +59,7 @@ LAM_LO, LAM_HI, GAIN, N_PT = 0, 1, 2, 3
 #: The observer's scalars ``so`` (in place): offset b, qb, since_s, rest_s, and constants.
 B, QB, SINCE, REST, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, N_SO = range(9)
 #: The counters ``counts`` (in place).
-C_REJ, C_UPD, C_GATED, C_DIV, C_HELD, N_C = range(6)
+C_REJ, C_UPD, C_GATED, C_DIV, C_HELD, C_CLAMP, N_C = range(7)
 #: Why the loop stopped: the end, a tick for the Python path, a re-initialisation after a tick.
 STOP_END, STOP_TICK, STOP_REINIT = 0, 1, 2
 
@@ -75,7 +79,7 @@ def _check_literals() -> None:
         and len(FIELD_NAMES) == 21
     )  # fmt: skip
     if not ok:
-        raise RuntimeError("fused_arx_kernel: the field rows no longer match fields.FIELD_NAMES")
+        raise RuntimeError("fused_kernel: the field rows no longer match fields.FIELD_NAMES")
 
 
 _check_literals()
@@ -85,8 +89,10 @@ _STEP: Any = None
 _UPDATE: Any = None
 _ARX: Any = None
 _TAIL: Any = None
-_TF_T, _TF_I, _TF_IP, _TF_DT, _TF_STD, _TF_NEWSEG = (
+_FUSION: Any = None
+_TF_T, _TF_I, _TF_IP, _TF_DT, _TF_STD, _TF_NEWSEG, _TF_TEMP = (
     tick_block.T, tick_block.CUR, tick_block.IP, tick_block.DT, tick_block.STD, tick_block.NEWSEG,
+    tick_block.TEMP,
 )  # fmt: skip
 
 
@@ -104,11 +110,14 @@ def _fused_source(
     stats: Any, good: Any, good_soc: Any, episode: Any, cause: Any, bound_bits: Any, near: Any,
     has_near: bool, gconsts: Any, t_prev: float, gap_s: float, id_period_s: float, avg: Any,
     restart: Any, tau1_multiple: float, o: Any, oq: Any, o_lam: Any, counts: Any,
+    fusion: bool, lin: Any, fit_scale: bool, fit_offset: bool, buf_i: Any, buf_y: Any,
+    buf_hm: Any, buf_valid: Any, buf_hc: Any, first_due: float, ms: Any, off_v: Any,
 ) -> Any:  # fmt: skip
     """The ticks ``k0 ..`` (module docstring); per-cell state arrays that the Python code
     updates in place are updated in place, those it rebinds are returned."""
     n_t, n = tf.shape[0], z.shape[0]
     zeros = np.zeros(n)
+    m_out = zeros  # the published M (the fusion's scaled M)
     empty = np.zeros(0)
     no_anchor = np.zeros(n, dtype=np.bool_)
     reinit = np.zeros(n, dtype=np.bool_)
@@ -120,7 +129,11 @@ def _fused_source(
             break
         t, i_meas, dt = tf[k, _TF_T], tf[k, _TF_I], tf[k, _TF_DT]
         cur, ip = i_meas, tf[k, _TF_IP]
-        if T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
+        if fusion:  # a swarm due or a temperature to carry: the stage's own code
+            if t >= first_due or not math.isnan(tf[k, _TF_TEMP]):
+                stop = STOP_TICK
+                break
+        elif T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
             stop = STOP_TICK
             break
         b = so[B]
@@ -182,25 +195,40 @@ def _fused_source(
             for c in range(n):
                 learn2[c] = learn[c] and (may[c] or not arx_ok[c])
             learn = learn2
-        # ArxRlsStage.step
         m_table = out[4]
-        # (two tuples: Python 3.11 passes a call of more than 30 arguments as one tuple,
-        # which numba reads only as star-args)
-        a1 = (x1, x2, tau1, tau2, R0, R1, R2, lam, sig_e, theta, P_arx, ue_hist, scale, i_hist,
-              bounds, rest_A, v_safe, out[3], out[5], ok)  # fmt: skip
-        a2 = (learn, clamped, arx_ok, cur, ip, dt, T_arx, per_tick[k, LAM_LO],
-              per_tick[k, LAM_HI], per_tick[k, GAIN], consts, trace_max, use_h,
-              hist_n >= 2 and T_arx > 0)  # fmt: skip
-        aout, rejected = _ARX(*a1, *a2)
-        R0, R1, R2, tau1, tau2, arx_err, v_model = (
-            aout[0], aout[1], aout[2], aout[3], aout[4], aout[5], aout[6])  # fmt: skip
-        counts[C_REJ] += rejected
-        hist_n += 1
+        if fusion:  # FusionStage.step (no swarm due or running: the caller checks)
+            fo, n_moved = _FUSION(
+                x1, x2, tau1, tau2, theta, P_arx, sig_e, lam, lin, rest_A, v_safe, out[3],
+                out[5], ok, learn, clamped, cur, ip, dt, per_tick[k, LAM_LO],
+                per_tick[k, LAM_HI], per_tick[k, GAIN], consts, trace_max, fit_scale, fit_offset,
+            )  # fmt: skip
+            arx_err, v_model = fo[0], fo[1]
+            counts[C_CLAMP] += n_moved
+            j, size = buf_hc[0], buf_i.shape[0]  # WindowBuffer.push
+            buf_i[j] = cur
+            for c in range(n):
+                buf_y[c, j], buf_hm[c, j], buf_valid[c, j] = fo[2, c], out[5, c], learn[c]
+            buf_hc[0] = (j + 1) % size
+            buf_hc[1] = min(buf_hc[1] + 1, size)
+            R0, R1, R2 = np.empty(n), np.empty(n), np.empty(n)  # _publish_linear
+            ms, off_v, m_out = np.empty(n), np.empty(n), np.empty(n)
+            for c in range(n):
+                R0[c], R1[c] = theta[c, 0] * scale[c, 0], theta[c, 1] * scale[c, 1]
+                R2[c], ms[c] = theta[c, 2] * scale[c, 2], theta[c, 3] * scale[c, 3]
+                off_v[c] = theta[c, 4] * scale[c, 4]
+                m_out[c] = ms[c] * m_table[c] * 1.0
+        else:
+            R0, R1, R2, tau1, tau2, arx_err, v_model, hist_n = _arx_step(
+                x1, x2, tau1, tau2, R0, R1, R2, lam, sig_e, theta, P_arx, ue_hist, scale,
+                i_hist, bounds, rest_A, v_safe, out, ok, learn, clamped, arx_ok, cur, ip, dt,
+                T_arx, per_tick, k, consts, trace_max, use_h, hist_n, counts,
+            )  # fmt: skip
+            m_out = m_table if use_h else zeros
         # ObserverState.correct: the periodic update (anchors and re-anchors: the Python path)
         if observer:
-            tau_load = tau2
+            tau_load = tau2.copy()  # (the fusion's taus are written in place by a swarm)
             if so[SINCE] >= so[UPD_PERIOD]:
-                m_arg = (m_table if use_h else zeros) if d.shape[0] else z
+                m_arg = m_out if d.shape[0] else z
                 u1 = (P, g, qz, so[QB], so[SINCE], d_walk, z, out[2], out[3], h, m_table, v,
                       ok, R0, R1, R2, v_model, m_arg, arx_ok, no_anchor)  # fmt: skip
                 u2 = (i_load, False, cur, so[REST] <= 0.0, b, so[B_MAX], ocv, inv_v, inv_z,
@@ -221,10 +249,10 @@ def _fused_source(
             o[R0F, k, c], o[R1F, k, c], o[R2F, k, c] = R0[c], R1[c], R2[c]
             o[C1F, k, c], o[C2F, k, c] = tau1[c] / R1[c], tau2[c] / R2[c]
             o[TAU1F, k, c], o[TAU2F, k, c] = tau1[c], tau2[c]
-            o[OCVOFFF, k, c] = 0.0
+            o[OCVOFFF, k, c] = off_v[c] if fusion else 0.0
             o_lam[k, c] = lam[c]
-            o[HF, k, c] = h[c] if use_h else 0.0
-            o[MF, k, c] = m_table[c] if use_h else 0.0
+            o[HF, k, c] = h[c] if use_h or fusion else 0.0
+            o[MF, k, c] = m_out[c]
             o[ARXF, k, c], o[VMODF, k, c], o[VMEASF, k, c] = arx_err[c], v_model[c], v[c]
             o[VERRF, k, c] = v[c] - v_model[c]
             o[CAPF, k, c] = cap[c]
@@ -237,9 +265,10 @@ def _fused_source(
         step = t - t_prev  # NaN before the first tick: no step
         t_prev = t
         dtg = step if 0.0 < step <= gap_s else id_period_s
+        offset = off_v if fusion else zeros
         floats, q, reinit, n_reinit, n_held, masked = _TAIL(
             dtg, z, o[R0F, k], o[R1F, k], o[C1F, k], o[R2F, k], o[C2F, k], o[TAU1F, k],
-            o[TAU2F, k], zeros, o[VERRF, k], ex, clamped, arx_ok, learn, stats, good, good_soc,
+            o[TAU2F, k], offset, o[VERRF, k], ex, clamped, arx_ok, learn, stats, good, good_soc,
             episode, cause, bound_bits, near, has_near, gconsts, avg, restart, dt, tau1_multiple,
         )  # fmt: skip
         counts[C_DIV] += n_reinit
@@ -270,8 +299,29 @@ def _fused_source(
             break
     return (
         stop, k, z, h, tau_load, learn_gate, d, anchored, R0, R1, R2, tau1, tau2, arx_err,
-        v_model, m_table, hist_n, good, good_soc, t_prev, restart, reinit,
+        v_model, m_table, hist_n, good, good_soc, t_prev, restart, reinit, ms, off_v,
     )  # fmt: skip
+
+
+@helper
+def _arx_step(
+    x1: Any, x2: Any, tau1: Any, tau2: Any, R0: Any, R1: Any, R2: Any, lam: Any, sig_e: Any,
+    theta: Any, P_arx: Any, ue_hist: Any, scale: Any, i_hist: Any, bounds: Any, rest_A: Any,
+    v_safe: Any, out: Any, ok: Any, learn: Any, clamped: Any, arx_ok: Any, cur: float,
+    ip: float, dt: float, T_arx: float, per_tick: Any, k: int,
+    consts: tuple[float, float, float, float], trace_max: float, use_h: bool, hist_n: int,
+    counts: Any,
+) -> Any:  # fmt: skip
+    """``ArxRlsStage.step``: the tick kernel and its counts; the rebound arrays returned."""
+    # (two tuples: Python 3.11 passes a call of more than 30 arguments as one tuple, which
+    # numba reads only as star-args)
+    a1 = (x1, x2, tau1, tau2, R0, R1, R2, lam, sig_e, theta, P_arx, ue_hist, scale, i_hist,
+          bounds, rest_A, v_safe, out[3], out[5], ok)  # fmt: skip
+    a2 = (learn, clamped, arx_ok, cur, ip, dt, T_arx, per_tick[k, LAM_LO], per_tick[k, LAM_HI],
+          per_tick[k, GAIN], consts, trace_max, use_h, hist_n >= 2 and T_arx > 0)  # fmt: skip
+    aout, rejected = _ARX(*a1, *a2)
+    counts[C_REJ] += rejected
+    return aout[0], aout[1], aout[2], aout[3], aout[4], aout[5], aout[6], hist_n + 1
 
 
 def warm_args(n: int) -> tuple[Any, ...]:
@@ -289,15 +339,20 @@ def warm_args(n: int) -> tuple[Any, ...]:
         (1e-3, 6.0, 3.0, 0.5), True, f, f, f, np.zeros((5, n)), np.zeros((8, n)), f, b_, i_,
         i_, np.zeros((2, 5, n)), True, np.zeros(6), math.nan, 30.0, 1.0, np.zeros((4, n)), b_,
         1.0, np.zeros((len(FIELD_NAMES), 0, n)), np.zeros((0, n), dtype=np.int64),
-        np.zeros((0, n)), np.zeros(N_C, dtype=np.int64),
+        np.zeros((0, n)), np.zeros(N_C, dtype=np.int64), True, np.zeros((5, n, 5)), True, False,
+        np.zeros(3), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3), dtype=np.bool_),
+        np.zeros(2, dtype=np.int64), 0.0, f, f,
     )  # fmt: skip
 
 
 def _warm(kernel: Callable[..., Any]) -> object:
-    global _STEP, _UPDATE, _ARX, _TAIL  # the compiled callees, bound before this compiles
+    # the compiled callees, bound before this kernel compiles
+    global _STEP, _UPDATE, _ARX, _TAIL, _FUSION  # noqa: PLW0603
+    register()  # the helpers (_arx_step) callable from compiled code
     _STEP, _UPDATE = observer_kernel.STEP.compiled(), observer_kernel.UPDATE.compiled()
     _ARX, _TAIL = rls_kernel.ARX_TICK.compiled(), publish_kernel.TAIL.compiled()
-    if _STEP is None or _UPDATE is None or _ARX is None or _TAIL is None:
+    _FUSION = rls_kernel.FUSION_TICK.compiled()
+    if _STEP is None or _UPDATE is None or _ARX is None or _TAIL is None or _FUSION is None:
         raise RuntimeError("a kernel the fused loop calls did not compile")
     for n in (1, 2):
         kernel(*warm_args(n))
@@ -311,7 +366,7 @@ def _reference(*args: Any) -> Any:
 #: The files whose compiled code the loop embeds (its cache entry is named after them).
 _EMBEDS = (observer_kernel, rls_kernel, rls_reference, publish_kernel, guard_kernel,
            publish_average, tick_block)  # fmt: skip
-FUSED_ARX = jit.Kernel(
-    "fused ARX ticks", _reference, _fused_source, _warm,
+FUSED_TICKS = jit.Kernel(
+    "fused ticks", _reference, _fused_source, _warm,
     depends=tuple(str(m.__file__) for m in _EMBEDS),
 )  # fmt: skip
