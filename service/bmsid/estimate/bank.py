@@ -19,7 +19,10 @@ Variants (the paper's three) are compositions of stages, :data:`VARIANT_STAGES`:
   per cell (amortised over ticks, cells staggered). Design and equations: ``fusion.py``.
 
 Every published value is finite and inside the configured bounds. ``update_block`` is the
-engine's entry point; its per-sample loop is where a compiled kernel (issue 12) goes.
+engine's entry point: with the compiled kernels (``jit.select``) it assembles a block's ticks at
+once and runs the ordinary ones in one compiled loop (``block_run.py``, ``fused_kernel.py``),
+each other tick by ``_run_tick``; the numpy mode keeps the per-sample loop below (the
+reference). ``update`` (one sample, the daemon's path) runs ``_run_tick`` per tick.
 """
 
 from __future__ import annotations

@@ -1,12 +1,16 @@
 """``EstimatorBank.update_block`` in compiled mode (issue 12): a block's ticks assembled at once
-(``tick_block.py``), runs of ordinary ticks of the ARX variants in one compiled loop
-(``fused_kernel.py``), every other tick by the bank's own ``_run_tick``.
+(``tick_block.py``), runs of ordinary ticks in one compiled loop (``fused_kernel.py``: the ARX
+variants, and the fusion between its swarms), every other tick by the bank's own ``_run_tick``.
 
 The loop returns here for a tick that needs the stages' Python code; this module checks, before
 each call, what the loop cannot see (a cell to start, the start's relaxation watch, a re-anchor
-or a widening due), runs such a tick by ``_run_tick`` and hands the rest back. Every output is
-written into preallocated (n_ticks, n_cells) arrays, by the loop or from ``_run_tick``'s dict.
-Other variants (``hy-affrls-lpso``) run every tick by ``_run_tick``, over the assembled ticks.
+or a widening due, a swarm running), runs such a tick by ``_run_tick`` and hands the rest back.
+After calls that ran no tick (a long rest, where any tick may anchor) it leaves the next ticks
+to ``_run_tick`` for a while (1, 2, 4 .. 64 ticks), so each call's packing is paid rarely. The
+loop writes every output into preallocated (n_ticks, n_cells) arrays; ``_run_tick``'s outputs
+are stored there per field at the end. Each tick's forgetting limits and innovation gain come
+from the stages' own cached functions, once per distinct step (numpy's ``exp`` and Python's
+``**`` round differently from compiled code in the last bit), as does ``lambda_``'s power.
 """
 
 from __future__ import annotations
@@ -121,28 +125,36 @@ def _python_needed(bank: EstimatorBank) -> bool:
     return False
 
 
+#: Ticks run by ``_run_tick`` at most before the loop is tried again, after calls that ran none.
+_MAX_WAIT = 64
+
+
 def _run_fused(
     bank: EstimatorBank, ta: TickArrays, o: Any, oq: Any,
     done: list[tuple[int, dict[str, Any], Any]],
 ) -> None:  # fmt: skip
+    """The ticks of ``ta``: runs of them by the loop, the others by ``_run_tick``."""
     per_tick, lam_exp = _per_tick(bank, ta)
     n_t = ta.n
     o_lam = np.empty((n_t, bank.n))
     by_loop = np.zeros(n_t, dtype=bool)
-    k = 0
+    k, wait, backoff = 0, 0, 1
     while k < n_t:
-        if _python_needed(bank):
+        if wait or _python_needed(bank):
             _python_tick(bank, ta, k, done)
-            k += 1
+            k, wait = k + 1, max(wait - 1, 0)
             continue
         k_new, stop, reinit = _call(bank, ta, k, per_tick, lam_exp, o, oq, o_lam)
         by_loop[k:k_new] = True
-        k = k_new
+        ran, k = k_new - k, k_new
         if stop == fk.STOP_REINIT:
             bank.reset(reinit)
         elif stop == fk.STOP_TICK:
             _python_tick(bank, ta, k, done)
             k += 1
+            # A call that ran no tick (a long rest: each tick may anchor) costs the packing of
+            # every stage's state: the next ticks go to _run_tick, the more the longer it lasts.
+            wait, backoff = (backoff, min(2 * backoff, _MAX_WAIT)) if ran == 0 else (0, 1)
     # lambda per second: ArxRlsStage.outputs' power, per distinct exponent
     lam_out = o[fk.LAMF]
     for e in np.unique(lam_exp[by_loop]).tolist():
