@@ -9,6 +9,7 @@ back to Python: NaN voltages and currents, gaps, time jumps back, repeated and n
 from __future__ import annotations
 
 import itertools
+from dataclasses import fields
 from functools import lru_cache
 from typing import Any
 
@@ -21,6 +22,8 @@ from bmsid.config.engine import build_bank
 from bmsid.estimate import jit
 from bmsid.estimate.bank import EstimatorBank
 from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.tick_block import assemble
+from bmsid.estimate.ticks import Tick, TickAssembler
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
@@ -220,3 +223,48 @@ def test_the_loop_runs_nearly_every_tick_of_a_drive(
     _assert_same(blocks, _by_sample(other, t, i, v, None), bank, other)
     assert len(blocks[0]) == 2000 and n_python <= share * 2000
     assert variant != "hy-affrls-lpso" or bank.counters["swarms"] >= 2
+
+
+@settings(
+    max_examples=60,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+@given(
+    n_cells=st.sampled_from([1, 2]),
+    n_samples=st.integers(1, 300),
+    flags=st.fixed_dictionaries({e: st.booleans() for e in EVENTS}),
+    cut=st.floats(0.0, 1.0),
+    seed=st.integers(0, 1000),
+)  # fmt: skip
+def test_tick_assembly_equals_push(
+    restore_kernel: None, n_cells: int, n_samples: int, flags: dict[str, bool], cut: float,
+    seed: int,
+) -> None:  # fmt: skip
+    """``tick_block.assemble`` of two blocks gives ``TickAssembler.push``'s ticks, field by
+    field, and leaves the assembler in the same state."""
+    jit.select("compiled")
+    t, i, v, temp = _inputs(max(n_samples, 8), n_cells, flags, seed)
+    t, i, v = t[:n_samples], i[:n_samples], v[:n_samples]
+    temp = None if temp is None else temp[:n_samples]
+    tun = EstimatorTuning()
+    a, b = TickAssembler(n_cells, tun), TickAssembler(n_cells, tun)
+    m = int(cut * n_samples)
+    got = []
+    for s in (slice(0, m), slice(m, n_samples)):
+        tc = None if temp is None else temp[s]
+        ta = assemble(a, SampleBlock.from_arrays(t[s], i[s], v[s], temperature_C=tc))
+        got += [ta.tick(k) for k in range(ta.n)]
+    want = [
+        tk for k in range(n_samples)
+        if (tk := b.push(float(t[k]), float(i[k]), v[k],
+                         np.nan if temp is None else float(temp[k]))) is not None
+    ]  # fmt: skip
+    assert len(got) == len(want)
+    for x, y in zip(got, want, strict=True):
+        for f in fields(Tick):
+            np.testing.assert_array_equal(getattr(x, f.name), getattr(y, f.name), err_msg=f.name)
+    assert a.counters == b.counters
+    sa, sb = a.state_dict(), b.state_dict()
+    for k in sa:
+        np.testing.assert_array_equal(sa[k], sb[k], err_msg=k)
