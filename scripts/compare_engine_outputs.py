@@ -57,6 +57,9 @@ def _cases() -> list[tuple[str, str, int, str, bool]]:
                 out.append((variant, f"{variant}-{n_cells}-{kind}", n_cells, kind, True))
     out.append(("hy-affrls", "hy-affrls-8-events-noobs", 8, "events", False))
     out.append(("hy-affrls", "hy-affrls-1-plain-noobs", 1, "plain", False))
+    for variant in ("hy-affrls", "hy-affrls-lpso"):  # the other branches (OTHER)
+        out.append((variant, f"{variant}-8-events-other", 8, "events", True))
+        out.append((variant, f"{variant}-1-plain-other", 1, "plain", True))
     return out
 
 
@@ -84,6 +87,11 @@ def dump(dest: Path) -> None:
     for variant, name, n_cells, kind, observer in _cases():
         cell, t, i, v, temp = _events(3000 if n_cells > 1 else 5000, n_cells, 3, kind)
         tuning = None if observer else EstimatorTuning(observer=ObserverTuning(enabled=False))
+        if name.endswith("-other"):  # no average, OCV offset, no knees, M not learnt
+            tuning = EstimatorTuning(
+                publish_average_tau1=0.0, identify_ocv_offset=True, knee_slope_factor=1e9,
+                identify_hysteresis_scale=True, observer=ObserverTuning(learn_hysteresis=False),
+            )  # fmt: skip
         soc0 = None if kind == "rest_start" else 0.98
         bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0)  # type: ignore[arg-type]
         res: dict[str, np.ndarray] = {}

@@ -41,6 +41,12 @@ QUICK = EstimatorTuning(
     **_FAST_GUARD,
 )
 QUICK_NO_OBSERVER = EstimatorTuning(observer=ObserverTuning(enabled=False), **_FAST_GUARD)
+#: The other branches: no average, the OCV offset identified, no knees, M not learnt (and the
+#: fusion's hysteresis scale identified).
+OTHER = EstimatorTuning(
+    publish_average_tau1=0.0, identify_ocv_offset=True, knee_slope_factor=1e9,
+    identify_hysteresis_scale=True, observer=ObserverTuning(learn_hysteresis=False),
+)  # fmt: skip
 
 
 @lru_cache(maxsize=8)
@@ -148,7 +154,7 @@ EVENTS = ("nan_v", "nan_i", "rest", "fault", "gap", "repeat", "jump_back", "half
     n_cells=st.sampled_from([1, 3]),
     n_samples=st.integers(60, 500),
     flags=st.fixed_dictionaries({e: st.booleans() for e in EVENTS}),
-    tuning=st.sampled_from([None, NO_OBSERVER, QUICK, QUICK_NO_OBSERVER]),
+    tuning=st.sampled_from([None, NO_OBSERVER, QUICK, QUICK_NO_OBSERVER, OTHER]),
     cut=st.lists(st.floats(0.0, 1.0), max_size=3),
     seed=st.integers(0, 1000),
 )
