@@ -11,9 +11,10 @@ with ``observer.enabled`` off, alternated with on in this one process, best of t
 Throughputs feed the run as one ``SampleBlock`` (``update_block``, as the daemon and offline
 identification do); the per-call figures come from a second, sample-by-sample run. Every
 benchmark runs twice: every kernel compiled (``estimate/jit.py``: the window fits and the swarm
-fitness, the state and observer steps, the RLS ticks, the guard and the average, and the tick's
-tail of codes, guard and average in one call) and every kernel on its numpy
-reference, alternated in one process.
+fitness, the state and observer steps, the RLS ticks, the guard and the average, the tick's
+tail of codes, guard and average in one call, and ``update_block``'s tick assembly and loop over
+ordinary ticks: ``estimate/block_run.py``) and every kernel on its numpy reference, alternated
+in one process.
 """
 
 from __future__ import annotations

@@ -19,7 +19,10 @@ Variants (the paper's three) are compositions of stages, :data:`VARIANT_STAGES`:
   per cell (amortised over ticks, cells staggered). Design and equations: ``fusion.py``.
 
 Every published value is finite and inside the configured bounds. ``update_block`` is the
-engine's entry point; its per-sample loop is where a compiled kernel (issue 12) goes.
+engine's entry point: with the compiled kernels (``jit.select``) it assembles a block's ticks at
+once and runs the ordinary ones in one compiled loop (``block_run.py``, ``fused_kernel.py``),
+each other tick by ``_run_tick``; the numpy mode keeps the per-sample loop below (the
+reference). ``update`` (one sample, the daemon's path) runs ``_run_tick`` per tick.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import jit
+from bmsid.estimate import block_run, jit
 from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
@@ -152,6 +155,8 @@ class EstimatorBank:
         of every tick the block completes (possibly none). Never raises on bad numbers."""
         if block.n_cells != self.n:
             raise ValueError(f"block has {block.n_cells} cells, the bank {self.n}")
+        if block_run.compiled():  # the block's ticks at once, ordinary ones in one compiled loop
+            return block_run.update_block(self, block)
         times: list[float] = []
         currents: list[float] = []
         ticks: list[dict[str, FloatArray]] = []

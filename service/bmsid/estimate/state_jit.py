@@ -100,6 +100,29 @@ def _packed(st: CoulombState) -> Packed:
     return pk
 
 
+def packed(st: CoulombState) -> Packed:
+    """The stage's constants in the kernels' layout, packed again where a source was rebound."""
+    return _packed(st)
+
+
+def offset_walk(obs: ObserverState, pk: Packed) -> None:
+    """The offset's process noise per second of data, ``pk.qb_coef``, for the capacity now."""
+    q_Ah = obs.capacity.q_Ah
+    if q_Ah is not pk.q_key:
+        q_mean_Ah = float(q_Ah.sum() / q_Ah.size)
+        pk.qb_coef = (obs.tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2
+        pk.q_key = q_Ah
+
+
+def update_tuning(obs: ObserverState, pk: Packed) -> FloatArray:
+    """The update kernel's tuning vector (``observer_kernel.V_SIGMA2`` ..), packed once."""
+    if pk.utun is None:
+        tun = obs.tun
+        pk.utun = np.array([tun.v_sigma_V**2, tun.r_dc_rel_sigma, tun.v_sigma_floor_V**2,
+                            tun.gate_sigmas**2, tun.learn_ocv_sigma_V])  # fmt: skip
+    return pk.utun
+
+
 def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     """The tick's state step by the compiled kernel (``jit.select``); False (nothing done)
     where the stage runs its own code: the numpy mode, or a cell that starts this tick."""
@@ -120,11 +143,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
             tick.current_A -= b
             if not (tick.new_segment and not tick.first):
                 tick.i_prev_A -= b
-        q_Ah = obs.capacity.q_Ah
-        if q_Ah is not pk.q_key:
-            q_mean_Ah = float(q_Ah.sum() / q_Ah.size)
-            pk.qb_coef = (obs.tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2
-            pk.q_key = q_Ah
+        offset_walk(obs, pk)
         tau_load = np.ascontiguousarray(obs._tau_load_s)  # params' tau2: a view would compile
         out, learn, all_ok, resting = ok_.STEP.impl(
             st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A, tau_load,
@@ -159,10 +178,7 @@ def update(
     if ok_.UPDATE.kind != "compiled":
         return False
     tick, n, pk = ctx.tick, obs.n, _packed(obs)
-    if pk.utun is None:
-        tun = obs.tun
-        pk.utun = np.array([tun.v_sigma_V**2, tun.r_dc_rel_sigma, tun.v_sigma_floor_V**2,
-                            tun.gate_sigmas**2, tun.learn_ocv_sigma_V])  # fmt: skip
+    utun = update_tuning(obs, pk)
     ocv = obs.model.ocv
     # C-contiguous float64 as the kernel was compiled for (a view would compile anew mid-run)
     p = {k: np.ascontiguousarray(params[k], dtype=np.float64)
@@ -173,7 +189,7 @@ def update(
         p["R2_ohm"], p["v_model_V"], p["M_V"] if obs.d.shape[0] else obs.z,
         converged, anchor, obs._i_load_A, obs._reanchor, tick.current_A, obs._rest_s <= 0.0,
         obs.b, obs._b_max, pk.ocv, ocv._inv_v, ocv._inv_z, pk.knots, obs.d, obs._m_knots,
-        pk.utun,
+        utun,
     )  # fmt: skip
     obs._qb = 0.0
     obs._since_s = 0.0
