@@ -257,12 +257,19 @@ class PublishGuard:
 
     def state_dict(self) -> dict[str, Any]:
         """Plain arrays and numbers that restore the guard exactly."""
-        st: dict[str, Any] = {k: np.array(getattr(self, k)) for k in _ARRAYS}
+        st: dict[str, Any] = {k: np.array(getattr(self, k)) for k in (*_ARRAYS, "bound_bits")}
         st["t_prev"] = np.nan if self.t_prev is None else self.t_prev
         return st
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         """Restore :meth:`state_dict` output; ValueError/KeyError when it does not fit."""
         load_arrays(self, st, _ARRAYS, self.name)
+        # The bound findings open the next tick's learn gate (``bank._run_tick``). Checkpoints
+        # written before they were saved restore none: their first tick learns as the fresh
+        # findings of that tick say (a restored bank then differed for a tick or two).
+        if "bound_bits" in st:
+            load_arrays(self, st, ("bound_bits",), self.name)
+        else:
+            self.bound_bits = np.zeros(self.n, dtype=np.int64)
         t = float(st["t_prev"])
         self.t_prev = t if np.isfinite(t) else None
