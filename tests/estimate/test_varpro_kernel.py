@@ -3,7 +3,11 @@ equal to the reference to float tolerance)."""
 
 from __future__ import annotations
 
+import logging
+import time
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,6 +23,33 @@ def test_every_compiled_kernel_is_available() -> None:
     assert varpro_kernel.KERNEL in jit._REGISTRY and varpro_kernel.SOLVE in jit._REGISTRY
     for kernel in jit._REGISTRY:
         assert kernel.compiled() is not None, kernel.name
+
+
+class _SlowKernel:
+    """A kernel whose compiling takes a while (what a fresh install's first choice does)."""
+
+    kind = "compiled"
+
+    def _resolve(self) -> None:
+        time.sleep(0.3)
+
+
+def test_a_long_choice_says_it_is_compiling(
+    restore_kernel: None, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The first run after an install compiles every kernel (about a minute): said once it
+    takes longer than a cached load, not before and not after."""
+    monkeypatch.setattr(jit, "_REGISTRY", [_SlowKernel()])
+    monkeypatch.setattr(jit, "NOTICE_AFTER_S", 0.05)
+    with caplog.at_level(logging.INFO, logger="bmsid.estimate.jit"):
+        jit.select(None)
+    assert [r.getMessage()[:34] for r in caplog.records] == ["compiling the engine's kernels: on"]
+    caplog.clear()
+    monkeypatch.setattr(jit, "NOTICE_AFTER_S", 5.0)
+    with caplog.at_level(logging.INFO, logger="bmsid.estimate.jit"):
+        jit.select(None)
+        time.sleep(0.1)
+    assert not caplog.records
 
 
 @settings(max_examples=40, deadline=None)

@@ -17,12 +17,19 @@ Kernels agree with their reference to float tolerance (each has a property test)
 from __future__ import annotations
 
 import hashlib
+import logging
+import threading
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Generic, TypeVar, cast
 
 F = TypeVar("F", bound=Callable[..., Any])
+
+log = logging.getLogger(__name__)
+
+#: A choice still running after this long is compiling, not loading the cache (~1 s): say so.
+NOTICE_AFTER_S = 3.0
 
 #: ``compiled`` or ``numpy`` once chosen; ``unset`` before the first choice
 MODE = "unset"
@@ -98,10 +105,23 @@ def select(name: str | None = None) -> str:
     if name not in (None, "compiled", "numpy"):
         raise ValueError(f"kernels must be 'compiled' or 'numpy', not {name!r}")
     _choice = name
-    for k in _REGISTRY:
-        k._resolve()
+    notice = threading.Timer(NOTICE_AFTER_S, _compiling_notice)
+    notice.daemon = True
+    notice.start()
+    try:
+        for k in _REGISTRY:
+            k._resolve()
+    finally:
+        notice.cancel()
     MODE = "compiled" if all(k.kind == "compiled" for k in _REGISTRY) else "numpy"
     return MODE
+
+
+def _compiling_notice() -> None:
+    log.info(
+        "compiling the engine's kernels: once after an install or an upgrade (about a minute "
+        "on a 2-core machine), then loaded from numba's cache in about a second"
+    )
 
 
 def ensure() -> str:
