@@ -84,7 +84,8 @@ def _cell_sources(st: CoulombState) -> tuple[Any, ...]:
     )  # fmt: skip
 
 
-def _packed(st: CoulombState) -> Packed:
+def packed(st: CoulombState) -> Packed:
+    """The stage's constants in the kernels' layout, packed again where a source was rebound."""
     pk: Packed | None = st.__dict__.get("_packed")
     if pk is None:
         pk = st.__dict__["_packed"] = Packed(st)
@@ -98,11 +99,6 @@ def _packed(st: CoulombState) -> Packed:
             pk.cells[row] = x
         pk.key = src
     return pk
-
-
-def packed(st: CoulombState) -> Packed:
-    """The stage's constants in the kernels' layout, packed again where a source was rebound."""
-    return _packed(st)
 
 
 def offset_walk(obs: ObserverState, pk: Packed) -> None:
@@ -129,7 +125,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     if ok_.STEP.kind != "compiled" or nnz(st._pending):
         return False
     tick = ctx.tick
-    pk = _packed(st)
+    pk = packed(st)
     cs = tick.coulomb_steps
     if len(cs) == 1:  # the usual tick: one raw step, into the stage's buffer (no array built)
         steps = pk.one_step
@@ -177,7 +173,7 @@ def update(
     done) in the numpy mode."""
     if ok_.UPDATE.kind != "compiled":
         return False
-    tick, n, pk = ctx.tick, obs.n, _packed(obs)
+    tick, n, pk = ctx.tick, obs.n, packed(obs)
     utun = update_tuning(obs, pk)
     ocv = obs.model.ocv
     # C-contiguous float64 as the kernel was compiled for (a view would compile anew mid-run)
