@@ -141,10 +141,13 @@ async def _run_demo(
     core = importlib.import_module("bmsid.daemon.core")
     daemon: Daemon = core.Daemon(settings, on_estimates=on_estimates, shutdown_timeout_s=5.0)
     task = asyncio.create_task(daemon.run())
-    t0 = time.monotonic()
+    t0: float | None = None  # the duration counts from the first frame source running
     while not task.done():
         await asyncio.sleep(0.1)
-        if daemon.idle() or (duration_s is not None and time.monotonic() - t0 >= duration_s):
+        if t0 is None and daemon.reading:
+            t0 = time.monotonic()
+        ran_s = 0.0 if t0 is None else time.monotonic() - t0
+        if daemon.idle() or (duration_s is not None and ran_s >= duration_s):
             daemon.request_stop()
             break
     await task
@@ -193,6 +196,11 @@ def run(args: argparse.Namespace) -> int:
         state={"directory": out_dir / "state", "restore": False},
     )
     sys.setswitchinterval(core.SWITCH_INTERVAL_S)
+    print(
+        "starting the estimator (the first run after an install compiles its kernels: about a "
+        "minute; later runs start in seconds)",
+        flush=True,
+    )
     try:
         daemon, history = asyncio.run(_run_demo(settings, args.duration_s, sys.stdout))
     finally:

@@ -183,6 +183,11 @@ class Daemon:
         if self._stop is not None:
             self._stop.set()
 
+    @property
+    def reading(self) -> bool:
+        """True once the bank worker is up and the frame sources run (systemd's READY=1)."""
+        return self._ready_sent
+
     def idle(self) -> bool:
         """True when a replay has ended and every frame and sample has been processed."""
         return (
