@@ -26,13 +26,14 @@ Scenarios (``--scenario``, default all):
   table (1.6x the table at empty, 0.4x at full): the table is only a prior;
 - ``all``: all of the above at once (0.7 A offset) but the after-charge start.
 
-Per day: SOC error (max |error| and RMS, SOC points), the offset estimate's error at the day's
-last tick (A), R0 median and 95th-percentile |relative error| against the time-varying truth
-under load (|true I| > 0.05C), tau1 and R0+R1+R2 median |relative error| under load, the
-published hysteresis half-gap M's median |relative error| against the truth's M at the true
-SOC, model RMSE
-(v_meas - v_model, mV) and the capacity estimate's error at the day's last tick (%). The record's
-first hour is left out of every per-tick figure (the start-up). A field the engine does not
+Per day: SOC error (max |error| and RMS, SOC points); the share of ticks whose SOC error is
+within two published ``soc_std`` (95 % if that std were calibrated and the error Gaussian); the
+offset estimate's error at the day's last tick (A); R0 median and 95th-percentile |relative
+error| against the time-varying truth under load (|true I| > 0.05C); tau1 and R0+R1+R2 median
+|relative error| under load; the published hysteresis half-gap M's median |relative error|
+against the truth's M at the true SOC; model RMSE (v_meas - v_model, mV); and the capacity
+estimate's error at the day's last tick (%). The record's first hour is left out of every
+per-tick figure (the start-up). A field the engine does not
 publish (``soc``, ``current_offset_A``, ``capacity_Ah``) prints ``-``.
 
     python bench/multiday.py [--quick] [--days N] [--scenario NAME ...] [--jobs 3]
@@ -109,6 +110,7 @@ BY_NAME = {s.name: s for s in SCENARIOS}
 COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("soc_max_abs_pts", "SOC max (pts)", "{:.2f}"),
     ("soc_rms_pts", "SOC RMS (pts)", "{:.2f}"),
+    ("soc_in_2sd_pct", "SOC in 2 std (%)", "{:.0f}"),
     ("offset_err_A", "offset err (A)", "{:+.3f}"),
     ("r0_med_pct", "R0 med (%)", "{:.1f}"),
     ("r0_p95_pct", "R0 p95 (%)", "{:.1f}"),
@@ -144,8 +146,8 @@ def score_days(trace: EstimateBlock, truth: MultidayTruth, n_days: int) -> list[
     k = np.clip(np.searchsorted(truth.t_s, t, side="right") - 1, 0, truth.t_s.shape[0] - 1)
     cap_C = float(truth.capacity_Ah[0])
     load = np.abs(truth.current_A[k]) > LOAD_C * cap_C
-    est = {n: _column(trace, n) for n in ("soc", "current_offset_A", "capacity_Ah", "R0_ohm",
-                                          "R1_ohm", "R2_ohm", "tau1_s", "v_model_V",
+    est = {n: _column(trace, n) for n in ("soc", "soc_std", "current_offset_A", "capacity_Ah",
+                                          "R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "v_model_V",
                                           "v_meas_V", "M_V")}  # fmt: skip
     rows: list[dict[str, float]] = []
     for d in range(n_days):
@@ -158,6 +160,9 @@ def score_days(trace: EstimateBlock, truth: MultidayTruth, n_days: int) -> list[
             err = (soc[m] - truth.soc[k[m]]) * 100.0
             row["soc_max_abs_pts"] = float(np.nanmax(np.abs(err)))
             row["soc_rms_pts"] = float(np.sqrt(np.nanmean(err**2)))
+            sd = est["soc_std"]
+            if sd is not None:  # a calibrated std holds ~95 % of the errors within 2 std
+                row["soc_in_2sd_pct"] = 100.0 * float(np.mean(np.abs(err) <= 200.0 * sd[m]))
         off = _last(est["current_offset_A"], day)
         if math.isfinite(off):
             row["offset_err_A"] = off - float(truth.current_offset_A[k[day][-1]])
