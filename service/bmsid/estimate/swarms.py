@@ -4,7 +4,8 @@ Each cell gets an LPSO swarm (``estimate/lpso.py``) every ``swarm_period_s``, st
 the bank by its cell index so few cells run at once; a running swarm evaluates
 ``fits_per_update`` particles per tick (each one a variable-projection window fit,
 ``estimate/varpro.py``), so its cost is spread over many ticks. The fusion stage decides what a
-fit costs and what a finished swarm changes; this module only buffers and schedules.
+fit costs and what a finished swarm changes; this module buffers, schedules and holds the
+running swarms (as arrays: ``swarm_kernel.py`` evaluates and moves them all in one call).
 """
 
 from __future__ import annotations
