@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import lpso
+from bmsid.estimate import lpso, swarm_kernel
 from bmsid.estimate.affrls import fusion_covariance, reset_covariance, swarm_covariance
 from bmsid.estimate.arrhenius import ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
@@ -38,10 +38,9 @@ from bmsid.estimate.stage import (
     per_cell_limit,
 )
 from bmsid.estimate.statedict import load_arrays
-from bmsid.estimate.swarms import CellSwarm, SwarmSchedule, WindowBuffer
+from bmsid.estimate.swarms import RunningSwarms, SwarmSchedule, WindowBuffer
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.estimate.varpro import Window, fit_columns, fit_linear, fixed_rmse
-from bmsid.estimate.varpro_kernel import FITNESS
+from bmsid.estimate.varpro import Window, active_columns, fit_linear, fixed_rmse
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
@@ -82,9 +81,12 @@ class FusionStage:
         self._clamp_tol = 1e-12 * self._abs_scale  # a clamp that moves less is no clamp
         size = int(np.ceil(tuning.window_s / tuning.id_period_s)) + 1
         self.buffer = WindowBuffer(size=size, n_cells=n)
+        n_iter_max = max(tuning.n_iter, tuning.n_iter_first)
+        self.swarms = RunningSwarms(n, tuning.n_particles, n_iter_max, size)
         self.schedule = SwarmSchedule(
-            n, (cell_ids % n_stagger) / n_stagger, tuning.swarm_period_s, tuning.min_window_s
-        )
+            n, (cell_ids % n_stagger) / n_stagger, tuning.swarm_period_s, tuning.min_window_s,
+            self.swarms,
+        )  # fmt: skip
         self.fused = np.zeros(n, dtype=bool)
         self.clamped = np.zeros(n, dtype=bool)
         self.arrhenius = ArrheniusCarry(n)
@@ -110,6 +112,15 @@ class FusionStage:
             c1=tuning.c1, c2=tuning.c2, w_max=tuning.w_max, w_min=tuning.w_min,
             shape=tuning.inertia_shape, vmax_frac=tuning.velocity_max_frac,
         )  # fmt: skip
+        # the window fits' constants (varpro.fit_columns): active columns, their scales per
+        # cell, the offset's column; and the swarm kernel's constants
+        use_h, use_off = bool(self._fit_scale), tuning.identify_ocv_offset
+        self._fit_idx = active_columns(use_h, use_off)
+        self._fit_s = np.ascontiguousarray(
+            np.concatenate((self.scale, np.ones((n, 2))), axis=1)[:, self._fit_idx]
+        )
+        self._fit_j_off = 3 + int(use_h) if use_off else -1
+        self._swarm_consts = swarm_kernel.consts(self._swarm_params, tuning.tau_ratio_min)
         self._start_values()
 
     def _start_values(self) -> None:
@@ -195,15 +206,31 @@ class FusionStage:
                 excited = self._excited if isinstance(self._excited, bool) else self._excited[c]
                 if span >= tun.min_window_s and excited:
                     self._start_swarm(c)
-        if sched.n_running() == 0:
+        if sched.n_running():
+            self._step_swarms()
+
+    def _step_swarms(self) -> None:
+        """The running swarms' fits of this tick and their moves (one kernel call); a swarm
+        that has run all its iterations is applied and ends."""
+        rs, tun = self.swarms, self.tuning
+        prior = np.zeros(self.n)
+        if tun.identify_ocv_offset:  # the ridge of the offset, with sig_e as it is now
+            for c in np.flatnonzero(rs.active).tolist():
+                prior[c] = self._offset_prior(c)
+        moved = swarm_kernel.STEP.impl(
+            rs.active, rs.x, rs.v, rs.pbest, rs.pbest_f, rs.gbest, rs.gbest_f, rs.iteration,
+            rs.lo, rs.hi, rs.fitness, rs.done_fits, rs.rand, rs.inertia, rs.a1, rs.a2, rs.t_lo,
+            rs.t_hi, rs.win, rs.win_len, self._fit_s, self._fit_idx, bool(self._fit_scale),
+            tun.identify_ocv_offset, prior, self._fit_j_off, self._lin_lo, self._lin_hi,
+            self._abs_scale, tun.fits_per_update, self._swarm_consts,
+        )  # fmt: skip
+        if not moved.any():
             return
-        for c, cs in enumerate(sched.running):
-            if cs is None:
-                continue
-            self._swarm_fits(c, cs, tun.fits_per_update)
-            if cs.swarm.done:
-                self._apply_swarm(c, cs)
-                sched.running[c] = None
+        cells = np.flatnonzero(moved)
+        rs.refresh_poles(cells)
+        for c in cells[rs.iteration[cells] >= rs.n_iter[cells]].tolist():
+            self._apply_swarm(c)
+            rs.active[c] = False
 
     def _window_has_steps(self) -> bool:
         """The window holds ``swarm_min_steps`` current steps: one (a charge starting) ties the
@@ -238,9 +265,7 @@ class FusionStage:
             seeds=seed, spread=tun.init_spread_log,
         )  # fmt: skip
         window, weights = self._window(c)
-        sched.running[c] = CellSwarm(
-            swarm=sw, window=window, weights=weights, rng=rng, fitness=np.zeros(tun.n_particles)
-        )
+        self.swarms.start(c, sw, rng, self._swarm_params, window, weights)
         sched.swarm_count[c] += 1
         self.counters["swarms"] += 1
 
@@ -249,34 +274,12 @@ class FusionStage:
         sig = max(float(self.sig_e[c]), self.tuning.e_floor_V)
         return float((sig * self.scale[c, 4] / self.tuning.ocv_offset_prior_V) ** 2)
 
-    def _fitness(self, c: int, window: Window, weights: FloatArray, taus: FloatArray) -> FloatArray:
-        t_lo = np.minimum(taus[:, 0], taus[:, 1])
-        t_hi = np.maximum(taus[:, 0], taus[:, 1])
-        # the window fit (varpro.fit_linear) and its penalty in one kernel call
-        a1, a2, s_full, idx, j_off = fit_columns(window, t_lo, t_hi, self.scale[c])
-        return FITNESS.impl(
-            window.current_A, window.y_V, window.hm_V, weights, a1, a2, s_full, idx,
-            window.use_hysteresis, window.use_offset, self._offset_prior(c), j_off,
-            self._lin_lo[c], self._lin_hi[c], self._abs_scale[c], t_lo, t_hi,
-            self.tuning.tau_ratio_min,
-        )  # fmt: skip
-
-    def _swarm_fits(self, c: int, cs: CellSwarm, budget: int) -> None:
-        """Evaluate up to ``budget`` particles; when all are evaluated, move the swarm."""
-        n_p = cs.swarm.x.shape[0]
-        j0, j1 = cs.done_fits, min(cs.done_fits + budget, n_p)
-        cs.fitness[j0:j1] = self._fitness(c, cs.window, cs.weights, np.exp(cs.swarm.x[j0:j1]))
-        cs.done_fits = j1
-        if j1 < n_p:
-            return
-        cs.swarm = lpso.swarm_tell(cs.swarm, cs.fitness, cs.rng, self._swarm_params)
-        cs.done_fits = 0
-
-    def _apply_swarm(self, c: int, cs: CellSwarm) -> None:
+    def _apply_swarm(self, c: int) -> None:
         """Feed the swarm optimum back: poles, then theta/P/x as the AFFRLS would hold them."""
         tun = self.tuning
-        taus = np.clip(np.sort(np.exp(cs.swarm.gbest)), *self._tau_box(c))  # exp(log) may miss
-        if not np.isfinite(cs.swarm.gbest_f):
+        gbest = self.swarms.gbest[c].copy()
+        taus = np.clip(np.sort(np.exp(gbest)), *self._tau_box(c))  # exp(log) may miss
+        if not np.isfinite(self.swarms.gbest_f[c]):
             return
         # judged on the data up to now: a swarm started as a drive ended can end on a rest
         if not self._window_has_steps():

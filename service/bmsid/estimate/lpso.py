@@ -90,31 +90,39 @@ def swarm_init(
 
 def swarm_tell(s: Swarm, f: FloatArray, rng: np.random.Generator, p: SwarmParams) -> Swarm:
     """Record the fitness of the current positions, then move the particles (Eq. 28, 30)."""
-    f = np.where(np.isfinite(f), f, np.inf)
-    better = f < s.pbest_f
-    pbest = np.where(better[:, None], s.x, s.pbest)
-    pbest_f = np.where(better, f, s.pbest_f)
-    j = int(np.argmin(pbest_f))
-    gbest, gbest_f = (
-        (pbest[j].copy(), float(pbest_f[j]))
-        if pbest_f[j] < s.gbest_f
-        else (
-            s.gbest,
-            s.gbest_f,
-        )
-    )
-    w = inertia(s.iteration, s.n_iter, p)
     r1 = rng.random(s.x.shape)
     r2 = rng.random(s.x.shape)
-    v = w * s.v + p.c1 * r1 * (pbest - s.x) + p.c2 * r2 * (gbest - s.x)
-    vmax = p.vmax_frac * (s.hi - s.lo)
-    v = np.clip(v, -vmax, vmax)
-    x = s.x + v
-    hit = (x < s.lo) | (x > s.hi)
-    x = np.clip(x, s.lo, s.hi)
-    v = np.where(hit, 0.0, v)
-    # built directly: dataclasses.replace costs as much again (twice a tick per running swarm)
+    w = inertia(s.iteration, s.n_iter, p)
+    x, v, pbest, pbest_f, gbest, gbest_f = tell(
+        s.x, s.v, s.pbest, s.pbest_f, s.gbest, s.gbest_f, f, r1, r2, w, s.lo, s.hi, p
+    )
+    # built directly: dataclasses.replace costs as much again
     return Swarm(
         x=x, v=v, pbest=pbest, pbest_f=pbest_f, gbest=gbest, gbest_f=gbest_f,
         iteration=s.iteration + 1, n_iter=s.n_iter, lo=s.lo, hi=s.hi,
     )  # fmt: skip
+
+
+def tell(
+    x: FloatArray, v: FloatArray, pbest: FloatArray, pbest_f: FloatArray, gbest: FloatArray,
+    gbest_f: float, f: FloatArray, r1: FloatArray, r2: FloatArray, w: float, lo: FloatArray,
+    hi: FloatArray, p: SwarmParams,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, float]:  # fmt: skip
+    """``swarm_tell`` on arrays, its random numbers r1, r2 (uniform [0, 1), shaped as x) and
+    inertia ``w`` given: the new x, v, personal bests and their fitness, global best and its
+    fitness. The reference of the compiled move of a bank's swarms (``swarm_kernel.py``)."""
+    f = np.where(np.isfinite(f), f, np.inf)
+    better = f < pbest_f
+    pbest = np.where(better[:, None], x, pbest)
+    pbest_f = np.where(better, f, pbest_f)
+    j = int(np.argmin(pbest_f))
+    if pbest_f[j] < gbest_f:
+        gbest, gbest_f = pbest[j].copy(), float(pbest_f[j])
+    v = w * v + p.c1 * r1 * (pbest - x) + p.c2 * r2 * (gbest - x)
+    vmax = p.vmax_frac * (hi - lo)
+    v = np.clip(v, -vmax, vmax)
+    x = x + v
+    hit = (x < lo) | (x > hi)
+    x = np.clip(x, lo, hi)
+    v = np.where(hit, 0.0, v)
+    return x, v, pbest, pbest_f, gbest, gbest_f

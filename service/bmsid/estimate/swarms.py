@@ -4,7 +4,8 @@ Each cell gets an LPSO swarm (``estimate/lpso.py``) every ``swarm_period_s``, st
 the bank by its cell index so few cells run at once; a running swarm evaluates
 ``fits_per_update`` particles per tick (each one a variable-projection window fit,
 ``estimate/varpro.py``), so its cost is spread over many ticks. The fusion stage decides what a
-fit costs and what a finished swarm changes; this module only buffers and schedules.
+fit costs and what a finished swarm changes; this module buffers, schedules and holds the
+running swarms (as arrays: ``swarm_kernel.py`` evaluates and moves them all in one call).
 """
 
 from __future__ import annotations
@@ -18,21 +19,76 @@ import numpy.typing as npt
 
 from bmsid.estimate import lpso
 from bmsid.estimate.varpro import Window
+from bmsid.model.ecm import rc_decay
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 
 @dataclass
-class CellSwarm:
-    """A running swarm of one cell and the window snapshot it fits."""
+class RunningSwarms:
+    """The running swarms of a bank, one row per cell (a structure of arrays: one compiled call
+    a tick evaluates and moves them all, ``swarm_kernel.py``).
 
-    swarm: lpso.Swarm
-    window: Window
-    weights: FloatArray
-    rng: np.random.Generator
-    fitness: FloatArray  # of the current positions, filled a few particles per tick
-    done_fits: int = 0
+    Per cell: the swarm (``lpso.Swarm``: positions x, ln tau (P, 2), velocities, personal and
+    global bests), the fitness of its current positions (``done_fits`` of them evaluated), the
+    window snapshot it fits (rows current A, y V, h M V, weights; ``win_len`` ticks of period
+    ``dt_s``), the poles of its current positions, and the random numbers of every move and the
+    inertia of every iteration, drawn at the start from the swarm's own generator in the order
+    ``lpso.swarm_tell`` draws them (so a move needs no generator).
+    """
+
+    n_cells: int
+    n_particles: int
+    n_iter_max: int
+    window_size: int
+    active: BoolArray = field(init=False)
+
+    def __post_init__(self) -> None:
+        n, p, it, d = self.n_cells, self.n_particles, self.n_iter_max, 2
+        self.active = np.zeros(n, dtype=bool)
+        self.x, self.v, self.pbest = (np.zeros((n, p, d)) for _ in range(3))
+        self.pbest_f, self.fitness = np.zeros((n, p)), np.zeros((n, p))
+        self.gbest, self.gbest_f = np.zeros((n, d)), np.full(n, np.inf)
+        self.lo, self.hi = np.zeros((n, d)), np.zeros((n, d))
+        self.iteration, self.n_iter = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+        self.done_fits = np.zeros(n, dtype=np.int64)
+        self.rand = np.zeros((n, it, 2, p, d))  # per iteration r1, r2 of Eq. 28
+        self.inertia = np.zeros((n, it))
+        self.dt_s = np.ones(n)
+        # the poles of the current positions: a = exp(-dt / tau) of the smaller and larger tau
+        self.a1, self.a2 = np.zeros((n, p)), np.zeros((n, p))
+        self.t_lo, self.t_hi = np.ones((n, p)), np.ones((n, p))
+        self.win = np.zeros((n, 4, self.window_size))
+        self.win_len = np.zeros(n, dtype=np.int64)
+
+    def start(
+        self, c: int, sw: lpso.Swarm, rng: np.random.Generator, p: lpso.SwarmParams,
+        window: Window, weights: FloatArray,
+    ) -> None:  # fmt: skip
+        """Cell ``c`` runs the new swarm ``sw`` (drawn from ``rng``) over ``window``."""
+        self.x[c], self.v[c], self.pbest[c], self.pbest_f[c] = sw.x, sw.v, sw.pbest, sw.pbest_f
+        self.gbest[c], self.gbest_f[c] = sw.gbest, sw.gbest_f
+        self.lo[c], self.hi[c] = sw.lo, sw.hi
+        self.iteration[c], self.n_iter[c], self.done_fits[c] = sw.iteration, sw.n_iter, 0
+        # what swarm_tell draws, move after move: r1 then r2, each shaped as x
+        self.rand[c, : sw.n_iter] = rng.random((sw.n_iter, 2, *sw.x.shape))
+        self.inertia[c, : sw.n_iter] = [lpso.inertia(k, sw.n_iter, p) for k in range(sw.n_iter)]
+        n_w = window.current_A.shape[0]
+        self.win[c, :, :n_w] = window.current_A, window.y_V, window.hm_V, weights
+        self.win_len[c], self.dt_s[c] = n_w, window.dt_s
+        self.active[c] = True
+        self.refresh_poles(np.array([c]))
+
+    def refresh_poles(self, cells: npt.NDArray[np.intp]) -> None:
+        """The poles of the cells' current positions (numpy's exp: the compiled one differs
+        from it in the last bit for a few percent of arguments)."""
+        taus = np.exp(self.x[cells])
+        t_lo = np.minimum(taus[:, :, 0], taus[:, :, 1])
+        t_hi = np.maximum(taus[:, :, 0], taus[:, :, 1])
+        dt = self.dt_s[cells][:, None]
+        self.t_lo[cells], self.t_hi[cells] = t_lo, t_hi
+        self.a1[cells], self.a2[cells] = rc_decay(dt, t_lo), rc_decay(dt, t_hi)
 
 
 @dataclass
@@ -123,11 +179,13 @@ class SwarmSchedule:
         phase: each cell's offset in [0, 1) of ``period_s`` (staggering across the bank).
         period_s: a swarm starts this often per cell.
         min_window_s: the first swarm of a segment waits for this much data.
+        running: the bank's swarms (a cell whose swarm is active is not due).
     """
 
     def __init__(
-        self, n_cells: int, phase: FloatArray, period_s: float, min_window_s: float
-    ) -> None:
+        self, n_cells: int, phase: FloatArray, period_s: float, min_window_s: float,
+        running: RunningSwarms,
+    ) -> None:  # fmt: skip
         self.n = n_cells
         self.phase = phase
         self.period_s = period_s
@@ -135,7 +193,7 @@ class SwarmSchedule:
         self._first_due_s = 0.0
         self.next_swarm = np.zeros(n_cells)
         self.swarm_count = np.zeros(n_cells, dtype=np.int64)
-        self.running: list[CellSwarm | None] = [None] * n_cells
+        self.running = running
 
     @property
     def next_swarm(self) -> FloatArray:
@@ -150,7 +208,7 @@ class SwarmSchedule:
 
     def new_segment(self, t_s: float) -> None:
         """Histories restart at ``t_s``: running swarms end, the first is due after min_window."""
-        self.running = [None] * self.n
+        self.running.active[:] = False
         self.next_swarm = t_s + self.min_window_s + self.phase * self.period_s
 
     def due(self, t_s: float) -> list[int]:
@@ -158,7 +216,7 @@ class SwarmSchedule:
         whole periods (a long stall does not queue up missed swarms)."""
         if t_s < self._first_due_s:
             return []
-        idle = np.array([s is None for s in self.running])
+        idle = ~self.running.active
         nxt = self._next_swarm
         due = np.flatnonzero((t_s >= nxt) & idle)
         for c in due:
@@ -167,7 +225,7 @@ class SwarmSchedule:
         return [int(c) for c in due]
 
     def n_running(self) -> int:
-        return len(self.running) - self.running.count(None)
+        return int(np.count_nonzero(self.running.active))
 
     def state_dict(self) -> dict[str, Any]:
         """Running swarms are not saved: after a restore they start again at their next time."""
@@ -180,9 +238,8 @@ class SwarmSchedule:
             if arr.shape != cur.shape:
                 raise ValueError(f"checkpoint field swarms/{k} has shape {arr.shape}")
             setattr(self, k, arr.copy())
-        self.running = [None] * self.n
+        self.running.active[:] = False
 
     def reset(self, mask: BoolArray) -> None:
         """The masked cells drop a running swarm (their next one starts on schedule)."""
-        for c in np.flatnonzero(mask):
-            self.running[int(c)] = None
+        self.running.active[mask] = False

@@ -265,9 +265,10 @@ def fitness_numpy(
     use_offset: bool, offset_prior: float, j_off: int, lin_lo: FloatArray, lin_hi: FloatArray,
     abs_scale: FloatArray, t_lo: FloatArray, t_hi: FloatArray, tau_ratio_min: float,
 ) -> FloatArray:  # fmt: skip
-    """The reference of ``FusionStage._fitness`` after the poles: the window fit (normal
-    equations and solves, references) of each candidate, its RMSE penalised by 10x the linear
-    parameters' bound violations (in units of ``abs_scale``) and the taus' ratio shortfall."""
+    """The reference of a swarm fitness (``swarm_kernel.py``) after the poles: the window fit
+    (normal equations and solves, references) of each candidate, its RMSE penalised by 10x the
+    linear parameters' bound violations (in units of ``abs_scale``) and the taus' ratio
+    shortfall."""
     G, b, last = normal_equations_numpy(
         current_A, y_V, hm_V, wts, a1, a2, s_full, use_hysteresis, use_offset
     )
@@ -328,7 +329,7 @@ def _warm_fitness(kernel: Callable[..., FloatArray]) -> object:
                   1.5)  # fmt: skip
 
 
-#: One swarm fitness evaluation (``FusionStage._fitness``): the window fit and its penalty.
+#: One swarm fitness evaluation (``swarm_kernel.STEP``): the window fit and its penalty.
 FITNESS = jit.Kernel("swarm fitness", fitness_numpy, _fitness_source, _warm_fitness)
 
 
