@@ -17,10 +17,24 @@ cell-samples/s instead of 150,000).
 from __future__ import annotations
 
 
-def one_blas_thread() -> None:
+def one_blas_thread(*, compiled_kernels: bool = True) -> None:
     """Limit BLAS (OpenBLAS, MKL) to one thread in this process, from now on: numpy's, and
-    scipy's (what the compiled kernels call), loaded here so that the limit covers it."""
-    import scipy.linalg.cython_blas  # noqa: F401, PLC0415 (loads scipy's OpenBLAS)
+    with ``compiled_kernels`` scipy's (what the compiled kernels call), loaded here so that the
+    limit covers it. A process that runs no estimator (the daemon beside its bank worker
+    process) passes False: scipy's BLAS and its modules cost ~28 MB resident there."""
+    if compiled_kernels:
+        import scipy.linalg.cython_blas  # noqa: F401, PLC0415 (loads scipy's OpenBLAS)
     from threadpoolctl import threadpool_limits  # noqa: PLC0415 (loads the BLAS libraries)
 
     threadpool_limits(limits=1, user_api="blas")
+
+
+def blas_threads() -> dict[str, int]:
+    """The threads each loaded BLAS library may use (its file name: threads), for the log."""
+    from threadpoolctl import threadpool_info  # noqa: PLC0415
+
+    return {
+        i["filepath"].rsplit("/", 1)[-1]: int(i["num_threads"])
+        for i in threadpool_info()
+        if i["user_api"] == "blas"
+    }

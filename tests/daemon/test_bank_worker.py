@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import asyncio
 import itertools
 import json
@@ -299,6 +300,43 @@ print(sorted(m for m in sys.modules if m.split(".")[0] == "scipy" or m == "bmsid
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
     )
     assert out.stdout.strip() == "[]", out.stdout[:300]
+
+
+def test_bmsid_run_leaves_scipy_to_the_bank_worker() -> None:
+    # `bmsid run`'s own BLAS limit (cli/main.py) must not load scipy's BLAS (~28 MB resident):
+    # up to the config it reads, the daemon's process has none of scipy.
+    code = """
+import sys
+from bmsid.cli.main import main
+assert main(["run", "--config", "/nonexistent/bmsid.toml"]) == 2
+print(sorted(m for m in sys.modules if m.split(".")[0] == "scipy"))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert out.stdout.strip() == "[]", out.stdout[:300]
+
+
+@pytest.mark.parametrize("isolation", ["process", "thread"])
+def test_the_bank_runs_every_blas_library_on_one_thread(
+    tmp_path: Path, isolation: Isolation, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A worker process starts without the daemon's limit; scipy's BLAS (the compiled kernels')
+    # on two threads made a 96-cell observer update 100x slower on a busy 2-core machine.
+    async def start() -> None:
+        worker = BankWorker(_spec(tmp_path), isolation)
+        try:
+            await worker.start()
+        finally:
+            worker.close()
+
+    with caplog.at_level("DEBUG"):  # the root's level: what the worker process logs at
+        asyncio.run(start())
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("bank: BLAS")]
+    assert len(lines) == 1, caplog.text[-2000:]
+    threads = ast.literal_eval(lines[0].removeprefix("bank: BLAS threads "))
+    assert any("scipy" in lib for lib in threads), threads
+    assert set(threads.values()) == {1}, threads
 
 
 def test_a_config_without_start_values_measures_them_on_the_first_samples(

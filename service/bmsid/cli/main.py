@@ -110,7 +110,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.quiet + getattr(args, "sub_quiet", 0),
     )
     logsetup.configure(level)
-    one_blas_thread()
+    # `run` estimates in its bank worker, which limits its own BLAS (daemon/bank_worker.py)
+    one_blas_thread(compiled_kernels=getattr(args, "command", None) != "run")
     if not hasattr(args, "func"):
         parser.print_help()
         return 2

@@ -80,6 +80,7 @@ from bmsid.publish import payloads
 from bmsid.publish.outbox import OutMessage
 from bmsid.quiet_logs import quiet_libraries
 from bmsid.samples import SampleBlock
+from bmsid.threads import blas_threads, one_blas_thread
 
 if TYPE_CHECKING:
     # Imported where the bank is built: with process isolation the daemon itself never loads
@@ -251,6 +252,11 @@ class BankHost:
         # fresh or restored: ``numpy`` where the sandbox forbids a JIT.
         from bmsid.estimate import jit  # noqa: PLC0415 (numba only where it runs)
 
+        # The bank's process sets its own limit: a worker process starts without the daemon's,
+        # and scipy's BLAS (the compiled kernels') on two threads made a 96-cell observer
+        # update 100x slower on a busy 2-core machine (threads.py).
+        one_blas_thread()
+        log.debug("bank: BLAS threads %s", blas_threads())
         jit.select("numpy" if self.spec.kernels == "numpy" else None)
         self.bank = self._fresh_bank()
         #: a fresh state: what a restored or saved one must look like (state_problem)
