@@ -30,11 +30,9 @@ def one_blas_thread(*, compiled_kernels: bool = True) -> None:
 
 
 def blas_threads() -> dict[str, int]:
-    """The threads each loaded BLAS library may use (its file name: threads), for the log."""
+    """The threads each loaded BLAS library may use (its path: threads), for the log."""
     from threadpoolctl import threadpool_info  # noqa: PLC0415
 
     return {
-        i["filepath"].rsplit("/", 1)[-1]: int(i["num_threads"])
-        for i in threadpool_info()
-        if i["user_api"] == "blas"
+        i["filepath"]: int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"
     }

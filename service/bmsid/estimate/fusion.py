@@ -40,7 +40,7 @@ from bmsid.estimate.stage import (
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import RunningSwarms, SwarmSchedule, WindowBuffer
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.estimate.varpro import Window, active_columns, fit_linear, fixed_rmse
+from bmsid.estimate.varpro import Window, column_layout, fit_linear, fixed_rmse
 
 #: Linear parameters, in theta's order, and their columns in ``CellModel.lo``/``hi``.
 _LINEAR_BOUNDS = ("R0_ohm", "R1_ohm", "R2_ohm", "M_scale", "ocv_offset_V")
@@ -112,14 +112,12 @@ class FusionStage:
             c1=tuning.c1, c2=tuning.c2, w_max=tuning.w_max, w_min=tuning.w_min,
             shape=tuning.inertia_shape, vmax_frac=tuning.velocity_max_frac,
         )  # fmt: skip
-        # the window fits' constants (varpro.fit_columns): active columns, their scales per
-        # cell, the offset's column; and the swarm kernel's constants
-        use_h, use_off = bool(self._fit_scale), tuning.identify_ocv_offset
-        self._fit_idx = active_columns(use_h, use_off)
-        self._fit_s = np.ascontiguousarray(
-            np.concatenate((self.scale, np.ones((n, 2))), axis=1)[:, self._fit_idx]
+        # the window fits' constants: the active columns' scales per cell, their indices, the
+        # offset's column (as varpro.fit_columns lays them out); and the swarm kernel's
+        fit_s, self._fit_idx, self._fit_j_off = column_layout(
+            bool(self._fit_scale), tuning.identify_ocv_offset, self.scale
         )
-        self._fit_j_off = 3 + int(use_h) if use_off else -1
+        self._fit_s = np.ascontiguousarray(fit_s)
         self._swarm_consts = swarm_kernel.consts(self._swarm_params, tuning.tau_ratio_min)
         self._start_values()
 
@@ -277,8 +275,8 @@ class FusionStage:
     def _apply_swarm(self, c: int) -> None:
         """Feed the swarm optimum back: poles, then theta/P/x as the AFFRLS would hold them."""
         tun = self.tuning
-        gbest = self.swarms.gbest[c].copy()
-        taus = np.clip(np.sort(np.exp(gbest)), *self._tau_box(c))  # exp(log) may miss
+        # exp(log) may miss the box
+        taus = np.clip(np.sort(np.exp(self.swarms.gbest[c])), *self._tau_box(c))
         if not np.isfinite(self.swarms.gbest_f[c]):
             return
         # judged on the data up to now: a swarm started as a drive ended can end on a rest

@@ -84,17 +84,23 @@ def fit_columns(
 ) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.intp], int]:
     """What the window kernels take besides the window: the poles (a1, a2), the active
     columns' scales and indices, and the offset's column (-1: none)."""
-    idx = active_columns(w.use_hysteresis, w.use_offset)
-    j_off = 3 + int(w.use_hysteresis) if w.use_offset else -1
-    s_full = np.concatenate((scale, _TWO_ONES))[idx]
+    s_full, idx, j_off = column_layout(w.use_hysteresis, w.use_offset, scale)
     return rc_decay(w.dt_s, tau1_s), rc_decay(w.dt_s, tau2_s), s_full, idx, j_off
 
 
-_TWO_ONES = np.ones(2)  # the scales of the two window-start columns
+def column_layout(
+    use_hysteresis: bool, use_offset: bool, scale: FloatArray
+) -> tuple[FloatArray, npt.NDArray[np.intp], int]:
+    """The active columns' scales (``scale``: (..., 5), one row per cell or one cell; the two
+    window-start columns' scales are 1), their indices, and the offset's column (-1: none)."""
+    idx = _active_columns(use_hysteresis, use_offset)
+    j_off = 3 + int(use_hysteresis) if use_offset else -1
+    ones = np.ones((*scale.shape[:-1], 2))
+    return np.concatenate((scale, ones), axis=-1)[..., idx], idx, j_off
 
 
 @lru_cache(maxsize=4)
-def active_columns(use_hysteresis: bool, use_offset: bool) -> npt.NDArray[np.intp]:
+def _active_columns(use_hysteresis: bool, use_offset: bool) -> npt.NDArray[np.intp]:
     """Indices of the active columns of (R0, R1, R2, M scale, offset, c1, c2): the same four
     arrays again (never written: the solve only reads them)."""
     active = np.array([True, True, True, use_hysteresis, use_offset, True, True])
