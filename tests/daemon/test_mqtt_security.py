@@ -35,6 +35,7 @@ from bmsid.publish.mqtt import (
     UNREACHABLE,
     ConnectFailure,
     MqttPublisher,
+    classify_connect_error,
     explain_failure,
     tls_context,
 )
@@ -670,3 +671,21 @@ def test_an_unexplained_tls_close_keeps_the_earlier_certificate_diagnosis() -> N
     assert shown is refused and kept is None
     shown, kept = explain_failure(closed, kept)
     assert shown is closed and kept is None
+
+
+def test_a_bare_ssl_eof_after_a_certificate_rejection_stays_a_tls_failure() -> None:
+    """Seen in CI: the broker's UNKNOWN_CA alert came on one attempt, and the next attempt's
+    socket logged only "EOF occurred in violation of protocol" (no "[SSL: ...]" tag). That
+    close is ambiguous, so the earlier certificate diagnosis must be kept; on a plain mqtt://
+    URL the same text is not a TLS matter."""
+    s = _settings(8883, None, url="mqtts://127.0.0.1:8883")
+    eof = "failed to receive on socket: EOF occurred in violation of protocol (_ssl.c:2427)"
+    alert = "failed to receive on socket: [SSL: TLSV1_ALERT_UNKNOWN_CA] tlsv1 alert unknown ca"
+    first = classify_connect_error(mqtt_mod._SocketFailedError(alert), s, [alert])
+    assert first.state == TLS_FAILED and "rejected" in first.message
+    bare = classify_connect_error(mqtt_mod._SocketFailedError(eof), s, [eof])
+    assert bare.state == UNREACHABLE and bare.ambiguous
+    shown, kept = explain_failure(bare, first)
+    assert shown is first and kept is first
+    plain = classify_connect_error(mqtt_mod._SocketFailedError(eof), _settings(1883, None), [eof])
+    assert not plain.ambiguous

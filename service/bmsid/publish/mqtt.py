@@ -76,6 +76,8 @@ STABLE_SESSION_S = 10.0
 _AUTH_CODES = frozenset({4, 5, 134, 135, 138, 140})
 _CLIENT_ID_CODES = {2, 133}
 _SSL_REASON = re.compile(r"\[SSL: ([A-Z0-9_]+)\]")
+#: ssl.SSLEOFError: the peer closed the TLS connection without a close_notify or alert.
+_SSL_EOF = "EOF occurred in violation of protocol"
 #: TLS alerts/reasons meaning the broker did not accept our client certificate.
 _CLIENT_CERT_REJECTED = (
     "UNKNOWN_CA",
@@ -368,6 +370,8 @@ def classify_connect_error(
     for text in reversed(errors):  # the client's own record of a dead socket
         if m := _SSL_REASON.search(text):
             return _tls_reason_failure(m.group(1), s)
+        if tls and _SSL_EOF in text:  # ssl.SSLEOFError's text carries no "[SSL: ...]" tag
+            return _closed_during_handshake(s)
     if isinstance(cause, socket.gaierror):
         return ConnectFailure(
             UNREACHABLE, f"cannot resolve host {host!r} ({cause.strerror}); check mqtt.url and DNS"
