@@ -27,8 +27,10 @@ from bmsid.config.cell import paper_cell
 from bmsid.config.engine import build_bank
 from bmsid.daemon import demo_data as dd
 from bmsid.daemon.core import Daemon
+from bmsid.estimate import jit
 from bmsid.estimate.types import Quality
 from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.samples import SampleBlock
 
 NO_DATA = int(Quality.NO_DATA)
 dh = daemon_helpers()
@@ -50,6 +52,38 @@ def test_cell_starts_at_its_own_first_valid_voltage() -> None:
     assert second.soc[1] == pytest.approx(float(ocv.soc_from_ocv(np.array([3.95]))[0]))
     assert bank.state.z[0] < z0_before + 1e-12  # cell 0 kept its count
     assert bank.soc_init_method == "ocv_at_rest"
+
+
+@pytest.mark.parametrize("kernels", ["numpy", "compiled"])
+@pytest.mark.parametrize("how", ["soc0", "config"])
+def test_a_dead_voltage_tap_publishes_no_data_when_the_start_soc_is_given(
+    kernels: str, how: str
+) -> None:
+    """Found by a sweep: with --soc0 (or a fixed start in the config) every cell started at
+    once, a tap reading 0 V for the whole record too, which was then published as a normal
+    cell (quality converging, start values, a counted SOC). A cell publishes only once it has
+    read a valid voltage, however its SOC starts; until then (here never) ``no_data``."""
+    cell = paper_cell()
+    if how == "config":
+        cell = cell.model_copy(
+            update={"soc_init": cell.soc_init.model_copy(update={"policy": "fixed", "soc0": 0.8})}
+        )
+    before = jit.MODE
+    try:
+        jit.select(kernels)
+        bank = build_bank(cell, 3, soc0=0.8 if how == "soc0" else None)
+        t = np.arange(0.0, 1200.0)
+        i = np.where((t // 60) % 2 == 0, 35.0, 0.0)
+        # the input gate refuses a 0 V tap: the bank sees no reading (NaN) from it
+        v = np.stack([3.9 - 0.002 * i, np.full_like(t, np.nan), 3.9 - 0.0021 * i], axis=1)
+        out = bank.update_block(SampleBlock.from_arrays(t, i, v))
+    finally:
+        jit.restore(before)
+    assert out.n_ticks > 1000
+    assert np.all(out.quality[:, 1] == NO_DATA)
+    assert all(np.all(np.isnan(col[:, 1])) for col in out.cells.values())
+    assert not np.any(out.quality[:, [0, 2]] == NO_DATA)
+    assert np.all(np.isfinite(out.cells["soc"][:, [0, 2]]))
 
 
 def test_lost_frame_at_start_up_defaults_no_cell(tmp_path: Path) -> None:

@@ -518,12 +518,60 @@ def test_time_in_minutes_or_hours_is_refused_with_the_fix(
     the record implies in that unit makes its currents hundreds of C, which no cell sustains."""
     t, i, v = cell_record(7200, capacity_Ah=2.0, soc0=0.9)  # 2 h of DST: 90 % to 40 %
     src = write(tmp_path / "slow.csv", t / factor, i, v)
-    rc, _, err = identify(capsys, src, tmp_path / "o", *FAST)
-    assert rc == 2
-    assert err.startswith(f"bmsid identify: error: {src}: t_s looks like {unit} (median step ")
-    assert err.endswith(f"give t_s in seconds, e.g. --columns t_s=t_s*{factor:g}")
+    cfg = cell_config_file(tmp_path / "cell.toml", 2.0)
+    # a given capacity does not make minutes seconds (it skipped the check: 228 mV, rc 0)
+    for capacity_from in ((), ("--cell-config", str(cfg)), ("--capacity-ah", "2")):
+        rc, _, err = identify(capsys, src, tmp_path / "o", *FAST, *capacity_from)
+        assert rc == 2, capacity_from
+        assert err.startswith(f"bmsid identify: error: {src}: t_s looks like {unit} (median step ")
+        assert err.endswith(f"give t_s in seconds, e.g. --columns t_s=t_s*{factor:g}")
     rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--columns", f"t_s=t_s*{factor:g}")
     assert rc == 0 and ", median dt 1 s, 0 gap(s) > 30 s;" in out[0]
+
+
+@pytest.mark.parametrize("flipped", [False, True])
+def test_a_constant_current_record_with_a_flipped_sign_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flipped: bool
+) -> None:
+    """A 1C discharge to 15 % with no current step: the step evidence has nothing to work
+    on, and a flipped sign ran silently (A123 CC: 361 mV, SOC 1.0 at empty). The voltage
+    falls as the cell is emptied: with the sign flipped it rises with the count."""
+    n = 2700
+    t = np.arange(n, dtype=np.float64)
+    i = np.where(t < 60, 0.0, 2.0)
+    sim = simulate(
+        t, i, ocv_model(paper_cell()), capacity_Ah=2.0, gamma=30.0, soc0=0.9,
+        R0_ohm=0.04, R1_ohm=0.03, tau1_s=30.0, R2_ohm=0.03, tau2_s=600.0,
+    )  # fmt: skip
+    v = sim.v_V[0] + np.random.default_rng(1).normal(0.0, 1e-3, n)
+    found = pl.check_current_sign(t, -i if flipped else i, v)
+    assert [f.code for f in found] == (["current_sign"] if flipped else [])
+    if flipped:
+        assert found[0].level == "error" and found[0].message.endswith("pass --charge-positive")
+        assert pl.check_current_sign(t, -i, v, charge_positive=True)[0].message.endswith(
+            "drop --charge-positive"
+        )
+    src = write(tmp_path / "cc.csv", t, -i if flipped else i, v)
+    rc, _, err = identify(capsys, src, tmp_path / "o", *FAST, "--capacity-ah", "2")
+    assert rc == (2 if flipped else 0), err
+
+
+@pytest.mark.parametrize(("capacity", "warned"), [("2000", True), ("0.5", True), ("2.2", False)])
+def test_a_given_capacity_far_from_the_records_is_warned_of(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], capacity: str, warned: bool
+) -> None:
+    """mAh typed as Ah (2000 for a 2 Ah cell) ran silently: SOC hardly moved down to the
+    cut-off, RMSE 124 mV. The record's own evidence (here the SOC change its rests read)
+    implies ~2 Ah; a capacity 3x off it is warned of, a near one is not."""
+    t, i, v = cell_record(7200, capacity_Ah=2.0, soc0=0.9)
+    src = write(tmp_path / "dst.csv", t, i, v)
+    rc, out, _ = identify(capsys, src, tmp_path / "o", *FAST, "--capacity-ah", capacity)
+    assert rc == 0
+    found = [line for line in warnings(out) if "what the record implies" in line]
+    assert bool(found) == warned, out
+    if warned:
+        assert f"the capacity {capacity} Ah (--capacity-ah) is" in found[0]
+        assert "check the capacity (Ah, not mAh)" in found[0]
 
 
 def test_gaps_are_counted_over_the_runs_gap_threshold(

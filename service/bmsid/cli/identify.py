@@ -232,15 +232,19 @@ def _check_input(
     record_chemistry = None
     pseudo_text: str | None = None
     capacity_from: Literal["cell", "option", "record"] = "cell"
-    if (
-        args.capacity_ah is None
-        and args.cell_config is None
-        and not (plausibility.first_error(findings))
-    ):
+    given = args.capacity_ah is not None or args.cell_config is not None
+    if not plausibility.first_error(findings):
+        # minutes or hours compress the record whatever capacity is given: read on the given
+        # cell's OCV curve where there is one
+        est = capacity_as_recorded(
+            t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs), cell if given else None
+        )
         findings += plausibility.check_time_compressed(
-            t, i, capacity_as_recorded(t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs)),
-            GateConfig().i_max_C, lambda factor: _time_fix(args, factor),
-        )  # fmt: skip
+            t, i, est, GateConfig().i_max_C, lambda factor: _time_fix(args, factor)
+        )
+        if given and not plausibility.first_error(findings):
+            source = "--capacity-ah" if args.capacity_ah is not None else "the cell config"
+            findings += plausibility.check_capacity_given(est, cell.capacity_Ah, source)
     if args.capacity_ah is not None:
         capacity_from = "option"
     elif args.cell_config is None and not plausibility.first_error(findings):

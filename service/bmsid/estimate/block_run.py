@@ -114,9 +114,10 @@ def _per_tick(bank: EstimatorBank, ta: TickArrays) -> tuple[Any, Any]:
 
 
 def _python_needed(bank: EstimatorBank) -> bool:
-    """A tick the loop cannot run: a cell to start, or the observer's watch or restart."""
+    """A tick the loop cannot run: a cell to start or without a valid voltage yet, or the
+    observer's watch or restart."""
     st, pa = bank.state, bank.params
-    if nnz(st._pending):
+    if nnz(st._pending) or not st._all_seen:
         return True
     if isinstance(pa, FusionStage) and pa.schedule.n_running():
         return True

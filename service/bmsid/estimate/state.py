@@ -102,6 +102,10 @@ class CoulombState:
         self._capacity_As = _uniform(model.capacity_As)
         self._efficiency = _uniform(model.efficiency)
         self._pending = np.ones(self.n, dtype=bool)  # cells whose SOC starts at the next tick
+        # Cells with a valid voltage since the start: a given or configured soc0 starts every
+        # cell at once, a dead voltage tap too, which must still publish nothing (no_data).
+        self._seen = np.zeros(self.n, dtype=bool)
+        self._all_seen = False
         self._learn_lo, self._learn_hi = learnable_soc_range(model.ocv, knee_slope_factor)
         self._learn_everywhere = (
             self._learn_lo <= model.ocv.soc_min and self._learn_hi >= model.ocv.soc_max
@@ -116,6 +120,9 @@ class CoulombState:
             return
         tick = ctx.tick
         m = self.model
+        if not self._all_seen:  # until every cell has read a valid voltage (never compiled)
+            self._seen = self._seen | tick.ok
+            self._all_seen = bool(self._seen.all())
         for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
         ip = tick.i_prev_A
@@ -176,7 +183,7 @@ class CoulombState:
     def no_data(self) -> BoolArray:
         """Cells without a valid reading since their (re)start: their SOC is not known, so
         nothing of theirs is published (quality ``NO_DATA``, fields NaN)."""
-        return self._pending
+        return self._pending if self._all_seen else self._pending | ~self._seen
 
     def start_variance(self, tick: Tick, method: str, z: FloatArray) -> None:
         """Hook for a stage that keeps SOC uncertainty (the observer); none here."""
@@ -223,4 +230,6 @@ class CoulombState:
         if pend.shape != (self.n,):
             raise ValueError(f"checkpoint field state/pending has shape {pend.shape}")
         self._pending = pend.copy()
+        self._seen = ~pend  # a started cell had read a voltage when the checkpoint was taken
+        self._all_seen = bool(self._seen.all())
         self.soc_init_method = str(st["soc_init_method"])

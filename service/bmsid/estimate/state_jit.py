@@ -121,8 +121,9 @@ def update_tuning(obs: ObserverState, pk: Packed) -> FloatArray:
 
 def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     """The tick's state step by the compiled kernel (``jit.select``); False (nothing done)
-    where the stage runs its own code: the numpy mode, or a cell that starts this tick."""
-    if ok_.STEP.kind != "compiled" or nnz(st._pending):
+    where the stage runs its own code: the numpy mode, a cell that starts this tick or one that
+    has not read a valid voltage yet."""
+    if ok_.STEP.kind != "compiled" or nnz(st._pending) or not st._all_seen:
         return False
     tick = ctx.tick
     pk = packed(st)

@@ -298,6 +298,40 @@ def check_time_unit(
 SLOW_UNIT_FACTORS = ((60.0, "minutes"), (3600.0, "hours"))
 
 
+#: A given capacity this many times above or below the one the record's own voltages imply
+#: (a cut-off reached, or the SOC change its rests read) is worth a warning: a cell of another
+#: size, or mAh typed as Ah (1000x); closer than this, the reading (a cut-off under load, an OCV
+#: curve that is not the cell's) cannot tell.
+CAPACITY_MISMATCH = 3.0
+
+
+def check_capacity_given(
+    est: CapacityEstimate | None, capacity_Ah: float, source: str
+) -> list[Finding]:
+    """A warning when ``capacity_Ah`` (from ``source``: the cell config, --capacity-ah) is
+    :data:`CAPACITY_MISMATCH` times off the capacity the record implies (``est``)."""
+    if est is None or not (est.capacity_Ah > 0 and capacity_Ah > 0):
+        return []
+    ratio = capacity_Ah / est.capacity_Ah
+    if 1.0 / CAPACITY_MISMATCH <= ratio <= CAPACITY_MISMATCH:
+        return []
+    how = (
+        f"it moves {est.capacity_Ah * est.start_soc:.3g} Ah from {100 * est.start_soc:.0f} % "
+        f"SOC to the cut-off ({est.v_empty_V:.3g} V)"
+        if est.n_rests == 0
+        else f"it moves charge over {100 * est.soc_span:.0f} % of SOC between its rests"
+    )
+    return [
+        Finding(
+            "warning",
+            "capacity_mismatch",
+            f"the capacity {capacity_Ah:g} Ah ({source}) is {ratio:.3g}x what the record implies "
+            f"({est.capacity_Ah:.3g} Ah: {how}): SOC and every parameter fitted with it will be "
+            "wrong; check the capacity (Ah, not mAh) and the current's unit",
+        )
+    ]
+
+
 def check_time_compressed(
     t_s: FloatArray,
     current_A: FloatArray,
@@ -374,17 +408,59 @@ def current_sign_evidence(
     return SignEvidence(float(np.median(corrs)), n_used)
 
 
+#: The trend evidence of the sign (a record without current steps: a constant-current test):
+#: the voltage must move this much (V, median over cells) ...
+SIGN_TREND_MIN_V = 0.2
+#: ... and rise with the discharged charge this strongly (correlation) to call the sign flipped.
+SIGN_TREND_CORR = 0.8
+
+
+def current_trend_evidence(t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray) -> float:
+    """Rank corr(V, discharged charge) over the record (median over cells): near -1 when
+    positive = discharge (a cell's voltage falls as it is emptied, steps or none), NaN where
+    the voltage moves less than ``SIGN_TREND_MIN_V`` or the charge does not move."""
+    t = np.asarray(t_s, dtype=np.float64)
+    i = np.asarray(current_A, dtype=np.float64)
+    v = np.asarray(voltages_V, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    if t.size < 4:
+        return math.nan
+    dt = np.diff(t, prepend=t[0])
+    q = np.cumsum(np.where(np.isfinite(i), i, 0.0) * dt)
+    corrs = []
+    for c in range(v.shape[1]):
+        ok = np.isfinite(v[:, c])
+        if np.count_nonzero(ok) < 4 or np.ptp(v[ok, c]) < SIGN_TREND_MIN_V or np.ptp(q[ok]) == 0:
+            continue
+        # ranks: the curve is monotonic, not linear (an LFP plateau, then its knee)
+        rq, rv = np.argsort(np.argsort(q[ok])), np.argsort(np.argsort(v[ok, c]))
+        corrs.append(float(np.corrcoef(rq, rv)[0, 1]))
+    return float(np.median(corrs)) if corrs else math.nan
+
+
 def check_current_sign(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, charge_positive: bool = False
 ) -> list[Finding]:
-    """An error (strong evidence) or warning (weak) when voltage steps follow current steps.
+    """An error (strong evidence) or warning (weak) when voltage steps follow current steps;
+    in a record without steps, an error when the voltage rises as the cell is discharged.
 
     ``charge_positive``: the user already flipped the sign, so the hint is to drop the flag.
     """
     ev = current_sign_evidence(t_s, current_A, voltages_V)
-    if math.isnan(ev.corr):
-        return []
     fix = "drop --charge-positive" if charge_positive else "pass --charge-positive"
+    if math.isnan(ev.corr):
+        trend = current_trend_evidence(t_s, current_A, voltages_V)
+        if not trend >= SIGN_TREND_CORR:
+            return []
+        return [
+            Finding(
+                "error",
+                "current_sign",
+                "current sign looks flipped (the voltage rises as the count says the cell is "
+                f"discharged: rank corr(V, discharged charge) = {trend:+.2f}, no current steps to "
+                f"tell otherwise): {fix}",
+            )
+        ]
     stat = f"corr(dV, dI) = {ev.corr:+.2f} over {ev.n_steps} current steps"
     if ev.corr >= SIGN_ERROR_CORR and ev.n_steps >= SIGN_ERROR_MIN_STEPS:
         return [

@@ -79,11 +79,14 @@ def capacity_as_recorded(
     voltages_V: FloatArray,
     gap_s: float,
     ocv_coeffs: Sequence[float] | None = None,
+    cell: CellConfig | None = None,
 ) -> CapacityEstimate | None:
     """The capacity the record's own readings imply, ungated (for the time-unit check, before
-    any gate whose current limit would scale with it): a cut-off or the SOC change."""
-    assumed, _ = cell_config(None, None, ocv_coeffs)
-    return _read_capacity(t_s, current_A, voltages_V, ocv_model(assumed), gap_s)
+    any gate whose current limit would scale with it): a cut-off or the SOC change, read on
+    ``cell``'s OCV curve (None: the assumed cell's, with ``ocv_coeffs``)."""
+    if cell is None:
+        cell, _ = cell_config(None, None, ocv_coeffs)
+    return _read_capacity(t_s, current_A, voltages_V, ocv_model(cell), gap_s)
 
 
 def _read_capacity(
