@@ -14,8 +14,11 @@ import numpy as np
 import pytest
 from gate_fault_helpers import assert_within_targets, write_dropout_log
 
+from bmsid.canbus.logs import csv_to_messages, write_log
+from bmsid.canbus.mapping import default_mapping
 from bmsid.config.cell import load_cell_config, paper_cell
 from bmsid.config.engine import cell_model
+from bmsid.daemon import demo_data as dd
 from bmsid.estimate.types import Quality
 from bmsid.gates import GateConfig, GateLimits, GateState, InputGate, gate_block
 from bmsid.offline.csvio import read_tester_csv
@@ -75,10 +78,27 @@ def test_jump_inside_the_window_is_refused_until_its_reference_is_old() -> None:
 def test_current_outside_its_window_is_missing_and_counted() -> None:
     v = [[3.7]] * 4
     out, st = gate_block(_block(v, i=[10.0, 5000.0, -5000.0, 20.0]), LIMITS, GateState.fresh(1))
-    assert out.current_A[0] == 10.0 and out.current_A[3] == 20.0
-    assert np.all(np.isnan(out.current_A[1:3]))
+    # the samples go with their current (a voltage without it is no evidence), counted
+    assert out.t_s.tolist() == [0.0, 3.0] and out.current_A.tolist() == [10.0, 20.0]
+    np.testing.assert_array_equal(out.cell_voltages_V, np.array(v)[[0, 3]])
     assert st.i_refused == 2
-    np.testing.assert_array_equal(out.cell_voltages_V, np.array(v))
+    assert st.refused["v_window"].sum() == st.refused["v_step"].sum() == 0
+
+
+def test_a_minute_of_saturated_current_changes_no_estimate(tmp_path: Path) -> None:
+    """Found by a sweep of CAN logs: the current at its DBC maximum for 60 s was refused and
+    the last current held through it, paired with the real voltages: tau1 40-109 s against
+    11-12 and out-of-bounds for 2,000 s on a CALCE log. Those samples' voltages are dropped
+    with their current: every estimate within the targets, as the intact log."""
+    t, i, v = dd.demo_arrays()
+    i = i.copy()
+    i[1800:1860] = 8000.0  # within the DBC's range, far beyond the 30 C gate of 70 Ah
+    log = tmp_path / "saturated.log"
+    write_log(log, csv_to_messages(t, i, v, default_mapping(), t0_s=dd.T0_S))
+    res = identify_file(log, IdentifySpec(cell=paper_cell()))
+    assert res.input_gates["current_refused"] == 60
+    assert_within_targets(res.trace)
+    assert np.all(np.abs(res.trace["tau1_s"][-1] - 12.0) <= 0.5)
 
 
 def test_gating_does_not_depend_on_how_the_stream_is_cut() -> None:
@@ -121,11 +141,11 @@ def test_step_and_current_refusals_are_one_line_each(caplog: pytest.LogCaptureFi
     assert lines == [
         "cell 0: voltage reading more than 1.053 V from its last accepted reading refused "
         "(2 so far, v_step): the cell is missing for those samples, not estimated from them",
-        "pack current beyond +-2100 A refused (1 samples so far, i_window): the previous "
-        "current is held for those samples",
+        "pack current beyond +-2100 A refused (1 samples so far, i_window): those samples "
+        "are dropped (a voltage without its current is no evidence)",
     ]
-    np.testing.assert_array_equal(out.cell_voltages_V[:, 0], [3.9, 3.9, np.nan, np.nan])
-    assert out.current_A[:3].tolist() == [10.0] * 3 and np.isnan(out.current_A[3])
+    np.testing.assert_array_equal(out.cell_voltages_V[:, 0], [3.9, 3.9, np.nan])
+    assert out.current_A.tolist() == [10.0] * 3
 
 
 def test_disabled_gates_pass_every_reading() -> None:

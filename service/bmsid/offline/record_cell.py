@@ -69,7 +69,7 @@ def accepted_readings(
         float(v_ends[0]), float(v_ends[1]), cell.capacity_Ah, gap_s
     )
     block = SampleBlock.from_arrays(t_s, current_A, voltages_V)
-    out, _ = gate_block(block, limits, GateState.fresh(block.n_cells))
+    out, _ = gate_block(block, limits, GateState.fresh(block.n_cells), drop_refused_current=False)
     return out.current_A, out.cell_voltages_V
 
 
