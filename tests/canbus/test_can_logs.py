@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gzip
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +12,7 @@ from can_helpers import frames, synthetic
 
 from bmsid.canbus.logs import (
     csv_to_messages,
+    is_candump_path,
     read_log,
     samples_from_log,
     summarize_log,
@@ -80,6 +83,37 @@ def test_write_then_read_is_identity(tmp_path: Path) -> None:
         (m.arbitration_id, m.is_extended_id, bytes(m.data), pytest.approx(m.timestamp))
         for m in msgs
     ]
+
+
+def test_a_gzipped_log_reads_as_the_log_and_a_cut_one_up_to_its_cut(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A rotated or archived candump log is often gzipped (``.log.gz``): it was read as a CSV
+    ("missing column(s) t_s ..."). Its frames are the log's; a gzip cut short (archived while
+    still written) gives the frames before the cut and a warning; no gzip at all is an error
+    that says what to do."""
+    msgs = frames(default_mapping(), n=400)
+    write_log(tmp_path / "x.log", msgs, channel="vcan0")
+    raw = (tmp_path / "x.log").read_bytes()
+    (tmp_path / "x.log.gz").write_bytes(gzip.compress(raw))
+    plain = [(m.arbitration_id, bytes(m.data), m.timestamp) for m in read_log(tmp_path / "x.log")]
+    zipped = [
+        (m.arbitration_id, bytes(m.data), m.timestamp) for m in read_log(tmp_path / "x.log.gz")
+    ]
+    assert zipped == plain and len(plain) == len(msgs)
+    assert is_candump_path(tmp_path / "x.log.gz") and not is_candump_path(tmp_path / "x.csv.gz")
+    cut = gzip.compress(raw)
+    (tmp_path / "cut.log.gz").write_bytes(cut[: len(cut) // 2])
+    with caplog.at_level(logging.WARNING, logger="bmsid.canbus.logs"):
+        part = [
+            (m.arbitration_id, bytes(m.data), m.timestamp)
+            for m in read_log(tmp_path / "cut.log.gz")
+        ]
+    assert 0 < len(part) < len(plain) and part == plain[: len(part)]
+    assert any("gzip file cut short after line" in r.getMessage() for r in caplog.records)
+    (tmp_path / "plain.log.gz").write_bytes(raw)
+    with pytest.raises(UserError, match=r"not a gzip file .*: a plain log is named \.log"):
+        list(read_log(tmp_path / "plain.log.gz"))
 
 
 @pytest.mark.parametrize("mapping_file", ["bmsid_mapping.toml", "example_bms_mapping.toml"])

@@ -15,6 +15,7 @@ Malformed lines are skipped, counted and logged (thinning out: 1st, 10th, 100th,
 from __future__ import annotations
 
 import datetime as dt
+import gzip
 import logging
 import math
 import re
@@ -129,17 +130,47 @@ def _logfile_lines(lines: Iterable[tuple[int, str]], skipped: _SkipCounter) -> I
             yield line
 
 
+#: Names of candump logs (a rotated or archived one gzipped), as inputs are told apart.
+LOG_SUFFIXES = (".log", ".log.gz")
+
+
+def is_candump_path(path: str | Path) -> bool:
+    """A candump log by its name (``.log``, ``.log.gz``), else a tester CSV."""
+    return str(path).lower().endswith(LOG_SUFFIXES)
+
+
+def _lines_of(fh: Iterable[str], p: Path) -> Iterator[str]:
+    """The file's lines; a gzip that is cut short (a log archived while still written) ends
+    them with a warning, one that is no gzip at all is a UserError."""
+    n = 0
+    try:
+        for n, line in enumerate(fh, start=1):  # noqa: B007 (n is read after the loop)
+            yield line
+    except gzip.BadGzipFile as exc:
+        if n == 0:
+            raise UserError(f"{p}: not a gzip file ({exc}): a plain log is named .log") from None
+        log.warning(
+            "%s: gzip data damaged after line %d (%s): the lines before are used", p, n, exc
+        )
+    except EOFError:
+        log.warning("%s: gzip file cut short after line %d: the lines before are used", p, n)
+
+
 def read_log(path: str | Path) -> Iterator[can.Message]:
-    """Frames of a candump log (``-l``/``-L`` file or console output), in file order."""
+    """Frames of a candump log (``-l``/``-L`` file or console output; gzipped when its name
+    ends in ``.gz``), in file order."""
     p = Path(path)
     try:
-        fh = p.open(encoding="utf-8", errors="replace")
+        if p.name.lower().endswith(".gz"):  # closed by the with below
+            fh = gzip.open(p, "rt", encoding="utf-8", errors="replace")  # noqa: SIM115
+        else:
+            fh = p.open(encoding="utf-8", errors="replace")
     except OSError as exc:
         raise UserError(f"cannot read CAN log {p}: {exc.strerror}") from None
     skipped = _SkipCounter(p)
     with fh:
         pending: list[tuple[int, str]] = []
-        for lineno, raw in enumerate(fh, start=1):
+        for lineno, raw in enumerate(_lines_of(fh, p), start=1):
             line = raw.strip()
             if not line or line.startswith("#"):
                 continue

@@ -2,8 +2,8 @@
 and plots.
 
 INPUT is a tester CSV (``t_s,current_A,voltage_V`` or ``v_cell_01,...``, optional
-``temperature_C``, ``.csv`` or ``.csv.gz``) or a candump log (``.log``, decoded with ``--mapping``
-exactly as the daemon decodes the bus). Writes ``DIR/params.csv`` (one row per identification
+``temperature_C``, ``.csv`` or ``.csv.gz``) or a candump log (``.log`` or ``.log.gz``, decoded
+with ``--mapping`` exactly as the daemon decodes the bus). Writes ``DIR/params.csv`` (one row per identification
 tick and cell; with the default 1 s tick that is one row per sample of a 1 s recording),
 ``DIR/metrics.json`` (Eq. 31 over the evaluation window, and over all ticks under ``overall``)
 and PNG plots (parameters over time as the paper's Fig. 10, voltage and error as Fig. 11).
@@ -26,8 +26,8 @@ mean); a record of more than 86,400 ticks gets a decimation by default, announce
 in metrics.json (``output``); ``--every 0`` keeps every tick. ``--format parquet`` writes
 ``params.parquet`` (the same columns and units) instead of ``params.csv``.
 
-Several inputs, a directory (searched for .csv, .csv.gz, .log) or a glob: each input into its own
-subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality, RMSE
+Several inputs, a directory (searched for .csv, .csv.gz, .log, .log.gz) or a glob: each input into
+its own subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality, RMSE
 and R0 ranks), on --workers local processes or the Dask cluster at --scheduler; a failed input is
 one line and the others go on (exit 1 when any failed). The per-input pre-checks above and the
 capacity read off a record apply to single runs only: give --cell-config.
@@ -140,8 +140,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     p.add_argument(
         "input", metavar="INPUT", nargs="+",
-        help="tester CSV (.csv/.csv.gz) or candump .log; several, a directory or a glob: one "
-        "subdirectory of --out each and OUT/summary.csv",
+        help="tester CSV (.csv/.csv.gz) or candump .log (.log.gz); several, a directory or a "
+        "glob: one subdirectory of --out each and OUT/summary.csv",
     )  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--algorithm", choices=VARIANTS, default="hy-affrls-lpso")

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from bmsid.canbus.logs import is_candump_path
 from bmsid.cli.outputs import output_dir
 from bmsid.errors import UserError
 from bmsid.offline import fleet
@@ -71,7 +72,7 @@ def fleet_spec(args: argparse.Namespace, ocv_coeffs: Sequence[float] | None) -> 
 
 def spec_for(spec: IdentifySpec, path: str) -> IdentifySpec:
     """The log options for logs, the CSV options for CSVs: a mixed fleet takes both."""
-    if path.lower().endswith(".log"):
+    if is_candump_path(path):
         return replace(spec, columns=None)
     return replace(spec, mapping=None, channel=None)
 

@@ -48,7 +48,7 @@ from bmsid.offline.scoring import IdentifyResult
 from bmsid.threads import one_blas_thread
 
 #: What a directory argument contributes (searched recursively).
-INPUT_SUFFIXES = (".csv", ".csv.gz", ".log")
+INPUT_SUFFIXES = (".csv", ".csv.gz", ".log", ".log.gz")
 #: Parameters of each cell in summary.csv, latest published values (SI units).
 SUMMARY_FIELDS = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "soc", "capacity_Ah")
 SUMMARY_COLUMNS = (
@@ -86,9 +86,9 @@ def _recordings_under(directory: Path) -> list[Path]:
 
 
 def expand_inputs(arguments: Sequence[str]) -> list[Path]:
-    """Files, directories (recursively, ``*.csv``, ``*.csv.gz``, ``*.log``) and glob patterns, in
-    argument order, each argument's matches sorted, a file met twice kept once. UserError for an
-    argument that matches nothing."""
+    """Files, directories (recursively, ``*.csv``, ``*.csv.gz``, ``*.log``, ``*.log.gz``) and
+    glob patterns, in argument order, each argument's matches sorted, a file met twice kept
+    once. UserError for an argument that matches nothing."""
     out: list[Path] = []
     seen: set[Path] = set()
     for arg in arguments:
@@ -98,7 +98,9 @@ def expand_inputs(arguments: Sequence[str]) -> list[Path]:
         elif p.is_dir():
             found = _recordings_under(p)
             if not found:
-                raise UserError(f"{arg}: no .csv, .csv.gz or .log file under this directory")
+                raise UserError(
+                    f"{arg}: no .csv, .csv.gz, .log or .log.gz file under this directory"
+                )
         elif _GLOB_CHARS.search(arg):
             found = []
             for m in sorted(glob.glob(arg, recursive=True)):

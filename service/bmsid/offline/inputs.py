@@ -33,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import ValidationError
 
-from bmsid.canbus.logs import LogSummary, iter_samples_from_log, summarize_log
+from bmsid.canbus.logs import LogSummary, is_candump_path, iter_samples_from_log, summarize_log
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.config.cell import CellConfig, OcvCurve, load_cell_config, paper_cell
 from bmsid.errors import UserError
@@ -533,13 +533,14 @@ def open_input(
     columns: Mapping[str, ColumnMap] | None = None,
     chunk_rows: int | None = None,
 ) -> StreamedInput:
-    """The recording at ``path``: a candump log when it ends in ``.log``, else a tester CSV.
+    """The recording at ``path``: a candump log when it ends in ``.log`` (or ``.log.gz``),
+    else a tester CSV.
 
     ``mapping``, ``n_cells`` (None: from the log) and ``channel`` apply to logs only,
     ``columns`` to CSV only (given for the other kind it is an error: the user meant something
     else). Errors as :func:`read_csv_input` and :func:`read_log_input`.
     """
-    if str(path).lower().endswith(".log"):
+    if is_candump_path(path):
         if columns:
             raise UserError("--columns applies to tester CSV inputs only")
         return read_log_input(
