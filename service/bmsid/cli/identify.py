@@ -1,12 +1,12 @@
 """``bmsid identify INPUT --out DIR``: identify a recording offline, write parameters, metrics
 and plots.
 
-INPUT is a tester CSV (``t_s,current_A,voltage_V`` or ``v_cell_01,...``, optional
-``temperature_C``, ``.csv`` or ``.csv.gz``) or a candump log (``.log`` or ``.log.gz``, decoded
-with ``--mapping`` exactly as the daemon decodes the bus). Writes ``DIR/params.csv`` (one row per identification
-tick and cell; with the default 1 s tick that is one row per sample of a 1 s recording),
-``DIR/metrics.json`` (Eq. 31 over the evaluation window, and over all ticks under ``overall``)
-and PNG plots (parameters over time as the paper's Fig. 10, voltage and error as Fig. 11).
+INPUT is a tester CSV (``t_s,current_A,voltage_V`` or ``v_cell_01,...``, optional ``temperature_C``,
+``.csv`` or ``.csv.gz``) or a candump log (``.log`` or ``.log.gz``, decoded with ``--mapping``
+exactly as the daemon decodes the bus). Writes ``DIR/params.csv`` (one row per identification tick
+and cell; with the default 1 s tick that is one row per sample of a 1 s recording),
+``DIR/metrics.json`` (Eq. 31 over the evaluation window, and over all ticks under ``overall``) and
+PNG plots (parameters over time as the paper's Fig. 10, voltage and error as Fig. 11).
 
 Evaluation window: by default every tick is scored (the start-up is part of what a user gets);
 ``--skip-fraction 0.1`` leaves the first 10 % out, ``--soc-window 0.15,0.95`` scores only ticks
@@ -27,9 +27,9 @@ in metrics.json (``output``); ``--every 0`` keeps every tick. ``--format parquet
 ``params.parquet`` (the same columns and units) instead of ``params.csv``.
 
 Several inputs, a directory (searched for .csv, .csv.gz, .log, .log.gz) or a glob: each input into
-its own subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality, RMSE
-and R0 ranks), on --workers local processes or the Dask cluster at --scheduler; a failed input is
-one line and the others go on (exit 1 when any failed). The per-input pre-checks above and the
+its own subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality,
+RMSE and R0 ranks), on --workers local processes or the Dask cluster at --scheduler; a failed input
+is one line and the others go on (exit 1 when any failed). The per-input pre-checks above and the
 capacity read off a record apply to single runs only: give --cell-config.
 """
 
