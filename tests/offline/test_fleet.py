@@ -19,11 +19,14 @@ import pytest
 
 import bmsid
 from bmsid.cli.main import main
-from bmsid.config.cell import save_cell_config
+from bmsid.config.cell import paper_cell, save_cell_config
+from bmsid.config.engine import ocv_model
+from bmsid.model.simulator import simulate
 from bmsid.offline import fleet
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_file
 from bmsid.offline.scoring import EvalWindow
+from bmsid.profiles import dst_current
 from bmsid.synthetic import paper_dst_case
 
 N_SAMPLES = 400
@@ -139,6 +142,44 @@ def test_one_worker_gives_the_same_numbers(
     for key in one:
         np.testing.assert_allclose(one[key], two[key], rtol=1e-9, err_msg=str(key))
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_each_input_gets_the_single_runs_record_checks(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A fleet ran no record checks: time in minutes and a flipped current sign came out
+    ``ok`` (the flipped record ranked as the healthiest cell). Now such an input fails with
+    the single run's message, the rest finish, and a warning's code reaches summary.csv."""
+    # 2 h of DST (its rests read SOC) on a 2 Ah cell: the charge it moves tells the capacity
+    t = np.arange(7200, dtype=np.float64)
+    i = np.where(t < 60, 0.0, dst_current(t - 60, 4.0))
+    sim = simulate(
+        t, i, ocv_model(paper_cell()), capacity_Ah=2.0, gamma=30.0, soc0=0.9,
+        R0_ohm=0.04, R1_ohm=0.03, tau1_s=30.0, R2_ohm=0.03, tau2_s=600.0,
+    )  # fmt: skip
+    v = (sim.v_V[0] + np.random.default_rng(3).normal(0.0, 1e-3, t.size))[:, None]
+    names = ["voltage_V"]
+    records = {
+        "good.csv": TesterData(t, i, v, names),
+        "minutes.csv": TesterData(t / 60.0, i, v, names),
+        "flipped.csv": TesterData(t, -i, v, names),
+    }
+    for name, data in records.items():
+        write_tester_csv(data, tmp_path / name)
+    out = tmp_path / "out"
+    # 4000 Ah for a 2 Ah cell: the charge the record moves says far less (a warning)
+    args = ["identify", *(str(tmp_path / n) for n in records), "--out", str(out),
+            "--capacity-ah", "4000", "--workers", "1"]  # fmt: skip
+    assert main(args) == 1
+    rows = {Path(r["input"]).name: r for r in read_summary(out)}
+    assert rows["minutes.csv"]["status"] == "failed"
+    assert rows["minutes.csv"]["error"].startswith("t_s looks like minutes")
+    assert rows["flipped.csv"]["status"] == "failed"
+    assert "current sign looks flipped" in rows["flipped.csv"]["error"]
+    assert rows["good.csv"]["status"] == "ok"
+    assert "capacity_mismatch" in rows["good.csv"]["warnings"].split(";")
+    err = capsys.readouterr().err
+    assert err.count("bmsid identify: error: ") == 2
 
 
 # ----------------------------------------------------------------------------- a real cluster

@@ -29,8 +29,8 @@ in metrics.json (``output``); ``--every 0`` keeps every tick. ``--format parquet
 Several inputs, a directory (searched for .csv, .csv.gz, .log, .log.gz) or a glob: each input into
 its own subdirectory of DIR and DIR/summary.csv (per input and cell the latest parameters, quality,
 RMSE and R0 ranks), on --workers local processes or the Dask cluster at --scheduler; a failed input
-is one line and the others go on (exit 1 when any failed). The per-input pre-checks above and the
-capacity read off a record apply to single runs only: give --cell-config.
+is one line and the others go on (exit 1 when any failed). Each input gets the checks above (an
+error fails that input only) and, without --cell-config, the cell read off its own record.
 """
 
 from __future__ import annotations
@@ -41,17 +41,13 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Literal
 
 from tqdm import tqdm
 
-from bmsid.cli.identify_fleet import add_fleet_options, run_fleet
+from bmsid.cli.identify_fleet import add_fleet_options, check_options, run_fleet
 from bmsid.cli.outputs import output_dir
-from bmsid.config.cell import CellConfig, paper_cell
 from bmsid.errors import UserError
-from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import VARIANTS
-from bmsid.gates import GateConfig
 from bmsid.offline import fleet, plausibility
 from bmsid.offline.identify import (
     IdentifySpec,
@@ -79,14 +75,8 @@ from bmsid.offline.outputs import (
     soc_init_text,
     summary_line,
 )
-from bmsid.offline.plausibility import Finding
-from bmsid.offline.record_cell import (
-    accepted_readings,
-    capacity_as_recorded,
-    cell_from_record,
-)
+from bmsid.offline.record_checks import check_record
 from bmsid.offline.scoring import metrics_document
-from bmsid.samples import SampleBlock
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -211,79 +201,6 @@ def _ocv_coeffs(text: str | None) -> list[float] | None:
         raise UserError(f"--ocv-coeffs: not numbers: {text!r}") from None
 
 
-def _time_fix(args: argparse.Namespace, factor: float = 0.001) -> str:
-    """The option that would give t_s in seconds (the file's unit x ``factor``), for the
-    time-unit messages."""
-    columns = parse_columns(args.columns) or {}
-    source = columns["t_s"].source if "t_s" in columns else "t_s"
-    scale = factor * (columns["t_s"].scale if "t_s" in columns else 1.0)
-    return f"--columns t_s={source}*{scale:g}"
-
-
-def _check_input(
-    args: argparse.Namespace, head: SampleBlock, cell: CellConfig, tuning: EstimatorTuning
-) -> tuple[CellConfig, str | None, list[Finding]]:
-    """Plausibility of the input's ``head`` (its first samples, ``check_head_samples``) for this
-    cell: the cell to use (a capacity read off the record when nothing else gives one), a
-    replacement note, and the findings (errors first raised)."""
-    t, i, v = head.t_s, head.current_A, head.cell_voltages_V
-    findings = plausibility.check_time_unit(t, i, cell.capacity_Ah, _time_fix(args), tuning.gap_s)
-    note = None
-    record_chemistry = None
-    pseudo_text: str | None = None
-    capacity_from: Literal["cell", "option", "record"] = "cell"
-    given = args.capacity_ah is not None or args.cell_config is not None
-    if not plausibility.first_error(findings):
-        # minutes or hours compress the record whatever capacity is given: read on the given
-        # cell's OCV curve where there is one
-        est = capacity_as_recorded(
-            t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs), cell if given else None
-        )
-        findings += plausibility.check_time_compressed(
-            t, i, est, GateConfig().i_max_C, lambda factor: _time_fix(args, factor)
-        )
-        if given and not plausibility.first_error(findings):
-            source = "--capacity-ah" if args.capacity_ah is not None else "the cell config"
-            findings += plausibility.check_capacity_given(est, cell.capacity_Ah, source)
-    if args.capacity_ah is not None:
-        capacity_from = "option"
-    elif args.cell_config is None and not plausibility.first_error(findings):
-        found = cell_from_record(t, i, v, tuning.gap_s, _ocv_coeffs(args.ocv_coeffs))
-        if found is not None:
-            cell, note, capacity_from = found.cell, found.note, "record"
-            record_chemistry, pseudo_text = found.record_chemistry, found.pseudo_ocv_text
-    if (
-        args.cell_config is None
-        and capacity_from == "cell"
-        and not plausibility.first_error(findings)
-    ):
-        findings.append(plausibility.capacity_not_read(cell.capacity_Ah))
-    if args.cell_config is None:
-        assumed = plausibility.assumed_cell(
-            cell.name, cell.capacity_Ah, capacity_from=capacity_from,
-            chemistry=paper_cell().chemistry, record_chemistry=record_chemistry,
-            ocv_from_record=pseudo_text,
-        )  # fmt: skip
-        findings.insert(0, assumed)
-    if not plausibility.first_error(findings):
-        # what the run's gates refuse (a current glitch, a dead channel) is no evidence here
-        i_ok, v = accepted_readings(t, i, v, cell, tuning.gap_s)
-        i = plausibility.held(i_ok, 0.0)
-        findings += plausibility.check_consistency(
-            t, i, v, capacity_Ah=cell.capacity_Ah,
-            capacity_assumed=args.cell_config is None and capacity_from == "cell",
-            soc0=args.soc0, charge_positive=args.charge_positive,
-            excitation_C=tuning.excitation_C, excitation_window_s=tuning.excitation_window_s,
-            gap_s=tuning.gap_s,
-        )  # fmt: skip
-        if args.soc0 is None and cell.soc_init.policy == "ocv_at_rest":
-            r0 = cell.initial_parameters().R0_ohm
-            findings += plausibility.check_start_relaxation(
-                t, i, v, cell.capacity_Ah, r0, cell.soc_init.rest_current_C
-            )
-    return cell, note, findings
-
-
 def run(args: argparse.Namespace) -> int:
     if args.scheduler is not None or fleet.is_fleet(args.input):
         return run_fleet(args, args.input, _ocv_coeffs(args.ocv_coeffs))
@@ -305,9 +222,9 @@ def run(args: argparse.Namespace) -> int:
     source.gap_s = tuning.gap_s  # its gaps are counted over the run's threshold
     # the record's head, for the checks only: not held through the run
     head = source.head(plausibility.check_head_samples(source.n_cells))
-    cell, derived_note, checks = _check_input(args, head, cell, tuning)
+    checked = check_record(head, cell, check_options(args, _ocv_coeffs(args.ocv_coeffs)), tuning)
     del head
-    note = derived_note or note
+    cell, note, checks = checked.cell, checked.note or note, checked.findings
     window = with_score_reference(window, cell, args.score_soc0, tuning.gap_s)
     meta = {
         "input": str(args.input),

@@ -28,6 +28,7 @@ from bmsid.offline.inputs import (
     with_score_reference,
 )
 from bmsid.offline.outputs import OutputSpec
+from bmsid.offline.record_checks import CheckOptions
 
 DEFAULT_WORST = 5
 
@@ -70,6 +71,19 @@ def fleet_spec(args: argparse.Namespace, ocv_coeffs: Sequence[float] | None) -> 
     )  # fmt: skip
 
 
+def check_options(args: argparse.Namespace, ocv_coeffs: Sequence[float] | None) -> CheckOptions:
+    """What the record checks need of the options (``offline/record_checks.py``)."""
+    columns = parse_columns(args.columns) or {}
+    return CheckOptions(
+        cell_config_given=args.cell_config is not None,
+        capacity_given=args.capacity_ah is not None, soc0=args.soc0,
+        charge_positive=args.charge_positive,
+        ocv_coeffs=None if ocv_coeffs is None else tuple(float(c) for c in ocv_coeffs),
+        t_source=columns["t_s"].source if "t_s" in columns else "t_s",
+        t_scale=columns["t_s"].scale if "t_s" in columns else 1.0,
+    )  # fmt: skip
+
+
 def spec_for(spec: IdentifySpec, path: str) -> IdentifySpec:
     """The log options for logs, the CSV options for CSVs: a mixed fleet takes both."""
     if is_candump_path(path):
@@ -83,7 +97,7 @@ def _ok_line(s: fleet.InputSummary) -> str:
     return (
         f"{s.input.given} -> {s.input.name}/: {s.n_samples} samples, {len(s.cells)} cell(s), "
         f"RMSE up to {rmse:.2f} mV, largest R0 {1e3 * worst.value('R0_ohm'):.3f} mOhm "
-        f"({worst.cell})"
+        f"({worst.cell})" + (f"; warnings: {', '.join(s.warnings)}" if s.warnings else "")
     )
 
 
@@ -116,8 +130,10 @@ def run_fleet(
             "no --cell-config: the paper's cell, with the capacity (and an LFP-like record's "
             "OCV) read off each input where it tells them (its metrics.json: cell_config)"
         )
+    checks = check_options(args, ocv_coeffs)
     tasks = [
-        fleet.FleetTask(i, str(root / i.name), spec_for(spec, i.path), from_record) for i in inputs
+        fleet.FleetTask(i, str(root / i.name), spec_for(spec, i.path), from_record, checks)
+        for i in inputs
     ]
     if args.scheduler is not None:
         where = f"the Dask cluster at {args.scheduler}"

@@ -41,9 +41,9 @@ from bmsid.estimate import jit
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import Quality
 from bmsid.offline.identify import IdentifySpec, identify_file, open_spec_input, too_short
-from bmsid.offline.inputs import InputSource, with_score_reference
+from bmsid.offline.inputs import StreamedInput, with_score_reference
 from bmsid.offline.plausibility import check_head_samples
-from bmsid.offline.record_cell import cell_from_record
+from bmsid.offline.record_checks import CheckedRecord, CheckOptions, check_record
 from bmsid.offline.scoring import IdentifyResult
 from bmsid.threads import one_blas_thread
 
@@ -52,7 +52,7 @@ INPUT_SUFFIXES = (".csv", ".csv.gz", ".log", ".log.gz")
 #: Parameters of each cell in summary.csv, latest published values (SI units).
 SUMMARY_FIELDS = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "soc", "capacity_Ah")
 SUMMARY_COLUMNS = (
-    "input", "out_dir", "status", "error", "cell", "t_s", *SUMMARY_FIELDS, "quality",
+    "input", "out_dir", "status", "error", "warnings", "cell", "t_s", *SUMMARY_FIELDS, "quality",
     "quality_name", "rmse_mV", "input_r0_rank", "fleet_r0_rank",
 )  # fmt: skip
 _GLOB_CHARS = re.compile(r"[*?\[]")
@@ -168,6 +168,8 @@ class InputSummary:
     #: Wall and CPU time of the task in its worker, s (their ratio shows what CPU it got).
     wall_s: float = 0.0
     cpu_s: float = 0.0
+    #: Codes of the record checks' warnings (``record_checks``; the lines: its metrics.json).
+    warnings: tuple[str, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -185,29 +187,43 @@ class CellFromRecord:
     score_soc0: float | None = None
 
 
+#: The record checks of a fleet run with one cell config for all (``--cell-config``).
+GIVEN_CELL = CheckOptions(cell_config_given=True)
+
+
 @dataclass(frozen=True)
 class FleetTask:
     """One input to identify into ``out_dir`` (absolute) with ``spec``; picklable.
-    ``from_record``: the cell is read off the input first (None: ``spec.cell`` for all)."""
+    ``from_record``: the cell is read off the input first (None: ``spec.cell`` for all);
+    ``checks``: what the record checks need of the options (``record_checks``)."""
 
     input: FleetInput
     out_dir: str
     spec: IdentifySpec
     from_record: CellFromRecord | None = None
+    checks: CheckOptions = GIVEN_CELL
 
 
-def spec_from_record(source: InputSource, spec: IdentifySpec, how: CellFromRecord) -> IdentifySpec:
-    """``spec`` with the cell its input's head tells (unchanged where it tells none)."""
+def checked_spec(source: StreamedInput, task: FleetTask) -> tuple[IdentifySpec, CheckedRecord]:
+    """The input's record checks (a single run's; UserError at the first error) and its spec,
+    with the cell its head tells when ``task.from_record`` (unchanged where it tells none).
+    The findings travel with ``source`` to its metrics.json."""
+    spec = task.spec
+    tuning = spec.tuning or EstimatorTuning()
     head = source.head(check_head_samples(source.n_cells))
-    gap_s = (spec.tuning or EstimatorTuning()).gap_s
-    found = cell_from_record(
-        head.t_s, head.current_A, head.cell_voltages_V, gap_s, how.ocv_coeffs, spec.gates
-    )
-    if found is None:
-        return spec
-    window = with_score_reference(spec.window, found.cell, how.score_soc0, gap_s)
-    meta = {**spec.output.metadata, "cell_config": found.note}
-    return replace(spec, cell=found.cell, window=window, output=replace(spec.output, metadata=meta))
+    checked = check_record(head, spec.cell, task.checks, tuning, spec.gates)
+    del head
+    if checked.error is not None:
+        raise UserError(checked.error.message)
+    source.findings = (*source.findings, *checked.findings)
+    how = task.from_record
+    if how is not None and checked.note is not None:
+        window = with_score_reference(spec.window, checked.cell, how.score_soc0, tuning.gap_s)
+        meta = {**spec.output.metadata, "cell_config": checked.note}
+        spec = replace(
+            spec, cell=checked.cell, window=window, output=replace(spec.output, metadata=meta)
+        )
+    return spec, checked
 
 
 def cell_summaries(result: IdentifyResult, spec: IdentifySpec) -> tuple[CellSummary, ...]:
@@ -281,8 +297,7 @@ def identify_task(task: FleetTask) -> InputSummary:
         with _ONE_AT_A_TIME:
             wall, cpu = time.perf_counter(), time.process_time()
             source = open_spec_input(task.input.path, spec)  # read once, head and run
-            if task.from_record is not None:
-                spec = spec_from_record(source, spec, task.from_record)
+            spec, checked = checked_spec(source, replace(task, spec=spec))
             result = identify_file(task.input.path, spec, Path(task.out_dir), source=source)
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         if (short := too_short(result.n_ticks, result.n_samples)) is not None:
@@ -290,7 +305,8 @@ def identify_task(task: FleetTask) -> InputSummary:
         cells = cell_summaries(result, spec)
     except Exception as exc:  # any failure is this input's, reported in one line
         return failed(task.input, exc)
-    return InputSummary(task.input, None, result.n_samples, cells, wall, cpu)
+    warned = tuple(f.code for f in checked.findings if f.level == "warning")
+    return InputSummary(task.input, None, result.n_samples, cells, wall, cpu, warned)
 
 
 TaskFn = Callable[[FleetTask], InputSummary]
@@ -397,7 +413,8 @@ def summary_rows(summaries: Sequence[InputSummary], worst: int) -> list[dict[str
         rank = {k: i + 1 for i, k in enumerate(order)}
         for k, c in enumerate(s.cells):
             rows.append({
-                **head, "status": "ok", "error": "", "cell": c.cell, "t_s": _num(c.t_s, ".3f"),
+                **head, "status": "ok", "error": "", "warnings": ";".join(s.warnings),
+                "cell": c.cell, "t_s": _num(c.t_s, ".3f"),
                 **{f: _num(c.value(f)) for f in SUMMARY_FIELDS},
                 "quality": str(c.quality), "quality_name": Quality(c.quality).name.lower(),
                 "rmse_mV": _num(c.rmse_mV), "input_r0_rank": str(rank.get(k, "")),

@@ -46,7 +46,13 @@ from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.gates import GateConfig, InputGate, gated_head
 from bmsid.offline.csvio import ColumnMap, TesterData
-from bmsid.offline.inputs import DEFAULT_BLOCK_SIZE, InputSource, LoadedInput, open_input
+from bmsid.offline.inputs import (
+    DEFAULT_BLOCK_SIZE,
+    InputSource,
+    LoadedInput,
+    StreamedInput,
+    open_input,
+)
 from bmsid.offline.outputs import (
     OutputSpec,
     auto_every_s,
@@ -416,7 +422,7 @@ def _output_document(output: OutputSpec, every: float | None, announced: bool) -
     }  # fmt: skip
 
 
-def open_spec_input(path: str | Path, spec: IdentifySpec) -> InputSource:
+def open_spec_input(path: str | Path, spec: IdentifySpec) -> StreamedInput:
     """The recording at ``path`` opened with ``spec``'s input options (sign, mapping, cells,
     channel, columns)."""
     return open_input(
