@@ -233,6 +233,31 @@ def max_excursion(q_Ah: FloatArray) -> Excursion:
     return Excursion(chg, a, b_chg, "charge")
 
 
+#: A typical current (95th percentile of |I|) beyond this many C is no cell's (the input gates'
+#: ``GateConfig.i_max_C``); within it in milliamps, the column is in milliamps.
+I_MAX_C = 30.0
+
+
+def _current_in_milliamps(current_A: FloatArray, capacity_Ah: float | None) -> Finding | None:
+    """An error when the current reads as no cell's in A but as a plausible one in mA (a
+    2 Ah cell's 0.2 C in mA read as 37 C: the run refused every sample, and the time-unit
+    check took the 1000x coulomb count for milliseconds)."""
+    fin = np.abs(current_A[np.isfinite(current_A)])
+    if not (capacity_Ah and capacity_Ah > 0) or fin.size == 0:
+        return None
+    c_rate = float(np.percentile(fin, 95)) / capacity_Ah
+    if not (c_rate > I_MAX_C and 1e-3 * c_rate <= I_MAX_C):
+        return None
+    return Finding(
+        "error",
+        "current_unit_mA",
+        f"current_A looks like milliamps: its 95th percentile, {c_rate * capacity_Ah:.4g}, "
+        f"would be {c_rate:.0f} C of a {capacity_Ah:g} Ah cell, beyond the {I_MAX_C:g} C any "
+        "cell sustains: give it in amperes, e.g. --columns current_A=NAME*0.001 (NAME: its "
+        "column), or check the capacity",
+    )
+
+
 def check_time_unit(
     t_s: FloatArray,
     current_A: FloatArray,
@@ -251,6 +276,8 @@ def check_time_unit(
     i = np.asarray(current_A, dtype=np.float64)
     if t.size < 3:
         return []
+    if (ma := _current_in_milliamps(i, capacity_Ah)) is not None:
+        return [ma]  # a count 1000x the capacity is then no evidence of milliseconds
     period = sample_period(t, gap_s)
     med = period.median_dt_s
     if not med >= MS_MEDIAN_STEP_WITH_CAPACITY:
