@@ -533,8 +533,9 @@ def test_a_current_in_milliamps_is_named_not_taken_for_milliseconds(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A 2 Ah cell's DST current written in mA at 10 s steps (peaks under the reader's 3000
-    limit): the coulomb count moves 1000x the capacity, which was read as time in ms ("--columns t_s=t_s*0.001", after which every
-    current sample was refused). The current's C-rate tells the unit."""
+    limit): the coulomb count moves 1000x the capacity, which was read as time in ms
+    ("--columns t_s=t_s*0.001", after which every current sample was refused). The current's
+    C-rate tells the unit."""
     t, i, v = cell_record(7200, capacity_Ah=2.0, peak_C=1.0, soc0=0.9)  # peaks of 2000 mA
     src = write(tmp_path / "ma.csv", t[::10], 1000.0 * i[::10], v[::10])
     rc, _, err = identify(capsys, src, tmp_path / "o", *FAST, "--capacity-ah", "2")
