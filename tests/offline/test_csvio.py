@@ -225,6 +225,33 @@ def test_step_back_that_is_no_restart_names_its_line(tmp_path: Path) -> None:
         read_tester_csv(p)
 
 
+@pytest.mark.parametrize("gz", [False, True])
+def test_a_windows_1252_export_reads_as_its_utf8_twin(tmp_path: Path, gz: bool) -> None:
+    """Arbin's Windows software writes "Temperature(°C)" in Windows-1252: the file failed
+    with "'utf-8' codec can't decode byte 0xb0" and no way around it. The numbers are ASCII:
+    the file reads as its UTF-8 twin, the header's degree sign included."""
+    text = (
+        "Test_Time(s),Current(A),Voltage(V),Temperature(°C)\n"
+        "0,0,3.61,25.0\n1,-0.5,3.66,25.1\n2,1.5,3.55,25.2\n"
+    )
+    suffix = ".csv.gz" if gz else ".csv"
+    raw = {enc: text.encode(enc) for enc in ("cp1252", "utf-8")}
+    for enc, data in raw.items():
+        (tmp_path / f"{enc}{suffix}").write_bytes(gzip.compress(data) if gz else data)
+    cols = {
+        "t_s": ColumnMap("Test_Time(s)"), "current_A": ColumnMap("Current(A)"),
+        "voltage_V": ColumnMap("Voltage(V)"), "temperature_C": ColumnMap("Temperature(°C)"),
+    }  # fmt: skip
+    a, b = (read_tester_csv(tmp_path / f"{enc}{suffix}", columns=cols) for enc in raw)
+    for x, y in (
+        (a.t_s, b.t_s),
+        (a.current_A, b.current_A),
+        (a.cell_voltages_V, b.cell_voltages_V),
+    ):
+        np.testing.assert_array_equal(x, y)
+    assert a.temperature_C is not None and a.temperature_C.tolist() == [25.0, 25.1, 25.2]
+
+
 def test_foreign_export_loads_with_a_column_map(tmp_path: Path) -> None:
     # Arbin-like names, time in ms, current in mA, a semicolon export with quoted names.
     p = _write(

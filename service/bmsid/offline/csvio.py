@@ -35,6 +35,7 @@ Every rejected file raises ``UserError`` with one line that names the file and t
 
 from __future__ import annotations
 
+import codecs
 import gzip
 import io
 import itertools
@@ -122,14 +123,36 @@ def _lines_text(lines: Sequence[int]) -> str:
     return shown + (f" (and {more} more)" if more > 0 else "")
 
 
+#: Bytes of a file's head that decide its text encoding (the header and the first rows).
+_ENCODING_PROBE_BYTES = 1 << 16
+
+
+def _encoding(path: Path) -> tuple[str, str]:
+    """(encoding, errors) of a tester export: UTF-8 (a BOM skipped) when its head decodes so,
+    else Windows-1252, as Windows cyclers' software writes a header's "Temperature(°C)" (the
+    numbers are ASCII either way; a byte 1252 leaves undefined becomes U+FFFD)."""
+    try:
+        with gzip.open(path, "rb") if path.name.lower().endswith(".gz") else path.open("rb") as fh:
+            head = fh.read(_ENCODING_PROBE_BYTES)
+    except (OSError, EOFError, zlib.error):
+        return "utf-8-sig", "strict"  # the read itself reports it
+    try:
+        codecs.getincrementaldecoder("utf-8")().decode(head, final=False)
+    except UnicodeDecodeError:
+        log.info("%s: not UTF-8, read as Windows-1252", path)
+        return "cp1252", "replace"
+    return "utf-8-sig", "strict"
+
+
 def _read_text(path: Path) -> str:
     if not path.is_file():
         raise UserError(f"{path}: no such file")
+    enc, errors = _encoding(path)
     try:
         if path.name.lower().endswith(".gz"):
-            with gzip.open(path, "rt", encoding="utf-8-sig", newline="") as fh:
+            with gzip.open(path, "rt", encoding=enc, errors=errors, newline="") as fh:
                 return fh.read()
-        return path.read_text(encoding="utf-8-sig")
+        return path.read_text(encoding=enc, errors=errors)
     except (OSError, EOFError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: cannot read: {exc}") from exc
 
@@ -140,10 +163,11 @@ def _read_lines(path: Path) -> Iterator[str]:
     if not path.is_file():
         raise UserError(f"{path}: no such file")
     blanks = 0
+    enc, errors = _encoding(path)
     try:
         gz = path.name.lower().endswith(".gz")
-        with (gzip.open(path, "rt", encoding="utf-8-sig", newline="") if gz else
-              path.open(encoding="utf-8-sig", newline="")) as fh:  # fmt: skip
+        with (gzip.open(path, "rt", encoding=enc, errors=errors, newline="") if gz else
+              path.open(encoding=enc, errors=errors, newline="")) as fh:  # fmt: skip
             for raw in fh:
                 line = raw.rstrip("\r\n")
                 if not line.strip():
