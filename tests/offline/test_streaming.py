@@ -196,6 +196,22 @@ def test_parquet_holds_the_csv_columns_and_values_every_interval(
     assert doc["output"]["params_file"] == "params.parquet"
 
 
+def test_an_interval_shorter_than_the_tick_is_every_tick(
+    pack_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--every 0.5`` on 1 s ticks was accepted and metrics.json said "one per 0.5 s" while
+    params.csv had one row per tick: it is every tick, and says so."""
+    out = tmp_path / "o"
+    assert main(["identify", str(pack_csv), "--out", str(out), "--algorithm", "hy-affrls",
+                 "--every", "0.5"]) == 0  # fmt: skip
+    said = capsys.readouterr().out
+    assert "--every 0.5 s is no longer than the identification tick (1 s)" in said
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["output"]["every_s"] is None and doc["output"]["rows"] == "every tick and cell"
+    assert params_interval(OutputSpec(every_s=0.5), None, 1.0) == (None, False)
+    assert params_interval(OutputSpec(every_s=2.0), None, 1.0) == (2.0, False)
+
+
 def test_a_long_record_gets_an_announced_decimation(
     pack_csv: Path,
     tmp_path: Path,

@@ -260,7 +260,12 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.input}: {short}")  # before any output is written
     # The checks travel with the source (``input_report``), for metrics.json.
     source.findings = (*source.findings, *checks)
-    every, announced = params_interval(output, scan)
+    every, announced = params_interval(output, scan, tuning.id_period_s)
+    if args.every and every is None:
+        print(
+            f"--every {args.every:g} s is no longer than the identification tick "
+            f"({tuning.id_period_s:g} s): params.{args.format} gets every tick"
+        )
     if announced:
         print(
             f"{scan.n_ticks} ticks: params.{args.format} gets one row per {every:g} s and cell "

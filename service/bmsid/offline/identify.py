@@ -361,7 +361,8 @@ def identify_source(
     if not spec.keep_trace:
         scan = scan or scan_record(source, spec)
         scorer = RunScorer(scan.n_ticks, source.n_cells, spec.window, bounds)
-    every, announced = params_interval(spec.output, scan)
+    tick_s = (spec.tuning or EstimatorTuning()).id_period_s
+    every, announced = params_interval(spec.output, scan, tick_s)
     with ExitStack() as stack:
         sink: EstimateSink | None = None
         if out is not None:
@@ -397,12 +398,15 @@ def identify_source(
     return result
 
 
-def params_interval(output: OutputSpec, scan: RecordScan | None) -> tuple[float | None, bool]:
-    """The parameter table's interval (s; None: every tick) and whether it is the default
-    decimation of a long record (:func:`~bmsid.offline.outputs.auto_every_s`, which needs the
-    streamed run's ``scan``), to be announced."""
+def params_interval(
+    output: OutputSpec, scan: RecordScan | None, tick_s: float = 0.0
+) -> tuple[float | None, bool]:
+    """The parameter table's interval (s; None: every tick, as is one no longer than the tick
+    ``tick_s``) and whether it is the default decimation of a long record
+    (:func:`~bmsid.offline.outputs.auto_every_s`, which needs the streamed run's ``scan``), to
+    be announced."""
     if output.every_s is not None:
-        return (output.every_s or None), False
+        return (output.every_s if output.every_s > tick_s else None), False
     if scan is None:
         return None, False
     every = auto_every_s(scan.n_ticks, scan.duration_s)
