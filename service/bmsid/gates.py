@@ -377,18 +377,22 @@ class InputGate:
     Args:
         limits: what is plausible (:meth:`GateConfig.limits`).
         n_cells: cells per sample.
+        quiet: no log lines (a pass over a record's head that the run itself reads again:
+            its refusals are told once, by the run's gate).
     """
 
-    def __init__(self, limits: GateLimits, n_cells: int) -> None:
+    def __init__(self, limits: GateLimits, n_cells: int, quiet: bool = False) -> None:
         self.limits = limits
         self.state = GateState.fresh(n_cells)
         self._t_first: float | None = None
         self._missing_told = False
+        self._quiet = quiet
 
     def apply(self, block: SampleBlock) -> SampleBlock:
         before = self.state
         out, self.state = gate_block(block, self.limits, before)
-        self._tell(before, self.state, block)
+        if not self._quiet:
+            self._tell(before, self.state, block)
         return out
 
     def _tell(self, before: GateState, after: GateState, block: SampleBlock) -> None:

@@ -145,12 +145,15 @@ class IdentifySpec:
 
 
 def input_gate(
-    cell: CellConfig, n_cells: int, tuning: EstimatorTuning | None, gates: GateConfig
-) -> InputGate:
+    cell: CellConfig, n_cells: int, tuning: EstimatorTuning | None, gates: GateConfig,
+    quiet: bool = False,
+) -> InputGate:  # fmt: skip
     """Fresh plausibility gates for ``n_cells`` cells of type ``cell`` (limits from its OCV
-    curve and capacity, the step check's age from the tuning's ``gap_s``)."""
+    curve and capacity, the step check's age from the tuning's ``gap_s``); ``quiet`` for a
+    pass before the run (its refusals are told by the run's gate)."""
     tun = tuning or EstimatorTuning()
-    return InputGate(gates.for_model(cell_model(cell, n_cells, None, tun), tun.gap_s), n_cells)
+    limits = gates.for_model(cell_model(cell, n_cells, None, tun), tun.gap_s)
+    return InputGate(limits, n_cells, quiet)
 
 
 def run_blocks(
@@ -348,11 +351,11 @@ def identify_source(
     IdentifyResult
         Also written when the run completed no tick (metrics are then NaN, no plots).
     """
-    probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
+    probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
     start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
     soc0: float | FloatArray | None = spec.soc0
     if soc0 is None:  # a start under load or still relaxing: fitted over the first window
-        fresh_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates)
+        fresh_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
         soc0 = fitted_start_soc(
             source.blocks(spec.block_size), spec.cell, spec.tuning, start, fresh_gate
         )
