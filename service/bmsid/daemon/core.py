@@ -47,7 +47,7 @@ from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
-from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
+from bmsid.daemon.sources import FrameSource, LogReplayer, open_source, replay_channel
 from bmsid.daemon.statedir import StateLock, check_writable, remove_stale_temps
 from bmsid.daemon.watchdog import Pipeline, stall
 from bmsid.errors import UserError
@@ -105,6 +105,10 @@ class Daemon:
                 f"can.n_cells={cs.n_cells}: mapping {self.mapping.name!r} carries "
                 f"{self.mapping.max_cells()} cells"
             )
+        # checked before anything starts: a log of two packs must not be merged into one
+        self.replay_channel = (
+            replay_channel(cs.replay, self.mapping) if cs.replay is not None else None
+        )
         self.f2s = FrameToSamples(self.mapping, cs.n_cells, staleness_s=cs.staleness_s)
         self.encoder = ParameterEncoder(
             cs.output_dbc, extended_id=cs.output_extended_id, fd=cs.output_fd
@@ -484,6 +488,7 @@ class Daemon:
                 cs.replay.speed,
                 cs.replay.start_delay_s,
                 resume_after_s=self._restored_t_s,
+                log_channel=self.replay_channel,
             )
             self.replayer.start()
         if not self._ready_sent:
@@ -736,6 +741,8 @@ class Daemon:
         bus = f"CAN {cs.interface}/{cs.channel} ({self.mapping.name})"
         if cs.replay is not None:
             bus += f" replaying {cs.replay.log} at {cs.replay.speed:g}x"
+            if self.replay_channel is not None:
+                bus += f" (its {self.replay_channel} frames)"
         if not cs.output:
             bus += ", no output frames"
         if m.enabled:
