@@ -42,7 +42,7 @@ from bmsid.canbus.encoder import CLASSIC_PAGES, ParameterEncoder
 from bmsid.canbus.frames_to_samples import DECODE_ERROR_KINDS, FrameToSamples
 from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
 from bmsid.config.settings import Settings
-from bmsid.daemon.bank_worker import BankSpec, BankWorker
+from bmsid.daemon.bank_worker import BankSpec, BankWorker, BatchResult
 from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
@@ -309,6 +309,9 @@ class Daemon:
         for t in tasks[1:]:
             t.cancel()
         await asyncio.gather(*tasks[1:], return_exceptions=True)
+        assert self.worker is not None
+        # samples still held for the start values: estimated, published, checkpointed, not lost
+        self._take_result(await self.worker.release_held())
         await self._checkpoint(clean=True)
         if mqtt_task is not None:
             if self.mqtt is not None:
@@ -578,28 +581,32 @@ class Daemon:
                         self.f2s.counters["frames"],
                     )
                 self._last_sample_mono = time.monotonic()
-                self.seq = result.seq
-                self.inputs = result.inputs
-                self.soc_init = result.soc_init
-                jumps = self.bank_counters.get("time_jumps_back", 0)
-                self._merge_bank_counters(result.counters)
-                if self.bank_counters.get("time_jumps_back", 0) > jumps:
-                    log.warning(
-                        "the sample clock went back by more than %.0f s (a replay restarted, "
-                        "or the clock was set back): new estimation segment, state kept",
-                        self.settings.estimator.tuning.gap_s,
-                    )
-                for est in result.estimates:
-                    self.latest = est
-                    if self.on_estimates is not None:
-                        self.on_estimates(est)
-                if self.outbox is not None:
-                    for msg in result.messages:
-                        self.outbox.put(msg)
+                self._take_result(result)
             finally:
                 self.counters["batches_in_flight"] -= 1
                 for _ in blocks:
                     q.task_done()
+
+    def _take_result(self, result: BatchResult) -> None:
+        """A batch's estimates, messages and counters from the bank worker."""
+        self.seq = result.seq
+        self.inputs = result.inputs
+        self.soc_init = result.soc_init
+        jumps = self.bank_counters.get("time_jumps_back", 0)
+        self._merge_bank_counters(result.counters)
+        if self.bank_counters.get("time_jumps_back", 0) > jumps:
+            log.warning(
+                "the sample clock went back by more than %.0f s (a replay restarted, "
+                "or the clock was set back): new estimation segment, state kept",
+                self.settings.estimator.tuning.gap_s,
+            )
+        for est in result.estimates:
+            self.latest = est
+            if self.on_estimates is not None:
+                self.on_estimates(est)
+        if self.outbox is not None:
+            for msg in result.messages:
+                self.outbox.put(msg)
 
     def _health(self, est: Estimates) -> int:
         bits = payloads.health_bits(est, state_dir_failing=self.state_dir_failing)
