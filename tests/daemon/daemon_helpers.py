@@ -293,3 +293,11 @@ def drive_samples(t0: float, n: int, n_cells: int) -> SampleBlock:
         v = 3.7 - 0.002 * i + rng.normal(0.0, 5e-4, n_cells)
         out.append(Sample(t_s=t, current_A=float(i), cell_voltages_V=v))
     return SampleBlock.from_samples(out, [0.0] * n)
+
+
+async def run_replay(daemon: Daemon, timeout_s: float = 120.0) -> None:
+    """Run ``daemon`` on its ``can.replay`` log until every frame is processed, then stop it."""
+    task = asyncio.create_task(daemon.run())
+    await wait_for(lambda: daemon.idle() or task.done(), timeout_s, "the replay to be processed")
+    daemon.request_stop()
+    assert await asyncio.wait_for(task, 60) == 0

@@ -72,3 +72,47 @@ def test_bounds_follow_the_measured_r0_and_the_tick_rate() -> None:
     # a config that gives them keeps them
     fixed = cell_model(paper_cell(), 1, sv, tun)
     assert fixed.start("R0_ohm")[0] == 2e-3 and fixed.bound("R0_ohm")[1][0] == 0.5
+
+
+def _ramped_steps(rate_hz: float, ramp_samples: int, duration_s: float = 120.0) -> np.ndarray:
+    """A current (A) stepping by 15 A every 10 s (a staircase up to +-45 A), each step a
+    linear ramp over ``ramp_samples`` samples (a BMS current filter, a charger's slew) at
+    ``rate_hz``: no sample-to-sample change reaches a tenth of the 95th-percentile |I|."""
+    t = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    stairs = np.array([0, 1, 2, 3, 2, 1, 0, -1, -2, -3, -2, -1], dtype=np.float64)
+    levels = 15.0 * stairs[(t // 10.0).astype(int) % stairs.shape[0]]
+    ramp = np.ones(ramp_samples) / ramp_samples  # a moving average turns each jump into a ramp
+    padded = np.concatenate([np.full(ramp_samples - 1, levels[0]), levels])
+    return np.convolve(padded, ramp, "valid")
+
+
+@pytest.mark.parametrize("ramp_samples", [5, 50, 100])
+def test_steps_ramped_over_many_samples_at_100_hz_are_measured(ramp_samples: int) -> None:
+    """Measured: at 100 Hz a step ramped over 5 samples has no sample-to-sample difference
+    above the threshold, so the daemon held 300 s of samples and published nothing. Thinned
+    to 0.5 s the steps count again, R0 within what 0.5 s of the fast branch adds, + 5 %."""
+    rate_hz, r0, tau1 = 100.0, 0.002, 20.0
+    i = _ramped_steps(rate_hz, ramp_samples)
+    t = np.arange(i.shape[0]) / rate_hz
+    sim = simulate(t, i, ocv_model(paper_cell()), capacity_Ah=70.0, R0_ohm=r0, R1_ohm=r0,
+                   tau1_s=tau1, R2_ohm=r0, tau2_s=600.0, soc0=0.8)  # fmt: skip
+    sv = start_values_from_record(t, i, sim.v_V[0])
+    assert sv is not None and sv.n_steps >= 3
+    extra = 1.0 - np.exp(-1.5 / tau1)  # a ramp of 1 s split over two 0.5 s differences
+    assert abs(sv.R0_ohm - r0) <= r0 * (extra + 0.05)
+
+
+def test_one_second_records_difference_every_sample_as_before() -> None:
+    """1 s records (and anything slower than 1/3 s) keep the one-sample differences bit for
+    bit: the thinning is for fast records only."""
+    rng = np.random.default_rng(3)
+    for dt in (1.0, 0.4, 5.0):
+        t = np.cumsum(rng.uniform(0.9 * dt, 1.1 * dt, 2000))
+        i = dst_current(t, 35.0)
+        v = 3.7 - 0.002 * i + rng.normal(0.0, 2e-4, t.shape[0])
+        di, dv, dtt = np.diff(i), np.diff(v), np.diff(t)
+        big = max(0.1 * float(np.percentile(np.abs(i), 95)), 0.05)
+        step = (np.abs(di) >= big) & (dtt > 0) & (dtt <= 2.0)
+        r = -dv[step] / di[step]
+        expected = r[np.isfinite(r) & (r > 0)]
+        assert np.array_equal(step_resistances(t, i, v), expected)

@@ -463,12 +463,13 @@ def mapped_ids(mapping: BusMapping) -> set[tuple[int, bool]]:
     return {(int(m.frame_id), bool(m.is_extended_frame)) for m in msgs}
 
 
-def summarize_log(path: str | Path, mapping: BusMapping) -> LogSummary:
+def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) -> LogSummary:
     """Channels, frame counts, ids and the cells whose voltages a candump log carries.
 
     One pass over the log (error and remote frames count as frames, not as ids). A cell frame
     is decoded with the DBC only to see which cell indices hold a valid voltage, so the count
-    does not depend on a guessed ``n_cells``. Raises ``UserError`` for an unreadable file.
+    does not depend on a guessed ``n_cells``; ``cells=False`` skips that decoding (most of the
+    pass's time) when only the channels matter. Raises ``UserError`` for an unreadable file.
     """
     cell_frames = _cell_frames(mapping)
     known = mapped_ids(mapping)
@@ -484,7 +485,7 @@ def summarize_log(path: str | Path, mapping: BusMapping) -> LogSummary:
         if key not in known:
             continue
         ch.mapped += 1
-        cf = cell_frames.get(key)
+        cf = cell_frames.get(key) if cells else None
         if cf is None:
             continue
         try:
@@ -509,6 +510,31 @@ def summarize_log(path: str | Path, mapping: BusMapping) -> LogSummary:
             if lo <= v <= hi and sc * v + off > _MIN_CELL_V:
                 ch.cell_valid[c] = ch.cell_valid.get(c, 0) + 1
     return LogSummary(path=str(path), mapping=mapping.name, channels=channels)
+
+
+def choose_channel(summary: LogSummary, channel: str | None, ask: str) -> str | None:
+    """The channel of ``summary`` to read: ``channel``, else the only one carrying mapped frames
+    (None when none does: decoding then says what is missing).
+
+    ``ask`` tells the user how to pick one (``pass --channel NAME``). Raises ``UserError`` when
+    the mapping's frames are on several channels and ``channel`` is None (two buses interleaved
+    into one stream give samples of neither), or when ``channel`` carries none of them.
+    """
+    mapped = summary.mapped_channels
+    if channel is None and len(mapped) > 1:
+        counts = ", ".join(f"{c}: {summary.channels[c].mapped}" for c in mapped)
+        raise UserError(
+            f"{summary.path}: frames of mapping {summary.mapping!r} on {len(mapped)} CAN "
+            f"channels ({counts} frames): {ask} (one of {', '.join(mapped)}); mixed they give "
+            "samples of neither"
+        )
+    if channel is not None and channel not in mapped:
+        held = ", ".join(sorted(summary.channels)) or "none"
+        raise UserError(
+            f"{summary.path}: no frames of mapping {summary.mapping!r} on channel {channel!r} "
+            f"(the log holds: {held})"
+        )
+    return channel if channel is not None else (mapped[0] if mapped else None)
 
 
 def samples_from_log(

@@ -60,6 +60,9 @@ class ReplaySettings(_Strict):
     """Replay rate as a multiple of real time (log timestamps are kept on the frames)."""
     start_delay_s: float = Field(0.5, ge=0.0)
     """Wait this long after the bus opens before the first frame, s."""
+    channel: str | None = Field(None, min_length=1)
+    """The log's CAN interface (``can1``) whose frames are replayed; None = the log must carry
+    the mapping's frames on one interface only (two packs mixed would give garbage)."""
 
 
 class CanSettings(_Strict):

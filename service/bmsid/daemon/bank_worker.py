@@ -72,7 +72,7 @@ from bmsid.daemon.start_refit import StartHead
 from bmsid.daemon.statedir import atomic_write, quarantine
 from bmsid.errors import UserError
 from bmsid.estimate.start_fit import WINDOW_S
-from bmsid.estimate.startvalues import StartValues, start_values_from_record
+from bmsid.estimate.startvalues import MIN_STEPS, StartValues, start_values_from_record
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
 from bmsid.gates import GateConfig, InputGate
@@ -116,6 +116,11 @@ HEARTBEAT = "heartbeat"
 #: worker time, ``update`` fed 2,000-sample blocks). Milliseconds a tick for a large pack
 #: with swarms: a call stays far below ``HEARTBEAT_S``.
 CHUNK_TICKS_ALONE = 64
+
+
+def _span_s(block: SampleBlock) -> float:
+    """Sample time from the first to the last sample of ``block``, s (0 when empty)."""
+    return float(block.t_s[-1] - block.t_s[0]) if len(block) else 0.0
 
 
 def _log_now(n: int) -> bool:
@@ -289,12 +294,23 @@ class BankHost:
 
     def _probe_block(self, block: SampleBlock) -> SampleBlock | None:
         """Hold samples until the start values are measured; then the held samples, to feed."""
+        if not self._probe:  # nothing is published meanwhile: say why, and for how long
+            log.info(
+                "holding samples until %d current steps measure the start values (at most "
+                "%.0f s of samples)",
+                MIN_STEPS,
+                PROBE_LIMIT_S,
+            )
         self._probe.append(block)
         held = SampleBlock.concat(self._probe)
         found = start_values_from_record(held.t_s, held.current_A, held.cell_voltages_V)
-        span = float(held.t_s[-1] - held.t_s[0]) if len(held) else 0.0
+        span = _span_s(held)
         if found is None and span < PROBE_LIMIT_S and len(held) < PROBE_LIMIT_SAMPLES:
             return None
+        return self._end_probe(held, found, span)
+
+    def _end_probe(self, held: SampleBlock, found: StartValues | None, span: float) -> SampleBlock:
+        """Start the bank from ``found`` (None: the fallback values); ``held`` is to feed."""
         self._probing = False
         self._probe = []
         self.start_values = found
@@ -421,14 +437,32 @@ class BankHost:
     def update(self, block: SampleBlock) -> BatchResult:
         """Feed a block of samples to the bank, in order, in chunks of about one tick."""
         self._beat_t = time.monotonic()
-        estimates: list[Estimates] = []
-        messages: list[OutMessage] = []
         block = self.gate.apply(block)
         if self._probing:
             held = self._probe_block(block)
             if held is None:
-                return self._result(estimates, messages)
+                return self._result([], [])
             block = held
+        return self._feed(block)
+
+    def release_held(self) -> BatchResult:
+        """At stop: the samples still held for the start values go through the bank with the
+        fallback start values (as at ``PROBE_LIMIT_S``), so that none is lost."""
+        self._beat_t = time.monotonic()
+        if not self._probing or not self._probe:
+            return self._result([], [])
+        held = SampleBlock.concat(self._probe)
+        log.info(
+            "stopping: the %d samples (%.0f s) held for the start values go through the bank now",
+            len(held),
+            _span_s(held),
+        )
+        # The latest probe found too few steps in exactly these samples: no need to look again.
+        return self._feed(self._end_probe(held, None, _span_s(held)))
+
+    def _feed(self, block: SampleBlock) -> BatchResult:
+        estimates: list[Estimates] = []
+        messages: list[OutMessage] = []
         head = self._head.add(block) if self._head is not None else None
         step = samples_per_tick(block.t_s, self.spec.tuning.id_period_s)
         if not self.shares_gil:
@@ -803,6 +837,11 @@ class BankWorker:
     async def ping(self) -> None:
         """A no-op call: answered when the worker is alive and done with the calls before it."""
         await self._call("ping")
+
+    async def release_held(self) -> BatchResult:
+        """The samples held for the start values, through the bank (at stop: none lost)."""
+        result: BatchResult = await self._call("release_held")
+        return result
 
     async def checkpoint(self, clean: bool = False) -> dict[str, int]:
         counters: dict[str, int] = await self._call("checkpoint", clean)

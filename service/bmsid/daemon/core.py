@@ -42,12 +42,12 @@ from bmsid.canbus.encoder import CLASSIC_PAGES, ParameterEncoder
 from bmsid.canbus.frames_to_samples import DECODE_ERROR_KINDS, FrameToSamples
 from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
 from bmsid.config.settings import Settings
-from bmsid.daemon.bank_worker import BankSpec, BankWorker
+from bmsid.daemon.bank_worker import BankSpec, BankWorker, BatchResult
 from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
-from bmsid.daemon.sources import FrameSource, LogReplayer, open_source
+from bmsid.daemon.sources import FrameSource, LogReplayer, open_source, replay_channel
 from bmsid.daemon.statedir import StateLock, check_writable, remove_stale_temps
 from bmsid.daemon.watchdog import Pipeline, stall
 from bmsid.errors import UserError
@@ -105,6 +105,10 @@ class Daemon:
                 f"can.n_cells={cs.n_cells}: mapping {self.mapping.name!r} carries "
                 f"{self.mapping.max_cells()} cells"
             )
+        # checked before anything starts: a log of two packs must not be merged into one
+        self.replay_channel = (
+            replay_channel(cs.replay, self.mapping) if cs.replay is not None else None
+        )
         self.f2s = FrameToSamples(self.mapping, cs.n_cells, staleness_s=cs.staleness_s)
         self.encoder = ParameterEncoder(
             cs.output_dbc, extended_id=cs.output_extended_id, fd=cs.output_fd
@@ -305,6 +309,9 @@ class Daemon:
         for t in tasks[1:]:
             t.cancel()
         await asyncio.gather(*tasks[1:], return_exceptions=True)
+        assert self.worker is not None
+        # samples still held for the start values: estimated, published, checkpointed, not lost
+        self._take_result(await self.worker.release_held())
         await self._checkpoint(clean=True)
         if mqtt_task is not None:
             if self.mqtt is not None:
@@ -484,6 +491,7 @@ class Daemon:
                 cs.replay.speed,
                 cs.replay.start_delay_s,
                 resume_after_s=self._restored_t_s,
+                log_channel=self.replay_channel,
             )
             self.replayer.start()
         if not self._ready_sent:
@@ -573,28 +581,32 @@ class Daemon:
                         self.f2s.counters["frames"],
                     )
                 self._last_sample_mono = time.monotonic()
-                self.seq = result.seq
-                self.inputs = result.inputs
-                self.soc_init = result.soc_init
-                jumps = self.bank_counters.get("time_jumps_back", 0)
-                self._merge_bank_counters(result.counters)
-                if self.bank_counters.get("time_jumps_back", 0) > jumps:
-                    log.warning(
-                        "the sample clock went back by more than %.0f s (a replay restarted, "
-                        "or the clock was set back): new estimation segment, state kept",
-                        self.settings.estimator.tuning.gap_s,
-                    )
-                for est in result.estimates:
-                    self.latest = est
-                    if self.on_estimates is not None:
-                        self.on_estimates(est)
-                if self.outbox is not None:
-                    for msg in result.messages:
-                        self.outbox.put(msg)
+                self._take_result(result)
             finally:
                 self.counters["batches_in_flight"] -= 1
                 for _ in blocks:
                     q.task_done()
+
+    def _take_result(self, result: BatchResult) -> None:
+        """A batch's estimates, messages and counters from the bank worker."""
+        self.seq = result.seq
+        self.inputs = result.inputs
+        self.soc_init = result.soc_init
+        jumps = self.bank_counters.get("time_jumps_back", 0)
+        self._merge_bank_counters(result.counters)
+        if self.bank_counters.get("time_jumps_back", 0) > jumps:
+            log.warning(
+                "the sample clock went back by more than %.0f s (a replay restarted, "
+                "or the clock was set back): new estimation segment, state kept",
+                self.settings.estimator.tuning.gap_s,
+            )
+        for est in result.estimates:
+            self.latest = est
+            if self.on_estimates is not None:
+                self.on_estimates(est)
+        if self.outbox is not None:
+            for msg in result.messages:
+                self.outbox.put(msg)
 
     def _health(self, est: Estimates) -> int:
         bits = payloads.health_bits(est, state_dir_failing=self.state_dir_failing)
@@ -736,6 +748,8 @@ class Daemon:
         bus = f"CAN {cs.interface}/{cs.channel} ({self.mapping.name})"
         if cs.replay is not None:
             bus += f" replaying {cs.replay.log} at {cs.replay.speed:g}x"
+            if self.replay_channel is not None:
+                bus += f" (its {self.replay_channel} frames)"
         if not cs.output:
             bus += ", no output frames"
         if m.enabled:

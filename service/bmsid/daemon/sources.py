@@ -18,7 +18,9 @@ from typing import Protocol
 import can
 
 from bmsid.canbus.bus import AsyncFrameReader, open_socketcan
-from bmsid.canbus.logs import read_log
+from bmsid.canbus.logs import choose_channel, read_log, summarize_log
+from bmsid.canbus.mapping import BusMapping
+from bmsid.config.settings import ReplaySettings
 from bmsid.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -158,7 +160,8 @@ class LogReplayer:
     time axis whatever the speed. Frames that others send on the channel (bmsid's own output)
     are discarded as they arrive so the in-process queue cannot grow. ``resume_after_s`` skips
     the frames up to that log time: a daemon restored from a checkpoint resumes the replay
-    where its state left off, as a live bus would have moved on.
+    where its state left off, as a live bus would have moved on. ``log_channel`` replays only
+    the frames the log recorded on that interface (None: all, see :func:`replay_channel`).
 
     Raises:
         UserError: the log cannot be opened (checked here, before the thread starts: a
@@ -172,6 +175,7 @@ class LogReplayer:
         speed: float,
         start_delay_s: float,
         resume_after_s: float | None = None,
+        log_channel: str | None = None,
     ) -> None:
         try:
             with log_path.open("rb"):
@@ -184,6 +188,7 @@ class LogReplayer:
         self.speed = speed
         self.start_delay_s = start_delay_s
         self.resume_after_s = resume_after_s
+        self.log_channel = log_channel
         self.skipped = 0
         self.sent = 0
         self.done = threading.Event()
@@ -206,6 +211,8 @@ class LogReplayer:
             t0_wall = time.monotonic()
             t0_log: float | None = None
             for msg in read_log(self.log_path):
+                if self.log_channel is not None and str(msg.channel) != self.log_channel:
+                    continue
                 if self.resume_after_s is not None and msg.timestamp <= self.resume_after_s:
                     self.skipped += 1
                     continue
@@ -248,3 +255,19 @@ class LogReplayer:
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
         self._bus.shutdown()
+
+
+def replay_channel(replay: ReplaySettings, mapping: BusMapping) -> str | None:
+    """The log interface to replay (``replay.channel``, checked against the log), or None when
+    the log carries the mapping's frames on at most one, as ``bmsid identify`` decides.
+
+    Raises:
+        UserError: naming ``can.replay.channel``: the mapping's frames on several interfaces
+            and no channel set, or the set one carries none of them.
+    """
+    summary = summarize_log(replay.log, mapping, cells=False)  # channels only: a fast pass
+    try:
+        choose_channel(summary, replay.channel, 'set can.replay.channel = "NAME"')
+    except UserError as exc:
+        raise UserError(f"can.replay.channel: {exc}") from None
+    return replay.channel

@@ -31,6 +31,9 @@ STEP_SHARE = 0.1
 MIN_STEP_A = 0.05
 #: Steps over a longer sample interval are not instantaneous: the RC branches move.
 MAX_STEP_DT_S = 2.0
+#: Samples closer than this are thinned to about this spacing before differencing: at 100 Hz a
+#: current step ramps over several samples, none of whose differences reaches the threshold.
+STEP_SPACING_S = 0.5
 #: Fewer steps than this: no estimate (the caller falls back and says so).
 MIN_STEPS = 3
 #: Only the record's first part is used: start values are needed at the start.
@@ -82,11 +85,21 @@ class StartValues:
         )
 
 
+def _step_lag(t_s: FloatArray) -> int:
+    """Samples per ``STEP_SPACING_S`` at the median interval (<= 1: difference every sample)."""
+    dt = np.diff(t_s)
+    dt = dt[dt > 0]
+    if dt.size == 0:
+        return 1
+    return round(STEP_SPACING_S / float(np.median(dt)))
+
+
 def step_resistances(
     t_s: FloatArray, current_A: FloatArray, voltage_V: FloatArray, max_dt_s: float = MAX_STEP_DT_S
 ) -> FloatArray:
     """``-dV/dI`` (ohm) at every current step of one cell's record (Eq. 9 with the branches
-    frozen over one sample); NaN samples and steps over long intervals are left out."""
+    frozen over one sample, or over ``STEP_SPACING_S`` for faster samples); NaN samples and
+    steps over long intervals are left out."""
     t, i, v = (np.asarray(x, dtype=np.float64) for x in (t_s, current_A, voltage_V))
     ok = np.isfinite(t) & np.isfinite(i) & np.isfinite(v)
     t, i, v = t[ok], i[ok], v[ok]
@@ -94,6 +107,9 @@ def step_resistances(
         return np.zeros(0)
     keep = t - t[0] <= PROBE_S
     t, i, v = t[keep], i[keep], v[keep]
+    k = _step_lag(t)
+    if k > 1:  # fast samples: every k-th, so a ramped step lies within one difference
+        t, i, v = t[::k], i[::k], v[::k]
     di, dv, dt = np.diff(i), np.diff(v), np.diff(t)
     big = max(STEP_SHARE * float(np.percentile(np.abs(i), 95)), MIN_STEP_A)
     step = (np.abs(di) >= big) & (dt > 0) & (dt <= max_dt_s)

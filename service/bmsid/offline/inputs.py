@@ -33,7 +33,13 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import ValidationError
 
-from bmsid.canbus.logs import LogSummary, is_candump_path, iter_samples_from_log, summarize_log
+from bmsid.canbus.logs import (
+    LogSummary,
+    choose_channel,
+    is_candump_path,
+    iter_samples_from_log,
+    summarize_log,
+)
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.config.cell import CellConfig, OcvCurve, load_cell_config, paper_cell
 from bmsid.errors import UserError
@@ -470,21 +476,7 @@ def read_log_input(
     summary = summarize_log(path, bus)
     notes = [summary.text()]
     findings: list[Finding] = []
-    mapped = summary.mapped_channels
-    if channel is None and len(mapped) > 1:
-        counts = ", ".join(f"{c}: {summary.channels[c].mapped}" for c in mapped)
-        raise UserError(
-            f"{path}: frames of mapping {bus.name!r} on {len(mapped)} CAN channels ({counts} "
-            f"frames): pass --channel NAME (one of {', '.join(mapped)}); mixed they give "
-            "samples of neither"
-        )
-    if channel is not None and channel not in mapped:
-        held = ", ".join(sorted(summary.channels)) or "none"
-        raise UserError(
-            f"{path}: no frames of mapping {bus.name!r} on channel {channel!r} "
-            f"(the log holds: {held})"
-        )
-    chosen = channel if channel is not None else (mapped[0] if mapped else None)
+    chosen = choose_channel(summary, channel, "pass --channel NAME")
     found = summary.channels[chosen].n_cells if chosen is not None else 0
     where = f" on {chosen}" if chosen is not None and len(summary.channels) > 1 else ""
     if n_cells is None:
