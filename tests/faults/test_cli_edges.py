@@ -204,6 +204,37 @@ def test_check_config_names_a_missing_replay_log(
     assert "can.replay.log: file not found" in _one_line(capsys.readouterr().err)
 
 
+def test_check_config_refuses_what_run_refuses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Found by a sweep: check-config called a config valid whose can.output_dbc is missing
+    (run then failed with "dbc: file not found", naming no field), and one replaying a log of
+    two packs on can0 and can1. Both are now one line naming the field, in both commands."""
+    base = (
+        f'pack_id = "p"\nsystemd_notify = false\n[mqtt]\nenabled = false\n'
+        f'[state]\ndirectory = "{tmp_path / "state"}"\n'
+    )
+    dbc = tmp_path / "config.toml"
+    dbc.write_text(
+        base + f'[can]\ninterface = "virtual"\nchannel = "t{os.getpid()}"\nn_cells = 8\n'
+        f'output_dbc = "{tmp_path / "gone.dbc"}"\n', encoding="utf-8",
+    )  # fmt: skip
+    assert main(["check-config", str(dbc)]) == 2
+    assert _one_line(capsys.readouterr().err) == (
+        f"bmsid check-config: error: can.output_dbc: dbc: file not found: {tmp_path / 'gone.dbc'}"
+    )
+    assert main(["run", "--config", str(dbc)]) == 2
+    assert "can.output_dbc: dbc: file not found" in _one_line(capsys.readouterr().err)
+    lines = DEMO_LOG.read_text(encoding="ascii").splitlines()
+    two = tmp_path / "two.log"
+    two.write_text("\n".join([*lines, *(ln.replace(" can0 ", " can1 ") for ln in lines)]) + "\n")
+    config = _replay_config(tmp_path, two)
+    assert main(["check-config", str(config)]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith("bmsid check-config: error: can.replay.channel: ")
+    assert 'set can.replay.channel = "NAME" (one of can0, can1)' in err
+
+
 def test_replayer_refuses_a_log_that_vanished_after_the_check(tmp_path: Path) -> None:
     """The daemon opens the bus, then the replayer: a log gone in between is the same one line
     (a UserError that stops the daemon), not a thread's traceback."""

@@ -3,7 +3,8 @@
 The output is TOML (environment overrides applied, relative paths resolved, defaults filled in)
 with secrets redacted (``password`` as ``**********``; ``password_file`` by its path, never its
 content); a bad file or override gets one line naming the field and exit code 2. The files the
-daemon will read are checked too: cell config, bus mapping, a replay log, and with MQTT enabled
+daemon will read are checked too: cell config, bus mapping, a replay log (one pack's channel),
+the output DBC, and with MQTT enabled
 the password file (readable, not empty) and the TLS files (CA, client certificate and its key);
 and the state directory must be writable (the daemon refuses to start otherwise), or creatable.
 A secret every local user can read (a config holding ``mqtt.password``, the password file, the
@@ -20,6 +21,8 @@ import tomli_w
 from bmsid.canbus.mapping import default_mapping, load_mapping
 from bmsid.cli.preflight import check_replay_log, secret_file_warnings
 from bmsid.config.settings import load_settings
+from bmsid.daemon.canout import output_encoder
+from bmsid.daemon.sources import replay_channel
 from bmsid.daemon.statedir import writable_problem
 from bmsid.errors import UserError
 from bmsid.publish.mqtt import tls_context
@@ -49,6 +52,9 @@ def run(args: argparse.Namespace) -> int:
             f"{mapping.max_cells()} cells the mapping {mapping.name!r} carries"
         )
     check_replay_log(settings)
+    if settings.can.replay is not None:
+        replay_channel(settings.can.replay, mapping)  # a log of two packs is refused at start
+    output_encoder(settings.can)
     problem = writable_problem(settings.state.directory)
     if problem is not None:
         raise UserError(

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 
-from bmsid.canbus.encoder import PACK_PAGES
+from bmsid.canbus.encoder import PACK_PAGES, ParameterEncoder
+from bmsid.config.settings import CanSettings
 from bmsid.errors import UserError
 
 #: Worst-case bit stuffing adds one bit per 4 after the first 5 of the stuffed region (~20 %).
@@ -62,3 +63,17 @@ def plan_output(
             "can.output_period_s or can.max_bus_share"
         )
     return CellCycler(n_cells, per_round)
+
+
+def output_encoder(can: CanSettings) -> ParameterEncoder:
+    """The parameter frames' encoder of ``can.output_dbc`` (None: bmsid's DBC); UserError
+    naming the field when that file is missing or lacks bmsid's messages (``check-config``
+    passed a missing one that ``run`` then refused as "dbc: file not found")."""
+    try:
+        return ParameterEncoder(
+            can.output_dbc, extended_id=can.output_extended_id, fd=can.output_fd
+        )
+    except UserError as exc:
+        if can.output_dbc is None:
+            raise
+        raise UserError(f"can.output_dbc: {exc}") from None

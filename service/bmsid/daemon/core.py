@@ -38,12 +38,12 @@ import can
 
 from bmsid import __version__
 from bmsid.canbus.bus import send_frames
-from bmsid.canbus.encoder import CLASSIC_PAGES, ParameterEncoder
+from bmsid.canbus.encoder import CLASSIC_PAGES
 from bmsid.canbus.frames_to_samples import DECODE_ERROR_KINDS, FrameToSamples
 from bmsid.canbus.mapping import BusMapping, default_mapping, load_mapping
 from bmsid.config.settings import Settings
 from bmsid.daemon.bank_worker import BankSpec, BankWorker, BatchResult
-from bmsid.daemon.canout import CellCycler, frame_bits, plan_output
+from bmsid.daemon.canout import CellCycler, frame_bits, output_encoder, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.sample_queue import SampleQueue
 from bmsid.daemon.sdnotify import SdNotifier
@@ -110,9 +110,7 @@ class Daemon:
             replay_channel(cs.replay, self.mapping) if cs.replay is not None else None
         )
         self.f2s = FrameToSamples(self.mapping, cs.n_cells, staleness_s=cs.staleness_s)
-        self.encoder = ParameterEncoder(
-            cs.output_dbc, extended_id=cs.output_extended_id, fd=cs.output_fd
-        )
+        self.encoder = output_encoder(cs)
         frames_per_cell = 1 if cs.output_fd else len(CLASSIC_PAGES)
         bits = frame_bits(64 if cs.output_fd else 8, cs.output_extended_id)
         self.cycler: CellCycler = plan_output(
