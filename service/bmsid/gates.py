@@ -14,7 +14,9 @@ Per cell and sample, in this order (the first that fails is the reason counted):
 * ``v_step``: the voltage moved more than ``max_step_V`` (default the rested range itself) from
   the cell's last accepted reading, when that reading is at most ``step_max_age_s`` old (the
   engine's ``gap_s``): a jump no current step can make. Older than that, only the window applies,
-  so a cell is never locked out by a stale reference.
+  so a cell is never locked out by a stale reference;
+* ``v_frozen``: the reading has not changed for ``frozen_min_s`` while the pack current moved
+  enough to change it (``gates_frozen``): a front end that stopped converting.
 
 Per sample: ``i_window``, the pack current beyond ``+-i_max_A`` (default
 :attr:`GateConfig.i_max_C` x capacity), which drops the whole sample, as a decoder drops one
@@ -49,6 +51,7 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from bmsid.gates_frozen import FrozenRuns, frozen_readings
 from bmsid.samples import SampleBlock
 
 if TYPE_CHECKING:  # attributes only: the daemon's parent process never loads the engine
@@ -61,9 +64,14 @@ BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
 
 #: Why a cell's reading was refused (counted per cell).
-VOLTAGE_REASONS = ("v_window", "v_step")
+VOLTAGE_REASONS = ("v_window", "v_step", "v_frozen")
 #: The totals in the daemon's flat counters (:meth:`GateState.counters`).
-GATE_COUNTERS = ("gated_v_window", "gated_v_step", "gated_i_window", "gated_t_step")
+GATE_COUNTERS = (
+    "gated_v_window", "gated_v_step", "gated_v_frozen", "gated_i_window", "gated_t_step",
+)  # fmt: skip
+#: Readings this close to the top of the rested range, V, are never frozen: constant-voltage
+#: charging holds them while the current tapers.
+CV_MARGIN_V = 0.05
 #: Fastest plausible change of a pack temperature reading, K/s: an 18650 (45 g, ~1 J/(g K))
 #: dissipating I^2 R = 32 W at 20C (40 A, 20 mOhm) warms by 0.7 K/s; drive cycles stay far
 #: below 0.05 K/s. A faster reading is a sensor fault, not the cell.
@@ -108,6 +116,13 @@ class GateConfig(BaseModel):
     pulse at 10-30C, the shipped data stays within 2C; beyond it is a sensor fault."""
     i_max_A: float | None = Field(None, gt=0.0)
     """Largest plausible pack current magnitude, A; overrides ``i_max_C``."""
+    frozen_min_s: float = Field(60.0, gt=0.0)
+    """A cell's reading identical for this long, s, while the pack current moved enough to
+    change it (``frozen_step_V``), is a front end that stopped converting (``gates_frozen``):
+    refused until it changes. Longer than any CAN cycle of cell voltages (1-10 s)."""
+    frozen_step_V: float = Field(0.01, gt=0.0)
+    """... enough: a current change that moves a live cell's voltage by this much, V, through
+    the smallest start R0 (10 mV: ten steps of a 1 mV reading)."""
 
     @model_validator(mode="after")
     def _check(self) -> Self:
@@ -120,9 +135,16 @@ class GateConfig(BaseModel):
         its smallest capacity: one current limit for the series string)."""
         ocv = model.ocv
         v_ends = ocv.ocv(np.array([ocv.soc_min, ocv.soc_max]))
-        return self.limits(
+        lim = self.limits(
             float(v_ends[0]), float(v_ends[1]), float(np.min(model.capacity_Ah)), gap_s
         )
+        r0 = float(np.min(model.start("R0_ohm")))
+        if not r0 > 0.0:
+            return lim
+        return replace(
+            lim, frozen_min_s=self.frozen_min_s, frozen_dI_A=self.frozen_step_V / r0,
+            frozen_top_V=float(v_ends[1]) - CV_MARGIN_V,
+        )  # fmt: skip
 
     def limits(
         self, v_empty_V: float, v_full_V: float, capacity_Ah: float, gap_s: float
@@ -155,6 +177,10 @@ class GateLimits:
     max_step_V: float
     step_max_age_s: float
     i_max_A: float
+    #: the frozen-reading gate (``gates_frozen``; inf: off, as without a cell model's R0)
+    frozen_min_s: float = float("inf")
+    frozen_dI_A: float = float("inf")
+    frozen_top_V: float = float("inf")
 
     def describe(self) -> str:
         if not self.enabled:
@@ -180,6 +206,7 @@ class GateState:
         T_last_C, tT_last_s: last accepted pack temperature, degC, and its time, s (NaN: none).
         T_refused: samples whose temperature was refused (``t_step``, held instead).
         T_cand: the last refused temperature and its time (NaN: none since an accepted one).
+        runs: each cell's run of identical readings (``gates_frozen``).
     """
 
     v_last_V: FloatArray
@@ -192,6 +219,7 @@ class GateState:
     tT_last_s: float = float("nan")
     T_refused: int = 0
     T_cand: tuple[float, float] = (float("nan"), float("nan"))
+    runs: FrozenRuns | None = None
 
     @classmethod
     def fresh(cls, n_cells: int) -> GateState:
@@ -201,6 +229,7 @@ class GateState:
             seen=np.zeros(n_cells, dtype=bool),
             valid=np.zeros(n_cells, dtype=bool),
             refused={k: np.zeros(n_cells, dtype=np.int64) for k in VOLTAGE_REASONS},
+            runs=FrozenRuns.fresh(n_cells),
         )
 
     @property
@@ -215,10 +244,11 @@ class GateState:
 
     def counters(self) -> dict[str, int]:
         """Totals over the cells, for the daemon's flat counters."""
-        v_window, v_step, i_window, t_step = GATE_COUNTERS
+        v_window, v_step, v_frozen, i_window, t_step = GATE_COUNTERS
         return {
             v_window: int(self.refused["v_window"].sum()),
             v_step: int(self.refused["v_step"].sum()),
+            v_frozen: int(self.refused["v_frozen"].sum()),
             i_window: self.i_refused,
             t_step: self.T_refused,
         }
@@ -275,10 +305,19 @@ def gate_block(
             accepted[first:, c], v_last[c], t_last[c] = _walk(
                 v[first:, c], t[first:], in_win[first:, c], v_last[c], t_last[c], limits
             )
+    runs = state.runs or FrozenRuns.fresh(v.shape[1])
+    frozen, runs = frozen_readings(
+        t, current, v, runs, limits.frozen_min_s, limits.frozen_dI_A, limits.frozen_top_V
+    )
+    n_frozen = (accepted & frozen).sum(axis=0)
     refused = {
         "v_window": state.refused["v_window"] + (fin & ~in_win).sum(axis=0),
         "v_step": state.refused["v_step"] + (in_win & ~accepted).sum(axis=0),
+        "v_frozen": state.refused["v_frozen"] + n_frozen,
     }
+    if n_frozen.any():  # after the step check, which still takes them as its reference
+        accepted = accepted & ~frozen
+        clean = clean & (n_frozen == 0)
     gated_v = v if clean.all() else np.where(accepted, v, np.nan)
     temp, T_last, tT_last, n_T, cand = gate_temperature(
         block.temperature_C, t, state.T_last_C, state.tT_last_s, state.T_cand
@@ -303,6 +342,7 @@ def gate_block(
         tT_last_s=tT_last,
         T_refused=state.T_refused + n_T,
         T_cand=cand,
+        runs=runs,
     )
 
 
@@ -400,6 +440,8 @@ class InputGate:
         what = {
             "v_window": f"outside the plausible {lim.v_min_V:.3f}..{lim.v_max_V:.3f} V",
             "v_step": f"more than {lim.max_step_V:.3f} V from its last accepted reading",
+            "v_frozen": f"unchanged for {lim.frozen_min_s:g} s or more while the current moved "
+            f"by {lim.frozen_dI_A:.3g} A (a front end that stopped converting?)",
         }
         for k in VOLTAGE_REASONS:
             for c in np.flatnonzero(_decade(before.refused[k], after.refused[k])).tolist():

@@ -85,6 +85,36 @@ def test_current_outside_its_window_is_missing_and_counted() -> None:
     assert st.refused["v_window"].sum() == st.refused["v_step"].sum() == 0
 
 
+def test_a_reading_that_stopped_moving_under_load_is_refused_not_at_rest_or_cv() -> None:
+    """A front end that stopped converting repeats its last value. A live cell cannot hold it
+    to the bit while the current moves by dI (R0 dI at once): refused after frozen_min_s of
+    it, until the value changes. Not at rest (nothing moves it), nor near the top of the range
+    (constant-voltage charging holds it while the current tapers)."""
+    cfg = GateConfig()
+    lim = cfg.for_model(cell_model(paper_cell(), 3), 30.0)
+    assert lim.frozen_min_s == 60.0 and 0.0 < lim.frozen_dI_A < 20.0
+    t = np.arange(600.0)
+    i = np.where((t // 20) % 2 == 0, 60.0, 5.0)  # DST-like steps of 55 A
+    live = 3.7 - 0.0015 * i + 1e-4 * np.sin(t)
+    v = np.stack([live, live.copy(), np.full_like(t, lim.frozen_top_V + 0.01)], axis=1)
+    v[100:400, 1] = v[100, 1]  # cell 1 stuck from t = 100 s for 5 min under load
+    out, st = gate_block(SampleBlock.from_arrays(t, i, v), lim, GateState.fresh(3))
+    bad = np.isnan(out.cell_voltages_V)
+    assert not bad[:, 0].any() and not bad[:, 2].any()  # live; held at the top (CV)
+    assert not bad[:160, 1].any() and bad[160:400, 1].all() and not bad[400:, 1].any()
+    assert st.refused["v_frozen"].tolist() == [0, 240, 0]
+    rest = np.stack([np.full_like(t, 3.7)] * 3, axis=1)  # at rest: identical and alive
+    out, st = gate_block(
+        SampleBlock.from_arrays(t, np.zeros_like(t), rest), lim, GateState.fresh(3)
+    )
+    assert st.refused["v_frozen"].sum() == 0
+    # the same by blocks of any size: the run is carried over the block's end
+    gate = InputGate(lim, 3, quiet=True)
+    pieces = [gate.apply(SampleBlock.from_arrays(t[a : a + 37], i[a : a + 37], v[a : a + 37]))
+              for a in range(0, t.size, 37)]  # fmt: skip
+    np.testing.assert_array_equal(np.isnan(np.vstack([p.cell_voltages_V for p in pieces])), bad)
+
+
 def test_a_minute_of_saturated_current_changes_no_estimate(tmp_path: Path) -> None:
     """Found by a sweep of CAN logs: the current at its DBC maximum for 60 s was refused and
     the last current held through it, paired with the real voltages: tau1 40-109 s against
@@ -200,7 +230,8 @@ def test_default_gates_refuse_nothing_of_a_healthy_record(record: str, config: s
     )
     out = gate.apply(block)
     assert gate.state.counters() == {
-        "gated_v_window": 0, "gated_v_step": 0, "gated_i_window": 0, "gated_t_step": 0,
+        "gated_v_window": 0, "gated_v_step": 0, "gated_v_frozen": 0, "gated_i_window": 0,
+        "gated_t_step": 0,
     }  # fmt: skip
     np.testing.assert_array_equal(out.cell_voltages_V, block.cell_voltages_V)
 
