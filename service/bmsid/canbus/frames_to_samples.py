@@ -133,7 +133,10 @@ def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float, float]:
 class FrameToSamples:
     """Decode frames with cantools and assemble samples (rules in the module docstring)."""
 
-    def __init__(self, mapping: BusMapping, n_cells: int, staleness_s: float = 2.0) -> None:
+    def __init__(
+        self, mapping: BusMapping, n_cells: int, staleness_s: float = 2.0,
+        told: dict[str, int] | None = None,
+    ) -> None:  # fmt: skip
         if n_cells < 1 or n_cells > mapping.max_cells():
             raise UserError(
                 f"n_cells={n_cells}: mapping {mapping.name!r} addresses 1..{mapping.max_cells()}"
@@ -145,6 +148,8 @@ class FrameToSamples:
         self.n_temps = mapping.max_temperatures()
         self.staleness_s = float(staleness_s)
         self.counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
+        # counts already logged per kind by an earlier pass over the same log (logs.told_counts)
+        self._told = told if told is not None else {}
         self._plans = self._build_plans(mapping)
         # held current and temperatures
         self._current_A = math.nan
@@ -215,7 +220,9 @@ class FrameToSamples:
     def _note(self, kind: str, detail: str, level: int = logging.WARNING) -> None:
         n = self.counters.get(kind, 0) + 1
         self.counters[kind] = n
-        if n == 10 ** (len(str(n)) - 1):  # 1, 10, 100, ...: logs thin out under a flood
+        # 1, 10, 100, ...: logs thin out under a flood; a count an earlier pass told is not
+        if n == 10 ** (len(str(n)) - 1) and n > self._told.get(kind, 0):
+            self._told[kind] = n
             log.log(level, "%s: %s (%d so far)", kind, detail, n)
 
     def _time(self, timestamp: float) -> float:
