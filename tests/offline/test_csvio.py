@@ -225,6 +225,21 @@ def test_step_back_that_is_no_restart_names_its_line(tmp_path: Path) -> None:
         read_tester_csv(p)
 
 
+@pytest.mark.parametrize(
+    "header",
+    [
+        "t_s,current_A,voltage_V,voltage_V",
+        "t_s,current_A,v_cell_01,V_CELL_01",
+        "t_s,t_s,current_A,voltage_V",
+    ],
+)
+def test_a_column_named_twice_is_refused_not_guessed(tmp_path: Path, header: str) -> None:
+    """Two voltage_V columns were read silently, the first used (a sweep)."""
+    p = _write(tmp_path / "twice.csv", header + "\n0,1,3.7,3.8\n1,1,3.7,3.8\n")
+    with pytest.raises(UserError, match=r"appear more than once in the header: which is meant"):
+        read_tester_csv(p)
+
+
 @pytest.mark.parametrize("gz", [False, True])
 def test_a_windows_1252_export_reads_as_its_utf8_twin(tmp_path: Path, gz: bool) -> None:
     """Arbin's Windows software writes "Temperature(°C)" in Windows-1252: the file failed

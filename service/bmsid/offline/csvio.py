@@ -354,6 +354,10 @@ class _TimeCleaner:
         return t, found
 
 
+#: The columns bmsid reads by name (lower case), besides v_cell_NN: one of each.
+_KNOWN_COLUMNS = ("t_s", "current_a", "voltage_v", "temperature_c")
+
+
 @dataclass(frozen=True)
 class _Layout:
     """Where a file's columns are: the header as mapped, the separator, the scales."""
@@ -384,6 +388,12 @@ def _layout(path: Path, first: str, columns: Mapping[str, ColumnMap] | None) -> 
         raise UserError(
             f"{path}: missing column(s) {names}; found: {', '.join(header)} "
             "(other names: --columns t_s=NAME,current_A=NAME,voltage_V=NAME)"
+        )
+    used = [k for k in keys if k in _KNOWN_COLUMNS or _CELL_RE.match(k)]
+    if twice := sorted({header[keys.index(k)] for k in used if used.count(k) > 1}):
+        raise UserError(
+            f"{path}: column(s) {', '.join(twice)} appear more than once in the header: which "
+            "is meant? rename one, or map one with --columns"
         )
     cell_cols = [j for _, j in cells] if cells else [keys.index("voltage_v")]
     return _Layout(header, keys, sep, scales, cell_cols)
