@@ -240,6 +240,21 @@ def test_a_column_named_twice_is_refused_not_guessed(tmp_path: Path, header: str
         read_tester_csv(p)
 
 
+def test_a_row_of_units_under_the_header_is_skipped(tmp_path: Path) -> None:
+    """Testers write units under the names ("s,A,V"): it stopped the run ("line 2" non-numeric,
+    no hint). It is skipped; later lines keep their file line numbers in messages."""
+    p = _write(tmp_path / "units.csv", "t_s,current_A,voltage_V\ns,A,V\n0,1,3.7\n1,1,3.69\n")
+    d = read_tester_csv(p)
+    np.testing.assert_array_equal(d.t_s, [0.0, 1.0])
+    bad = _write(tmp_path / "bad.csv", "t_s,current_A,voltage_V\n[s],[A],[V]\n0,1,3.7\n1,x,3.69\n")
+    with pytest.raises(UserError, match=r"line\(s\) 4"):
+        read_tester_csv(bad)
+    text = _write(
+        tmp_path / "time.csv", "t_s,current_A,voltage_V\n00:00:00,1,3.7\n00:00:01,1,3.6\n"
+    )
+    assert read_tester_csv(text).t_s.tolist() == [0.0, 1.0]  # a time as text is a row
+
+
 @pytest.mark.parametrize("gz", [False, True])
 def test_a_windows_1252_export_reads_as_its_utf8_twin(tmp_path: Path, gz: bool) -> None:
     """Arbin's Windows software writes "Temperature(°C)" in Windows-1252: the file failed

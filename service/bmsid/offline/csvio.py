@@ -358,6 +358,16 @@ class _TimeCleaner:
 _KNOWN_COLUMNS = ("t_s", "current_a", "voltage_v", "temperature_c")
 
 
+def _units_row(line: str, sep: str, used: set[int], n_fields: int) -> bool:
+    """The line under the header names units ("s,A,V", "[s];[mA];[V]"): no field bmsid reads
+    holds a digit (a time as text does, "00:00:01"; an empty or NaN reading is a row)."""
+    parts = [x.strip().strip('"') for x in line.split(sep)]
+    if len(parts) != n_fields:
+        return False
+    read = [parts[j] for j in used]
+    return all(x and x.lower() != "nan" and not any(ch.isdigit() for ch in x) for x in read)
+
+
 @dataclass(frozen=True)
 class _Layout:
     """Where a file's columns are: the header as mapped, the separator, the scales."""
@@ -468,10 +478,16 @@ def iter_tester_csv(
     used = {keys.index("t_s"), keys.index("current_a"), *lay.cell_cols}
     if has_temp:
         used.add(keys.index("temperature_c"))
+    row0 = 0
+    second = next(lines, None)
+    if second is not None and _units_row(second, lay.sep, used, len(header)):
+        log.info("%s: line 2 (%s) read as a row of units and skipped", p, second.strip())
+        row0 = 1
+    elif second is not None:
+        lines = itertools.chain([second], lines)
     cleaner = _TimeCleaner(p)
     time_form: str | None = None  # "numbers" or a timetext form, fixed by the first piece
     held: TesterData | None = None
-    row0 = 0
     checked_mv = False
     n_fields = len(header)
     rows_per_piece = chunk_rows or chunk_rows_for(n_fields)
