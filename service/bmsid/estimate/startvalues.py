@@ -98,8 +98,9 @@ def step_resistances(
     t_s: FloatArray, current_A: FloatArray, voltage_V: FloatArray, max_dt_s: float = MAX_STEP_DT_S
 ) -> FloatArray:
     """``-dV/dI`` (ohm) at every current step of one cell's record (Eq. 9 with the branches
-    frozen over one sample, or over ``STEP_SPACING_S`` for faster samples); NaN samples and
-    steps over long intervals are left out."""
+    frozen over one sample, or, where that finds too few on samples faster than
+    ``STEP_SPACING_S``, over about ``STEP_SPACING_S``); NaN samples and steps over long
+    intervals are left out."""
     t, i, v = (np.asarray(x, dtype=np.float64) for x in (t_s, current_A, voltage_V))
     ok = np.isfinite(t) & np.isfinite(i) & np.isfinite(v)
     t, i, v = t[ok], i[ok], v[ok]
@@ -107,11 +108,20 @@ def step_resistances(
         return np.zeros(0)
     keep = t - t[0] <= PROBE_S
     t, i, v = t[keep], i[keep], v[keep]
-    k = _step_lag(t)
-    if k > 1:  # fast samples: every k-th, so a ramped step lies within one difference
-        t, i, v = t[::k], i[::k], v[::k]
-    di, dv, dt = np.diff(i), np.diff(v), np.diff(t)
     big = max(STEP_SHARE * float(np.percentile(np.abs(i), 95)), MIN_STEP_A)
+    r = _steps(t, i, v, big, max_dt_s)
+    k = _step_lag(t)
+    if r.shape[0] < MIN_STEPS and k > 1:
+        # fast samples whose steps ramp over several (100 Hz): every k-th, so a step lies
+        # within one difference. Only then: a record whose time unit is not seconds yet
+        # (hours read as seconds, for the time-unit check) keeps its one-sample steps.
+        r = _steps(t[::k], i[::k], v[::k], big, max_dt_s)
+    return r
+
+
+def _steps(t: FloatArray, i: FloatArray, v: FloatArray, big: float, max_dt_s: float) -> FloatArray:
+    """``-dV/dI`` (ohm) where the current moves by ``big`` (A) or more between samples."""
+    di, dv, dt = np.diff(i), np.diff(v), np.diff(t)
     step = (np.abs(di) >= big) & (dt > 0) & (dt <= max_dt_s)
     r = -dv[step] / di[step]
     return np.asarray(r[np.isfinite(r) & (r > 0)], dtype=np.float64)
