@@ -116,3 +116,16 @@ def test_one_second_records_difference_every_sample_as_before() -> None:
         r = -dv[step] / di[step]
         expected = r[np.isfinite(r) & (r > 0)]
         assert np.array_equal(step_resistances(t, i, v), expected)
+
+
+def test_a_cell_absent_from_the_record_does_not_hold_the_start_values_back() -> None:
+    """A daemon configured for 8 cells on a bus carrying 4 held its samples for 1800 s and then
+    said "no current steps": the absent cells' zero steps were the pooled count. The cells
+    that read a voltage give the start values; a record with none gives none."""
+    t = np.arange(120.0)
+    i = np.where((t // 10) % 2 == 0, 2.0, 0.0)
+    v_live = 3.7 - 0.05 * i
+    v = np.stack([v_live, v_live, np.full_like(t, np.nan)], axis=1)
+    sv = start_values_from_record(t, i, v)
+    assert sv is not None and sv.R0_ohm == pytest.approx(0.05) and sv.n_steps >= 10
+    assert start_values_from_record(t, i, np.full((t.size, 2), np.nan)) is None

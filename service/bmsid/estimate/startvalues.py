@@ -140,11 +140,13 @@ def start_values_from_record(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray
 ) -> StartValues | None:
     """Start values from a record (time s, current A + = discharge, voltages V of shape (n,)
-    or (n, n_cells), pooled over the cells); None when it holds fewer than ``MIN_STEPS``
+    or (n, n_cells), pooled over the cells that read a voltage: a cell absent from the bus
+    must not hold every other's start back); None when it holds fewer than ``MIN_STEPS``
     current steps."""
     v = np.asarray(voltages_V, dtype=np.float64)
     v = v[:, None] if v.ndim == 1 else v
-    rs = [step_resistances(t_s, current_A, v[:, c]) for c in range(v.shape[1])]
+    present = [c for c in range(v.shape[1]) if np.isfinite(v[:, c]).any()]
+    rs = [step_resistances(t_s, current_A, v[:, c]) for c in present]
     r = np.concatenate(rs) if rs else np.zeros(0)
     n = min((x.shape[0] for x in rs), default=0)
     if n < MIN_STEPS:
