@@ -266,7 +266,8 @@ class BankHost:
         self.bank = self._fresh_bank()
         #: a fresh state: what a restored or saved one must look like (state_problem)
         self._reference = self.bank.state_dict()
-        # Limits from the OCV curve and capacity: the same whatever start values are measured.
+        # Limits from the OCV curve, capacity and configured start R0 (v_frozen): the same
+        # whatever start values the record then gives.
         limits = self.spec.gates.for_model(self.bank.model, self.spec.tuning.gap_s)
         self.gate = InputGate(limits, self.spec.n_cells)
         log.info("input gates: %s", limits.describe())
