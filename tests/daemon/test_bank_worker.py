@@ -138,6 +138,29 @@ def test_each_tick_publishes_with_the_completion_time_of_its_own_sample(tmp_path
     assert [(m.payload, m.t_sample_mono) for m in got.messages] == want_msgs
 
 
+@pytest.mark.parametrize(("r_ohm", "warned"), [(0.002, False), (0.07, True)])
+def test_a_cell_config_that_does_not_fit_the_pack_is_said_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, r_ohm: float, warned: bool
+) -> None:
+    """A 2 Ah pack run with the default 70 Ah cell published wrong SOC and parameters for hours
+    and nothing said why (a sweep). The first samples' current steps measure R0: 10x or more
+    from the cell config's start R0, one WARNING names estimator.cell; near it, nothing."""
+    host = BankHost(_spec(tmp_path, restore=False))
+    host.start()
+    with caplog.at_level(logging.WARNING, logger="bmsid.daemon.bank_worker"):
+        for t0 in range(0, 1200, 100):
+            block = _samples(float(t0), 100)
+            v = 3.7 - r_ohm * block.current_A[:, None] + 0.0 * block.cell_voltages_V
+            host.update(SampleBlock.from_arrays(block.t_s, block.current_A, v))
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("estimator.cell")]
+    assert len(said) == (1 if warned else 0), said
+    if warned:
+        assert (
+            "the cells measure R0 70 mOhm" in said[0]
+            and "is the cell config this pack's" in said[0]
+        )
+
+
 def test_only_the_newest_estimate_returns_unless_all_are_kept(tmp_path: Path) -> None:
     host = BankHost(_spec(tmp_path, restore=False))
     host.start()

@@ -72,7 +72,12 @@ from bmsid.daemon.start_refit import StartHead
 from bmsid.daemon.statedir import atomic_write, quarantine
 from bmsid.errors import UserError
 from bmsid.estimate.start_fit import WINDOW_S
-from bmsid.estimate.startvalues import MIN_STEPS, StartValues, start_values_from_record
+from bmsid.estimate.startvalues import (
+    MIN_STEPS,
+    StartValues,
+    r0_misfit,
+    start_values_from_record,
+)
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import Estimates
 from bmsid.gates import GateConfig, InputGate
@@ -243,6 +248,9 @@ class BankHost:
     start_values: StartValues | None = None
     _probe: list[SampleBlock] = field(default_factory=list)
     _probing: bool = False
+    #: the first samples, until their current steps tell whether the cell config fits them
+    _fit: list[SampleBlock] | None = field(default_factory=list)
+    _config_r0_ohm: float = 0.0
     #: a fresh start's first samples, for the start SOC fit (``daemon/start_refit.py``)
     _head: StartHead | None = None
     #: called between ticks of a long call, at most every HEARTBEAT_S (set by the worker)
@@ -264,6 +272,8 @@ class BankHost:
         log.debug("bank: BLAS threads %s", blas_threads())
         jit.select("numpy" if self.spec.kernels == "numpy" else None)
         self.bank = self._fresh_bank()
+        # the config's own start R0 (or its capacity rule's), before any measured start value
+        self._config_r0_ohm = float(np.median(self.bank.model.start("R0_ohm")))
         #: a fresh state: what a restored or saved one must look like (state_problem)
         self._reference = self.bank.state_dict()
         # Limits from the OCV curve, capacity and configured start R0 (v_frozen): the same
@@ -439,12 +449,28 @@ class BankHost:
         """Feed a block of samples to the bank, in order, in chunks of about one tick."""
         self._beat_t = time.monotonic()
         block = self.gate.apply(block)
+        if self._fit is not None:
+            self._check_cell_fit(block)
         if self._probing:
             held = self._probe_block(block)
             if held is None:
                 return self._result([], [])
             block = held
         return self._feed(block)
+
+    def _check_cell_fit(self, block: SampleBlock) -> None:
+        """Once, on the first samples with enough current steps (at most ``PROBE_LIMIT_S``):
+        a WARNING when the cells' measured R0 and the cell config's start R0 are far apart."""
+        assert self._fit is not None
+        self._fit.append(block)
+        seen = SampleBlock.concat(self._fit)
+        found = start_values_from_record(seen.t_s, seen.current_A, seen.cell_voltages_V)
+        if found is None and _span_s(seen) < PROBE_LIMIT_S and len(seen) < PROBE_LIMIT_SAMPLES:
+            return
+        self._fit = None
+        why = None if found is None else r0_misfit(found, self._config_r0_ohm)
+        if why is not None:
+            log.warning("estimator.cell: %s", why)
 
     def release_held(self) -> BatchResult:
         """At stop: the samples still held for the start values go through the bank with the

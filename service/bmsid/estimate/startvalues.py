@@ -18,6 +18,7 @@ transient runs to them. What the record says is better:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -160,4 +161,25 @@ def start_values_from_record(
         tau2_s=300.0,
         n_steps=n,
         source=f"median -dV/dI over {n} current steps of the record",
+    )
+
+
+#: Measured and configured R0 this many times apart: the config is not the pack's cells' (a
+#: 2 Ah cell under the 70 Ah default: 60x); temperature alone moves R0 by 2-5x.
+R0_MISFIT_FACTOR = 10.0
+
+
+def r0_misfit(found: StartValues, config_r0_ohm: float) -> str | None:
+    """Why a cell config does not fit the cells measured (``found``: their step resistance)
+    when that R0 and the config's start R0 are ``R0_MISFIT_FACTOR`` or more apart, else None.
+    A pack of 2 Ah cells run with the default 70 Ah cell (R0 73 against 1.2 mOhm) published
+    wrong SOC and parameters for hours, and nothing said why (a sweep)."""
+    ratio = found.R0_ohm / config_r0_ohm if config_r0_ohm > 0 else math.inf
+    if 1.0 / R0_MISFIT_FACTOR < ratio < R0_MISFIT_FACTOR:
+        return None
+    return (
+        f"the cells measure R0 {1e3 * found.R0_ohm:.4g} mOhm over {found.n_steps} current "
+        f"steps, {ratio:.3g}x the cell config's start value {1e3 * config_r0_ohm:.4g} mOhm: is "
+        "the cell config this pack's? (its capacity, OCV and bounds drive SOC and every "
+        "parameter; bmsid fit-ocv makes one)"
     )
