@@ -584,6 +584,23 @@ def test_mqtt_settings_combinations(tmp_path: Path, extra: str, words: str) -> N
         load_settings(_config(tmp_path, text))
 
 
+@pytest.mark.parametrize(
+    ("url", "words"),
+    [
+        ("127.0.0.1:1883", "has no scheme: write mqtt://HOST"),
+        ("localhost", "has no scheme: write mqtt://HOST"),
+        ("mqtt://127.0.0.1:188400", "url port: Port out of range"),
+        ("http://broker", "url scheme must be one of"),
+    ],
+)
+def test_a_bad_url_names_mqtt_url_and_what_to_write(tmp_path: Path, url: str, words: str) -> None:
+    """A sweep: a URL without a scheme or with a port out of range said "field mqtt", and for
+    a bare host:port "got ''" as the scheme."""
+    text = GOOD.replace("mqtts://broker.example:8883", url)
+    with pytest.raises(UserError, match=rf"field mqtt\.url: .*{words}"):
+        load_settings(_config(tmp_path, text))
+
+
 def test_tls_files_need_mqtts_and_password_needs_username(tmp_path: Path) -> None:
     plain = GOOD.replace("mqtts://broker.example:8883", "mqtt://broker.example:1883")
     for extra in ('ca_file = "ca.pem"', "tls_insecure = true"):

@@ -16,7 +16,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Self
 from urllib.parse import urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic.functional_validators import AfterValidator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
@@ -153,6 +161,27 @@ class HomeAssistantSettings(_Strict):
     """Home Assistant's discovery prefix; same rules as ``topic_prefix``."""
 
 
+def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
+    """(host, port, tls) of an ``mqtt://``/``mqtts://`` URL; ValueError saying what to write."""
+    parts = urlsplit(url)
+    if "://" not in url:
+        raise ValueError(f"{url!r} has no scheme: write mqtt://HOST[:PORT] (mqtts:// for TLS)")
+    if parts.scheme not in MQTT_SCHEMES:
+        raise ValueError(
+            f"url scheme must be one of {', '.join(MQTT_SCHEMES)}, got {parts.scheme!r}"
+        )
+    if not parts.hostname:
+        raise ValueError(f"url {url!r} has no host")
+    if parts.path not in ("", "/") or parts.query or parts.username or parts.password:
+        raise ValueError("url takes scheme://host[:port] only (credentials go in username/...)")
+    tls = MQTT_SCHEMES[parts.scheme]
+    try:
+        port = parts.port or DEFAULT_PORTS[tls]
+    except ValueError as exc:
+        raise ValueError(f"url port: {exc}") from None
+    return parts.hostname, port, tls
+
+
 class MqttSettings(_Strict):
     """Broker connection, credentials, TLS and topics (``<topic_prefix>/<pack_id>/...``)."""
 
@@ -220,23 +249,15 @@ class MqttSettings(_Strict):
             raise ValueError("reconnect_min_s must be <= reconnect_max_s")
         return self
 
+    @field_validator("url")
+    @classmethod
+    def _check_url(cls, url: str) -> str:
+        parse_mqtt_url(url)  # its errors name mqtt.url, not the whole section
+        return url
+
     def endpoint(self) -> tuple[str, int, bool]:
         """(host, port, tls) of ``url``."""
-        parts = urlsplit(self.url)
-        if parts.scheme not in MQTT_SCHEMES:
-            raise ValueError(
-                f"url scheme must be one of {', '.join(MQTT_SCHEMES)}, got {parts.scheme!r}"
-            )
-        if not parts.hostname:
-            raise ValueError(f"url {self.url!r} has no host")
-        if parts.path not in ("", "/") or parts.query or parts.username or parts.password:
-            raise ValueError("url takes scheme://host[:port] only (credentials go in username/...)")
-        tls = MQTT_SCHEMES[parts.scheme]
-        try:
-            port = parts.port or DEFAULT_PORTS[tls]
-        except ValueError as exc:
-            raise ValueError(f"url port: {exc}") from None
-        return parts.hostname, port, tls
+        return parse_mqtt_url(self.url)
 
     def password_value(self) -> str | None:
         """The password, read from ``password_file`` when set (trailing newline stripped).
