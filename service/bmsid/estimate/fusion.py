@@ -301,7 +301,14 @@ class FusionStage:
                 self.counters["swarms_rejected"] += 1
                 return
         self.tau1[c], self.tau2[c] = taus
-        self.theta[c] = self._clamp_linear((fit.theta[0] / sc)[None, :], rows=slice(c, c + 1))[0]
+        th = fit.theta[0].copy()
+        # Columns the fit does not estimate come back 0: held, not clamped (the M scale's 0 -> 1
+        # flagged every swarm's cell out_of_bounds for a tick: quality and health flickered)
+        if not self._fit_scale:
+            th[3] = 1.0
+        if not tun.identify_ocv_offset:
+            th[4] = 0.0
+        self.theta[c] = self._clamp_linear((th / sc)[None, :], rows=slice(c, c + 1))[0]
         restart, keep_r0 = self._no_hysteresis or tun.swarm_rls_restart, not self._no_hysteresis
         P = swarm_covariance(fit.cov[0], tun, self._fit_scale, restart=restart, keep_r0=keep_r0)
         self.P[c] = fusion_covariance(P)
