@@ -17,6 +17,8 @@ from hypothesis import strategies as st
 
 from bmsid.config.cell import paper_cell
 from bmsid.config.engine import cell_model
+from bmsid.daemon.demo_data import DEMO_LOG
+from bmsid.estimate import jit
 from bmsid.estimate.guard import (
     CAUSE_ERROR,
     CAUSE_PARAMS,
@@ -28,6 +30,7 @@ from bmsid.estimate.guard import (
 from bmsid.estimate.publish_average import PublishAverage
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import Quality
+from bmsid.offline.identify import IdentifySpec, identify_file
 
 FloatArray = np.ndarray
 
@@ -610,3 +613,20 @@ def test_a_branch_held_on_its_bound_does_not_let_the_other_cross_it() -> None:
     out, q, _ = g.apply(2.0, cells_of(1, tau1_s=22.0, tau2_s=20.0, R0_ohm=2e-3), q_of(1), NO)
     assert (out["tau1_s"][0], out["tau2_s"][0], out["R0_ohm"][0]) == (18.0, 21.4, 2e-3)
     assert out["C1_F"][0] == 18.0 / START["R1_ohm"] and q[0] == Quality.OUT_OF_BOUNDS
+
+
+@pytest.mark.parametrize("kernels", ["numpy", "compiled"])
+def test_no_cell_is_out_of_bounds_without_a_parameter_on_a_bound(kernels: str) -> None:
+    """Found by a sweep of the daemon: every swarm flagged its cell ``out_of_bounds`` for one
+    tick (the fit's unestimated M-scale column, 0, "clamped" to the held 1), and its published
+    values were held: 44 flickers in the demo hour, pack health bit 4 flapping every 10 min
+    per cell. An out_of_bounds tick must name the parameter on its bound (``on_bound``)."""
+    before = jit.MODE
+    try:
+        jit.select(kernels)
+        res = identify_file(DEMO_LOG, IdentifySpec(paper_cell()))
+    finally:
+        jit.restore(before)
+    assert res.counters["swarms"] >= 40
+    oob = res.trace.quality == Quality.OUT_OF_BOUNDS
+    assert np.all(res.trace["on_bound"][oob] != 0), int(oob.sum())
