@@ -246,10 +246,10 @@ class BankHost:
 
     #: start values measured on the first samples (None: the config's or the capacity rule's)
     start_values: StartValues | None = None
-    _probe: list[SampleBlock] = field(default_factory=list)
+    #: the first samples, until their current steps measure R0 (or ``PROBE_LIMIT_S``): held
+    #: from the bank while ``_probing``, and checked against the cell config either way
+    _first: list[SampleBlock] | None = field(default_factory=list)
     _probing: bool = False
-    #: the first samples, until their current steps tell whether the cell config fits them
-    _fit: list[SampleBlock] | None = field(default_factory=list)
     _config_r0_ohm: float = 0.0
     #: a fresh start's first samples, for the start SOC fit (``daemon/start_refit.py``)
     _head: StartHead | None = None
@@ -303,27 +303,34 @@ class BankHost:
             s.cell, s.n_cells, s.variant, s.tuning, soc0=s.soc0, start=self.start_values
         )
 
-    def _probe_block(self, block: SampleBlock) -> SampleBlock | None:
-        """Hold samples until the start values are measured; then the held samples, to feed."""
-        if not self._probe:  # nothing is published meanwhile: say why, and for how long
+    def _measure_first(self, block: SampleBlock) -> tuple[SampleBlock, StartValues | None] | None:
+        """Add ``block`` to the first samples; once their current steps measure the start
+        values (or ``PROBE_LIMIT_S`` of samples passed): those samples and what they measured
+        (None: too few steps), with a WARNING when that R0 and the cell config's start R0 are
+        far apart (``r0_misfit``); before that, None."""
+        assert self._first is not None
+        if not self._first and self._probing:  # nothing is published meanwhile: say why
             log.info(
                 "holding samples until %d current steps measure the start values (at most "
                 "%.0f s of samples)",
                 MIN_STEPS,
                 PROBE_LIMIT_S,
             )
-        self._probe.append(block)
-        held = SampleBlock.concat(self._probe)
-        found = start_values_from_record(held.t_s, held.current_A, held.cell_voltages_V)
-        span = _span_s(held)
-        if found is None and span < PROBE_LIMIT_S and len(held) < PROBE_LIMIT_SAMPLES:
+        self._first.append(block)
+        seen = SampleBlock.concat(self._first)
+        found = start_values_from_record(seen.t_s, seen.current_A, seen.cell_voltages_V)
+        if found is None and _span_s(seen) < PROBE_LIMIT_S and len(seen) < PROBE_LIMIT_SAMPLES:
             return None
-        return self._end_probe(held, found, span)
+        self._first = None
+        why = None if found is None else r0_misfit(found, self._config_r0_ohm)
+        if why is not None:
+            log.warning("estimator.cell: %s", why)
+        return seen, found
 
-    def _end_probe(self, held: SampleBlock, found: StartValues | None, span: float) -> SampleBlock:
+    def _end_probe(self, held: SampleBlock, found: StartValues | None) -> SampleBlock:
         """Start the bank from ``found`` (None: the fallback values); ``held`` is to feed."""
         self._probing = False
-        self._probe = []
+        span = _span_s(held)
         self.start_values = found
         if found is None:
             log.warning(
@@ -449,43 +456,28 @@ class BankHost:
         """Feed a block of samples to the bank, in order, in chunks of about one tick."""
         self._beat_t = time.monotonic()
         block = self.gate.apply(block)
-        if self._fit is not None:
-            self._check_cell_fit(block)
-        if self._probing:
-            held = self._probe_block(block)
-            if held is None:
+        measured = self._measure_first(block) if self._first is not None else None
+        if self._probing:  # the first samples are held until they measure the start values
+            if measured is None:
                 return self._result([], [])
-            block = held
+            block = self._end_probe(*measured)
         return self._feed(block)
-
-    def _check_cell_fit(self, block: SampleBlock) -> None:
-        """Once, on the first samples with enough current steps (at most ``PROBE_LIMIT_S``):
-        a WARNING when the cells' measured R0 and the cell config's start R0 are far apart."""
-        assert self._fit is not None
-        self._fit.append(block)
-        seen = SampleBlock.concat(self._fit)
-        found = start_values_from_record(seen.t_s, seen.current_A, seen.cell_voltages_V)
-        if found is None and _span_s(seen) < PROBE_LIMIT_S and len(seen) < PROBE_LIMIT_SAMPLES:
-            return
-        self._fit = None
-        why = None if found is None else r0_misfit(found, self._config_r0_ohm)
-        if why is not None:
-            log.warning("estimator.cell: %s", why)
 
     def release_held(self) -> BatchResult:
         """At stop: the samples still held for the start values go through the bank with the
         fallback start values (as at ``PROBE_LIMIT_S``), so that none is lost."""
         self._beat_t = time.monotonic()
-        if not self._probing or not self._probe:
+        if not self._probing or not self._first:
             return self._result([], [])
-        held = SampleBlock.concat(self._probe)
+        held = SampleBlock.concat(self._first)
+        self._first = None
         log.info(
             "stopping: the %d samples (%.0f s) held for the start values go through the bank now",
             len(held),
             _span_s(held),
         )
         # The latest probe found too few steps in exactly these samples: no need to look again.
-        return self._feed(self._end_probe(held, None, _span_s(held)))
+        return self._feed(self._end_probe(held, None))
 
     def _feed(self, block: SampleBlock) -> BatchResult:
         estimates: list[Estimates] = []
