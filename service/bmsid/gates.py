@@ -214,12 +214,12 @@ class GateState:
     seen: BoolArray
     valid: BoolArray
     refused: dict[str, IntArray]
+    runs: FrozenRuns
     i_refused: int = 0
     T_last_C: float = float("nan")
     tT_last_s: float = float("nan")
     T_refused: int = 0
     T_cand: tuple[float, float] = (float("nan"), float("nan"))
-    runs: FrozenRuns | None = None
 
     @classmethod
     def fresh(cls, n_cells: int) -> GateState:
@@ -305,9 +305,8 @@ def gate_block(
             accepted[first:, c], v_last[c], t_last[c] = _walk(
                 v[first:, c], t[first:], in_win[first:, c], v_last[c], t_last[c], limits
             )
-    runs = state.runs or FrozenRuns.fresh(v.shape[1])
     frozen, runs = frozen_readings(
-        t, current, v, runs, limits.frozen_min_s, limits.frozen_dI_A, limits.frozen_top_V
+        t, current, v, state.runs, limits.frozen_min_s, limits.frozen_dI_A, limits.frozen_top_V
     )
     n_frozen = (accepted & frozen).sum(axis=0)
     refused = {

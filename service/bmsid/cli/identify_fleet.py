@@ -124,8 +124,7 @@ def run_fleet(
     from_record = None
     cells_text = f"the cell config for all: {spec.output.metadata['cell_config']}"
     if args.cell_config is None and args.capacity_ah is None:
-        coeffs = None if ocv_coeffs is None else tuple(float(c) for c in ocv_coeffs)
-        from_record = fleet.CellFromRecord(coeffs, args.score_soc0)
+        from_record = fleet.CellFromRecord(args.score_soc0)
         cells_text = (
             "no --cell-config: the paper's cell, with the capacity (and an LFP-like record's "
             "OCV) read off each input where it tells them (its metrics.json: cell_config)"

@@ -179,11 +179,10 @@ class InputSummary:
 @dataclass(frozen=True)
 class CellFromRecord:
     """A fleet run without a cell config: each input's cell is read off its own head, as
-    ``bmsid identify`` of one file does (``record_cell.cell_from_record``: the capacity, an LFP
-    record's OCV), with ``ocv_coeffs`` (``--ocv-coeffs``) and the ``--score-soc0`` reference
-    (fraction) counted with that input's capacity."""
+    ``bmsid identify`` of one file does (``record_checks.check_record``: the capacity, an LFP
+    record's OCV, with ``--ocv-coeffs`` from the task's ``CheckOptions``), and the
+    ``--score-soc0`` reference (fraction) counted with that input's capacity."""
 
-    ocv_coeffs: tuple[float, ...] | None = None
     score_soc0: float | None = None
 
 

@@ -37,6 +37,7 @@ import numpy.typing as npt
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.start_relaxation import NOISE_FLOOR_V, slope_from_sums
 from bmsid.estimate.startvalues import median_step_resistance
+from bmsid.gates import GateConfig
 
 FloatArray = npt.NDArray[np.float64]
 Level = Literal["error", "warning"]
@@ -235,7 +236,7 @@ def max_excursion(q_Ah: FloatArray) -> Excursion:
 
 #: A typical current (95th percentile of |I|) beyond this many C is no cell's (the input gates'
 #: ``GateConfig.i_max_C``); within it in milliamps, the column is in milliamps.
-I_MAX_C = 30.0
+I_MAX_C = float(GateConfig.model_fields["i_max_C"].default)
 
 
 def _current_in_milliamps(current_A: FloatArray, capacity_Ah: float | None) -> Finding | None:
