@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_identify_cli import synthetic_columns, write_csv
 
 from bmsid.cli.main import main
@@ -20,7 +22,7 @@ from bmsid.config.cell import paper_cell
 from bmsid.estimate.fields import CELL_FIELDS, FIELD_NAMES
 from bmsid.estimate.types import EstimateBlock
 from bmsid.offline import outputs
-from bmsid.offline.accumulate import MinMaxDecimator
+from bmsid.offline.accumulate import MinMaxDecimator, StreamedMedian
 from bmsid.offline.csvio import iter_tester_csv, read_tester_csv
 from bmsid.offline.identify import IdentifySpec, RecordScan, identify_source, params_interval
 from bmsid.offline.inputs import open_input
@@ -143,6 +145,29 @@ def test_decimation_keeps_the_last_tick_of_each_interval(cuts: tuple[int, ...]) 
         else:
             means = [full["R0_ohm"][k == j].mean(axis=0) for j in np.unique(k)]
             np.testing.assert_allclose(out["R0_ohm"], np.array(means), rtol=1e-12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(1e-5, 5.0), min_size=1, max_size=300),
+    st.lists(st.integers(0, 299), max_size=3),
+)
+def test_the_streamed_median_is_the_median_to_its_bin_width(
+    values: list[float], cuts: list[int]
+) -> None:
+    x = np.array(values)
+    masked = np.column_stack([x, np.where(np.arange(x.size) % 3 == 0, np.nan, x)])
+    median = StreamedMedian(2, rel_width=2e-3)
+    edges = sorted({0, *(c for c in cuts if c < x.size), x.size})
+    for a, b in itertools.pairwise(edges):  # in blocks, a NaN and a masked-out value skipped
+        median.add(masked[a:b], np.ones((b - a, 2), bool) & (np.arange(a, b) != 1)[:, None])
+    for c in range(2):
+        keep = np.isfinite(masked[:, c]) & (np.arange(x.size) != 1)
+        if not keep.any():
+            assert np.isnan(median.median()[c])
+            continue
+        exact = np.sort(masked[keep, c])[(keep.sum() + 1) // 2 - 1]  # the lower median
+        assert median.median()[c] == pytest.approx(exact, rel=1.01e-3)
 
 
 def test_min_max_decimation_keeps_spikes_and_short_records_whole() -> None:

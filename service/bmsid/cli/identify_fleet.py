@@ -6,6 +6,7 @@ this module turns the options into one spec and prints what comes back."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
@@ -92,12 +93,16 @@ def spec_for(spec: IdentifySpec, path: str) -> IdentifySpec:
 
 
 def _ok_line(s: fleet.InputSummary) -> str:
-    worst = max(s.cells, key=lambda c: c.value("R0_ohm") if c.value("R0_ohm") > 0 else 0.0)
+    ranked = [c for c in s.cells if math.isfinite(c.r0_median_ohm)]
     rmse = max(c.rmse_mV for c in s.cells)
+    largest = ""
+    if ranked:
+        worst = max(ranked, key=lambda c: c.r0_median_ohm)
+        largest = f", largest median R0 {1e3 * worst.r0_median_ohm:.3f} mOhm ({worst.cell})"
     return (
         f"{s.input.given} -> {s.input.name}/: {s.n_samples} samples, {len(s.cells)} cell(s), "
-        f"RMSE up to {rmse:.2f} mV, largest R0 {1e3 * worst.value('R0_ohm'):.3f} mOhm "
-        f"({worst.cell})" + (f"; warnings: {', '.join(s.warnings)}" if s.warnings else "")
+        f"RMSE up to {rmse:.2f} mV{largest}"
+        + (f"; warnings: {', '.join(s.warnings)}" if s.warnings else "")
     )
 
 
@@ -157,9 +162,10 @@ def run_fleet(
     fleet.write_summary(root / "summary.csv", summaries, args.worst)
     weakest = fleet.weakest(summaries, args.worst)
     if weakest:
-        print(f"weakest cells (largest latest R0, fleet's {len(weakest)}):")
+        print(f"weakest cells (largest median R0 over the evaluation window, fleet's "
+              f"{len(weakest)}):")  # fmt: skip
         for s, c in weakest:
-            print(f"  {1e3 * c.value('R0_ohm'):.3f} mOhm  {c.cell}  {s.input.given}")
+            print(f"  {1e3 * c.r0_median_ohm:.3f} mOhm  {c.cell}  {s.input.given}")
     failed = [s for s in summaries if not s.ok]
     print(f"wrote {root}/summary.csv: {len(summaries) - len(failed)} of {len(summaries)} "
           f"input(s) identified, {len(failed)} failed")  # fmt: skip

@@ -53,7 +53,7 @@ INPUT_SUFFIXES = (".csv", ".csv.gz", ".log", ".log.gz")
 SUMMARY_FIELDS = ("R0_ohm", "R1_ohm", "R2_ohm", "tau1_s", "tau2_s", "soc", "capacity_Ah")
 SUMMARY_COLUMNS = (
     "input", "out_dir", "status", "error", "warnings", "cell", "t_s", *SUMMARY_FIELDS, "quality",
-    "quality_name", "rmse_mV", "input_r0_rank", "fleet_r0_rank",
+    "quality_name", "rmse_mV", "R0_median_ohm", "input_r0_rank", "fleet_r0_rank",
 )  # fmt: skip
 _GLOB_CHARS = re.compile(r"[*?\[]")
 
@@ -144,14 +144,17 @@ def fleet_inputs(arguments: Sequence[str]) -> list[FleetInput]:
 # ----------------------------------------------------------------------------- one task
 @dataclass(frozen=True)
 class CellSummary:
-    """A cell's latest published parameters (SI units, NaN where it has none), quality code and
-    the fit's RMSE over the evaluation window (mV)."""
+    """A cell's latest published parameters (SI units, NaN where it has none), quality code,
+    the fit's RMSE over the evaluation window (mV) and its median R0 there (ohm, values held on
+    a bound or after a divergence left out, ``accumulate.StreamedMedian``; NaN where none is
+    left): what cells are ranked on."""
 
     cell: str
     t_s: float
     params: tuple[float, ...]  # SUMMARY_FIELDS order
     quality: int
     rmse_mV: float
+    r0_median_ohm: float = math.nan
 
     def value(self, name: str) -> float:
         return self.params[SUMMARY_FIELDS.index(name)]
@@ -233,7 +236,9 @@ def cell_summaries(result: IdentifyResult, spec: IdentifySpec) -> tuple[CellSumm
     last = result.last_tick()
     if last is None:
         return ()
-    per_cell = result.scorer(spec.window).scores().per_cell_window
+    scorer = result.scorer(spec.window)
+    per_cell = scorer.scores().per_cell_window
+    r0_median = scorer.acc.r0_median.median()
     return tuple(
         CellSummary(
             cell=name,
@@ -241,6 +246,7 @@ def cell_summaries(result: IdentifyResult, spec: IdentifySpec) -> tuple[CellSumm
             params=tuple(float(last[f][0, c]) for f in SUMMARY_FIELDS),
             quality=int(last.quality[0, c]),
             rmse_mV=1e3 * per_cell[c].rmse_V,
+            r0_median_ohm=float(r0_median[c]),
         )
         for c, name in enumerate(result.cell_names)
     )
@@ -386,16 +392,16 @@ def _num(x: float, fmt: str = ".9g") -> str:
 
 
 def weakest(summaries: Iterable[InputSummary], n: int) -> list[tuple[InputSummary, CellSummary]]:
-    """The fleet's ``n`` cells of largest latest R0 (cells without one left out)."""
-    cells = [(s, c) for s in summaries for c in s.cells if math.isfinite(c.value("R0_ohm"))]
-    cells.sort(key=lambda sc: -sc[1].value("R0_ohm"))
+    """The fleet's ``n`` cells of largest median R0 (cells without one left out)."""
+    cells = [(s, c) for s in summaries for c in s.cells if math.isfinite(c.r0_median_ohm)]
+    cells.sort(key=lambda sc: -sc[1].r0_median_ohm)
     return cells[:n]
 
 
 def summary_rows(summaries: Sequence[InputSummary], worst: int) -> list[dict[str, str]]:
     """Rows of summary.csv in ``summaries`` order: one per cell of an identified input
-    (``input_r0_rank`` 1 = the input's largest R0; ``fleet_r0_rank`` 1..``worst`` for the
-    fleet's largest), one with ``status`` failed and the ``error`` per failed input."""
+    (``input_r0_rank`` 1 = the input's largest median R0; ``fleet_r0_rank`` 1..``worst`` for
+    the fleet's largest), one with ``status`` failed and the ``error`` per failed input."""
     fleet_rank = {
         (s.input.path, c.cell): k + 1 for k, (s, c) in enumerate(weakest(summaries, worst))
     }
@@ -405,7 +411,7 @@ def summary_rows(summaries: Sequence[InputSummary], worst: int) -> list[dict[str
         if not s.ok:
             rows.append({**head, "status": "failed", "error": s.error or ""})
             continue
-        r0 = np.array([c.value("R0_ohm") for c in s.cells])
+        r0 = np.array([c.r0_median_ohm for c in s.cells])
         order = sorted(
             (k for k in range(len(s.cells)) if math.isfinite(r0[k])), key=lambda k: -r0[k]
         )
@@ -416,7 +422,8 @@ def summary_rows(summaries: Sequence[InputSummary], worst: int) -> list[dict[str
                 "cell": c.cell, "t_s": _num(c.t_s, ".3f"),
                 **{f: _num(c.value(f)) for f in SUMMARY_FIELDS},
                 "quality": str(c.quality), "quality_name": Quality(c.quality).name.lower(),
-                "rmse_mV": _num(c.rmse_mV), "input_r0_rank": str(rank.get(k, "")),
+                "rmse_mV": _num(c.rmse_mV), "R0_median_ohm": _num(c.r0_median_ohm),
+                "input_r0_rank": str(rank.get(k, "")),
                 "fleet_r0_rank": str(fleet_rank.get((s.input.path, c.cell), "")),
             })  # fmt: skip
     return rows
