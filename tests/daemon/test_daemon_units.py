@@ -12,7 +12,7 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 import pytest
-from daemon_helpers import SCHEMA_DIR
+from daemon_helpers import SCHEMA_DIR, make_settings
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -20,6 +20,7 @@ from bmsid.config.cell import paper_cell
 from bmsid.config.engine import build_bank
 from bmsid.daemon.canout import CellCycler, frame_bits, frames_budget, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.daemon.core import Daemon
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.errors import UserError
 from bmsid.estimate.bank import EstimatorBank
@@ -228,6 +229,21 @@ def test_docs_carry_the_published_schemas() -> None:
         jsonschema.Draft202012Validator.check_schema(
             json.loads((SCHEMA_DIR / f"{name}.json").read_text())
         )
+
+
+def test_docs_status_example_is_a_whole_payload(tmp_path: Path) -> None:
+    """docs/mqtt.md's status example validates and carries every field an online status has
+    (it lacked mqtt, soc_init and inputs) and every counter the daemon sends with MQTT on."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "mqtt.md").read_text(encoding="utf-8")
+    example = json.loads(doc.split("## Status", 1)[1].split("```json", 1)[1].split("```", 1)[0])
+    schema = json.loads((SCHEMA_DIR / "status.json").read_text())
+    jsonschema.Draft202012Validator(schema).validate(example)
+    assert set(example) == set(schema["properties"])
+    daemon = Daemon(make_settings(tmp_path, 1883))
+    counters = list(daemon.snapshot())  # before run(): without the MQTT client's five
+    mqtt = ["publishes", "mqtt_drops", "mqtt_backlog", "mqtt_reconnects", "mqtt_connect_failures"]
+    assert list(example["counters"]) == counters + mqtt
+    assert set(example["lifetime"]) == set(daemon.lifetime())
 
 
 def test_an_outbox_backlog_adds_no_work_for_the_garbage_collector() -> None:
