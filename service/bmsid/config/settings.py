@@ -365,6 +365,19 @@ class Settings(BaseSettings):
         }
         return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
+    def config_parts(self, cell: CellConfig) -> dict[str, str]:
+        """The estimator parts ``config_hash`` covers, each as text a checkpoint header keeps
+        to name what changed (the variant as it is, tuning and cell config as hashes)."""
+
+        def digest(data: Any) -> str:
+            return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
+
+        return {
+            "variant": self.estimator.variant,
+            "tuning": digest(self.estimator.tuning.model_dump(mode="json")),
+            "cell": f"{cell.name} {digest(cell.model_dump(mode='json'))}",
+        }
+
     def redacted(self) -> dict[str, Any]:
         """The effective settings as plain data, secrets shown as ``**********``."""
         data: dict[str, Any] = self.model_dump(mode="json", exclude_none=True)

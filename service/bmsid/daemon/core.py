@@ -116,7 +116,12 @@ class Daemon:
         self.cycler: CellCycler = plan_output(
             cs.n_cells, frames_per_cell, bits, cs.bitrate_bps, cs.max_bus_share, cs.output_period_s
         )
-        self.ckpt_key = CheckpointKey(settings.pack_id, cs.n_cells, settings.config_hash(self.cell))
+        self.ckpt_key = CheckpointKey(
+            settings.pack_id,
+            cs.n_cells,
+            settings.config_hash(self.cell),
+            settings.config_parts(self.cell),
+        )
         self.ckpt_path = settings.state.directory / f"{settings.pack_id}.ckpt.npz"
         self.spool_path = settings.state.directory / f"{settings.pack_id}.spool"
         #: messages of the spool loaded at start; the file goes once they left the outbox
