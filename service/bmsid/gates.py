@@ -84,7 +84,10 @@ class GateConfig(BaseModel):
     """The gates' settings (``[gates]`` in the daemon's TOML); the defaults derive every limit
     from the cell config, so a pack of another chemistry needs no change here."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    # strict: part of the daemon TOML, where a quoted number is refused, not coerced
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, use_attribute_docstrings=True
+    )
 
     enabled: bool = True
     """Gate the readings (False: every finite reading reaches the estimators, as before)."""

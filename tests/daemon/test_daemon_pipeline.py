@@ -173,6 +173,38 @@ def test_malformed_frame_flood_changes_no_estimate(
     assert snap["samples"] == daemon.bank_counters["samples"]
 
 
+def test_status_counters_after_a_restart_count_this_process(tmp_path: Path) -> None:
+    """After a restore every status counter counts since the process started (ticks and swarms
+    once included the checkpoint's totals, frames and samples did not); the state's totals are
+    in ``lifetime``."""
+    settings = make_settings(tmp_path, None)
+    everything = demo_frames(900.0)
+    first_frames = demo_frames(450.0)
+    seen: dict[str, Any] = {}
+
+    async def look(d: Daemon) -> None:
+        seen["snap"], seen["status"] = d.snapshot(), json.loads(d._online_payload())
+
+    async def run(frames: list[can.Message]) -> Daemon:
+        daemon = Daemon(settings)
+        await run_with_frames(daemon, frames, after=look)
+        return daemon
+
+    first = asyncio.run(run(first_frames))
+    before = first.lifetime()
+    assert before["ticks"] > 0 and before["swarms"] > 0
+    second = asyncio.run(run(everything[len(first_frames) :]))
+    assert second.restored
+    snap, status = seen["snap"], seen["status"]
+    _validators()["status"].validate(status)
+    after = status["lifetime"]
+    assert snap["frames"] == len(everything) - len(first_frames)
+    assert snap["samples"] == after["samples"] - before["samples"] > 0
+    assert snap["ticks"] == after["ticks"] - before["ticks"] > 0
+    assert snap["swarms"] == after["swarms"] - before["swarms"]
+    assert status["counters"] == snap and after == second.lifetime()
+
+
 def test_broker_outage_loses_no_message(
     tmp_path: Path, mosquitto_factory: Any, require_tool: Any, request: pytest.FixtureRequest
 ) -> None:

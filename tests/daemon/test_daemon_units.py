@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import json
+import logging
 import os
 import socket
 from pathlib import Path
@@ -12,14 +13,16 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 import pytest
-from daemon_helpers import SCHEMA_DIR
+from daemon_helpers import SCHEMA_DIR, make_settings
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bmsid.config.cell import paper_cell
+from bmsid.config.cell import CellConfig, paper_cell
 from bmsid.config.engine import build_bank
+from bmsid.config.settings import Settings
 from bmsid.daemon.canout import CellCycler, frame_bits, frames_budget, plan_output
 from bmsid.daemon.checkpoint import CheckpointKey, load_checkpoint, save_checkpoint
+from bmsid.daemon.core import Daemon
 from bmsid.daemon.sdnotify import SdNotifier
 from bmsid.errors import UserError
 from bmsid.estimate.bank import EstimatorBank
@@ -71,6 +74,41 @@ def test_checkpoint_for_another_setup_is_ignored(tmp_path: Path, other: Checkpoi
     assert load_checkpoint(path, other) is None
     ck = load_checkpoint(path, KEY)
     assert ck is not None and ck.state["n"] == {"y": 1.5, "s": "z"}
+
+
+def test_checkpoint_of_another_setup_names_what_differs(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """One readable line naming the changed parts (it printed both keys as Python dicts, the
+    config as a bare hash)."""
+    cell = paper_cell()
+
+    def key(s: Settings, c: CellConfig = cell) -> CheckpointKey:
+        return CheckpointKey(s.pack_id, s.can.n_cells, s.config_hash(c), s.config_parts(c))
+
+    was = make_settings(tmp_path, None)
+    now = make_settings(
+        tmp_path, None, can={"n_cells": 4}, estimator={"variant": "hy-affrls", "tuning": {}}
+    )
+    path = tmp_path / "c.npz"
+    save_checkpoint(path, key(was), {"x": np.arange(3.0)})
+    other_cell = cell.model_copy(update={"name": "my-cell"})
+    with caplog.at_level(logging.WARNING, logger="bmsid.daemon.checkpoint"):
+        assert load_checkpoint(path, key(now)) is None
+        assert load_checkpoint(path, key(was, other_cell)) is None
+        assert load_checkpoint(path, CheckpointKey("p1", was.can.n_cells, "old")) is None
+        save_checkpoint(path, KEY, {"x": np.arange(3.0)})  # a header without the parts
+        assert load_checkpoint(path, CheckpointKey("p1", 3, "xyz")) is None
+    assert [r.getMessage() for r in caplog.records] == [
+        f"checkpoint {path} is for another setup (n_cells {was.can.n_cells}, not 4; "
+        "estimator.variant 'hy-affrls-lpso', not 'hy-affrls'; estimator.tuning changed): "
+        "starting fresh",
+        f"checkpoint {path} is for another setup (cell config '{cell.name}', not 'my-cell'): "
+        "starting fresh",
+        f"checkpoint {path} is for another setup (pack_id 'testpack', not 'p1'): starting fresh",
+        f"checkpoint {path} is for another setup (estimator.variant, estimator.tuning or the "
+        "cell config changed): starting fresh",
+    ]
 
 
 def test_corrupt_or_missing_checkpoint_starts_fresh(tmp_path: Path) -> None:
@@ -228,6 +266,21 @@ def test_docs_carry_the_published_schemas() -> None:
         jsonschema.Draft202012Validator.check_schema(
             json.loads((SCHEMA_DIR / f"{name}.json").read_text())
         )
+
+
+def test_docs_status_example_is_a_whole_payload(tmp_path: Path) -> None:
+    """docs/mqtt.md's status example validates and carries every field an online status has
+    (it lacked mqtt, soc_init and inputs) and every counter the daemon sends with MQTT on."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "mqtt.md").read_text(encoding="utf-8")
+    example = json.loads(doc.split("## Status", 1)[1].split("```json", 1)[1].split("```", 1)[0])
+    schema = json.loads((SCHEMA_DIR / "status.json").read_text())
+    jsonschema.Draft202012Validator(schema).validate(example)
+    assert set(example) == set(schema["properties"])
+    daemon = Daemon(make_settings(tmp_path, 1883))
+    counters = list(daemon.snapshot())  # before run(): without the MQTT client's five
+    mqtt = ["publishes", "mqtt_drops", "mqtt_backlog", "mqtt_reconnects", "mqtt_connect_failures"]
+    assert list(example["counters"]) == counters + mqtt
+    assert set(example["lifetime"]) == set(daemon.lifetime())
 
 
 def test_an_outbox_backlog_adds_no_work_for_the_garbage_collector() -> None:

@@ -24,6 +24,8 @@ import aiomqtt
 import pytest
 import trustme
 from daemon_helpers import demo_frames, make_settings, run_with_frames, wait_for
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.reasoncodes import ReasonCode
 
 from bmsid.cli.main import main
 from bmsid.config.settings import MqttSettings, load_settings
@@ -507,6 +509,58 @@ def test_duplicate_client_id_flapping_is_bounded(
     assert 1 <= len(lost) <= 4, lost  # 1st and 10th per publisher
     assert "another client with the same client id" in lost[0]
     assert all(p.last_error and "connection lost" in p.last_error for p in pubs)
+
+
+def test_a_lost_broker_is_said_plainly_with_what_happens_next(
+    mosquitto_factory: BrokerFactory, caplog: pytest.LogCaptureFixture, monkeypatch: Any
+) -> None:
+    """A broker that goes away: one WARNING in an operator's words (it was logged as
+    "lost: [code:4] The client is not currently connected." or "Disconnected during message
+    iteration"), saying that it reconnects and that the messages are held and delivered."""
+    monkeypatch.setattr(mqtt_mod, "STABLE_SESSION_S", 0.0)  # no duplicate-client-id hint
+    broker = mosquitto_factory()
+    s = _settings(broker.port, None, username=None, password=None, reconnect_max_s=0.5)
+
+    async def scenario() -> None:
+        pub = _publisher(s)
+        task = asyncio.create_task(pub.run())
+        try:
+            await wait_for(lambda: pub.connected, 10, "connected")
+            broker.stop()
+            await wait_for(lambda: pub.state != "connected", 10, "the loss")
+        finally:
+            pub.stop()
+            await asyncio.wait_for(task, 10)
+
+    asyncio.run(scenario())
+    (lost,) = [m for m in _records(caplog, logging.WARNING) if " lost" in m]
+    assert lost.startswith(
+        f"MQTT connection to mqtt://127.0.0.1:{broker.port} lost: the broker closed it or the "
+        "network dropped it"
+    ), lost
+    assert "; reconnecting (backoff 0.005-0.5 s); messages are held meanwhile (0 now" in lost
+    assert lost.endswith("and delivered in order once connected again"), lost
+    assert "[code:" not in lost and "message iteration" not in lost
+
+
+def test_lost_reasons_are_worded_for_an_operator() -> None:
+    """What aiomqtt raises for a loss (the words of the call that noticed it), reworded."""
+    no_conn = aiomqtt.MqttCodeError(4, "Could not publish message")
+    assert str(no_conn) == "[code:4] The client is not currently connected."
+    assert mqtt_mod.lost_reason(no_conn, 10.0) == "the broker closed it or the network dropped it"
+    iteration = aiomqtt.MqttError("Disconnected during message iteration")
+    keepalive = ReasonCode(PacketTypes.DISCONNECT, "Keep alive timeout")
+    iteration.__cause__ = aiomqtt.MqttCodeError(keepalive, "Unexpected disconnection")
+    assert mqtt_mod.lost_reason(iteration, 10.0) == (
+        "the broker stopped answering (no reply within the keep-alive interval)"
+    )
+    taken = ReasonCode(PacketTypes.DISCONNECT, "Session taken over")
+    assert mqtt_mod.lost_reason(aiomqtt.MqttCodeError(taken), 10.0) == (
+        "the broker disconnected it: session taken over"
+    )
+    assert mqtt_mod.lost_reason(aiomqtt.MqttError("Operation timed out"), 2.5) == (
+        "the broker acknowledged nothing within mqtt.publish_timeout_s = 2.5 s"
+    )
 
 
 # ------------------------------------------------------------------ configuration

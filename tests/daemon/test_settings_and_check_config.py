@@ -81,6 +81,46 @@ def test_bad_file_names_the_field(tmp_path: Path, edit: tuple[str, str], field: 
         load_settings(path)
 
 
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (("n_cells = 4", 'n_cells = "8"'), "can.n_cells"),
+        (("n_cells = 4", 'n_cells = 4\nstaleness_s = "2"'), "can.staleness_s"),
+        (("n_cells = 4", 'n_cells = 4\noutput = "false"'), "can.output"),
+        (("[state]", '[gates]\ni_max_C = "30"\n[state]'), "gates.i_max_C"),
+        (("[state]", '[estimator.tuning]\nn_particles = "12"\n[state]'), "estimator.tuning"),
+        (("[state]", '[estimator.tuning.observer]\nenabled = "no"\n[state]'), "estimator"),
+        (('username = "bmsid"', "username = 7"), "mqtt.username"),
+    ],
+)
+def test_wrong_toml_type_is_refused(tmp_path: Path, edit: tuple[str, str], field: str) -> None:
+    """A quoted number is a mistake to name, not a value to guess (pydantic's lax mode took it)."""
+    with pytest.raises(UserError, match=rf"field {field}\S*: .*\(got "):
+        load_settings(_write(tmp_path, GOOD.replace(*edit)))
+
+
+def test_int_in_float_field_and_paths_still_load(tmp_path: Path) -> None:
+    text = GOOD.replace("n_cells = 4", 'n_cells = 4\nstaleness_s = 2\nmapping = "map.toml"')
+    text += "checkpoint_period_s = 30\n[gates]\ni_max_C = 20\n[estimator.tuning]\nwindow_s = 900\n"
+    s = load_settings(_write(tmp_path, text))
+    assert (s.can.staleness_s, s.state.checkpoint_period_s) == (2.0, 30.0)
+    assert (s.gates.i_max_C, s.estimator.tuning.window_s) == (20.0, 900.0)
+    assert s.can.mapping == tmp_path / "map.toml"
+
+
+def test_check_config_names_a_quoted_number(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = _write(tmp_path, GOOD.replace("n_cells = 4", 'n_cells = "8"'))
+    assert main(["check-config", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(
+        "field can.n_cells: Input should be a valid integer "
+        "(got the string '8': write it without quotes)"
+    )
+    assert len(err.splitlines()) == 1
+
+
 def test_check_config_prints_effective_redacted(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

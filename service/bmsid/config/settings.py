@@ -21,6 +21,7 @@ from pydantic import (
     ConfigDict,
     Field,
     SecretStr,
+    Strict,
     ValidationError,
     field_validator,
     model_validator,
@@ -38,7 +39,15 @@ DEFAULT_PORTS = {False: 1883, True: 8883}
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    # strict: a value of the wrong TOML type (n_cells = "8") is refused, not coerced; an int
+    # still fills a float field, and the environment's text is converted by pydantic-settings.
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, use_attribute_docstrings=True
+    )
+
+
+#: A path field: TOML and the environment give text, which strict mode would refuse.
+LaxPath = Annotated[Path, Strict(False)]
 
 
 def _check_topic_prefix(value: str) -> str:
@@ -61,7 +70,7 @@ TopicPrefix = Annotated[str, AfterValidator(_check_topic_prefix)]
 class ReplaySettings(_Strict):
     """Replay a candump log onto the ``virtual`` bus from inside the daemon (demo, tests)."""
 
-    log: Path
+    log: LaxPath
 
     """candump log (``candump -l`` or console format) to replay."""
     speed: float = Field(20.0, gt=0.0, le=100_000.0)
@@ -81,7 +90,7 @@ class CanSettings(_Strict):
     """python-can interface: ``socketcan`` on a gateway, ``virtual`` (in-process) for demos."""
     channel: str = Field("can0", min_length=1)
     """Network interface (``can0``, ``vcan0``) or virtual channel name."""
-    mapping: Path | None = None
+    mapping: LaxPath | None = None
     """Bus mapping TOML (which signals carry current and voltages); None = bmsid's own DBC."""
     n_cells: int = Field(ge=1, le=512)
     """Cells in series identified (the first n of the mapping)."""
@@ -91,7 +100,7 @@ class CanSettings(_Strict):
     """Frames buffered between socket and decoder; beyond that, frames are dropped and counted."""
     output: bool = True
     """Send the parameter frames on the bus."""
-    output_dbc: Path | None = None
+    output_dbc: LaxPath | None = None
     """DBC of the parameter frames; None = bmsid's own ``bmsid.dbc``."""
     output_period_s: float = Field(0.1, gt=0.0)
     """One round of parameter frames (pack summary + the next cells) every this many s."""
@@ -122,7 +131,7 @@ class CanSettings(_Strict):
 class EstimatorSettings(_Strict):
     """Cell type, estimator variant and tuning."""
 
-    cell: Path | None = None
+    cell: LaxPath | None = None
     """Cell config TOML/JSON (``bmsid fit-ocv``); None = the paper's 70 Ah NMC cell."""
     variant: Variant = "hy-affrls-lpso"
     """``hy-affrls-lpso`` (the paper's fusion), ``hy-affrls`` or ``non-hy-affrls`` (baselines)."""
@@ -193,13 +202,13 @@ class MqttSettings(_Strict):
     """Broker user name; None connects anonymously (then no password may be set)."""
     password: SecretStr | None = None
     """Broker password, never printed; better ``password_file`` or env ``BMSID_MQTT__PASSWORD``."""
-    password_file: Path | None = None
+    password_file: LaxPath | None = None
     """File holding the password (trailing newline stripped), read at every connect attempt."""
-    ca_file: Path | None = None
+    ca_file: LaxPath | None = None
     """PEM CA certificate(s) the broker's certificate must chain to; None = system trust store."""
-    cert_file: Path | None = None
+    cert_file: LaxPath | None = None
     """PEM client certificate for brokers that require one (``mqtts://``); needs ``key_file``."""
-    key_file: Path | None = None
+    key_file: LaxPath | None = None
     """Unencrypted PEM private key of ``cert_file`` (may be the same file); keep it mode 600."""
     tls_insecure: bool = False
     """Tests only: skip the broker certificate and host name checks (logged as a warning)."""
@@ -289,7 +298,7 @@ class MqttSettings(_Strict):
 class StateSettings(_Strict):
     """Where the estimator state survives restarts."""
 
-    directory: Path = Path("/var/lib/bmsid")
+    directory: LaxPath = Path("/var/lib/bmsid")
     """Checkpoints (``<pack_id>.ckpt.npz``) and the sequence file (``<pack_id>.seq``)."""
     checkpoint_period_s: float = Field(60.0, gt=0.0)
     """Atomic checkpoint of the whole estimator state every this many s (and at shutdown)."""
@@ -305,6 +314,7 @@ class Settings(BaseSettings):
         env_nested_delimiter="__",
         extra="forbid",
         frozen=True,
+        strict=True,  # as _Strict; pydantic-settings then converts the environment's text
         nested_model_default_partial_update=True,
         use_attribute_docstrings=True,
     )
@@ -312,11 +322,13 @@ class Settings(BaseSettings):
     pack_id: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
 
     """Names the pack in topics and checkpoints: letters, digits, ``_.-``."""
-    can: CanSettings
-    estimator: EstimatorSettings = EstimatorSettings()
-    mqtt: MqttSettings = MqttSettings()
-    state: StateSettings = StateSettings()
-    gates: GateConfig = GateConfig()
+    # strict=False on the sections lets them be given as dicts in code (the mypy plugin types a
+    # strict field by its model); each section's own fields stay strict.
+    can: CanSettings = Field(strict=False)
+    estimator: EstimatorSettings = Field(EstimatorSettings(), strict=False)
+    mqtt: MqttSettings = Field(MqttSettings(), strict=False)
+    state: StateSettings = Field(StateSettings(), strict=False)
+    gates: GateConfig = Field(GateConfig(), strict=False)
     """Plausibility gates before the estimators: a refused reading is a missing channel for
     its tick, counted per cell in the status (limits from the cell config by default)."""
     status_period_s: float = Field(10.0, gt=0.0)
@@ -352,6 +364,19 @@ class Settings(BaseSettings):
             "cell": cell.model_dump(mode="json"),
         }
         return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+    def config_parts(self, cell: CellConfig) -> dict[str, str]:
+        """The estimator parts ``config_hash`` covers, each as text a checkpoint header keeps
+        to name what changed (the variant as it is, tuning and cell config as hashes)."""
+
+        def digest(data: Any) -> str:
+            return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
+
+        return {
+            "variant": self.estimator.variant,
+            "tuning": digest(self.estimator.tuning.model_dump(mode="json")),
+            "cell": f"{cell.name} {digest(cell.model_dump(mode='json'))}",
+        }
 
     def redacted(self) -> dict[str, Any]:
         """The effective settings as plain data, secrets shown as ``**********``."""
@@ -393,6 +418,8 @@ def _first_error(exc: ValidationError) -> str:
         shown = err["input"]
         if "password" not in field and not isinstance(shown, dict | list):
             value = f" (got {shown!r})"
+        if isinstance(shown, str) and err["type"] in ("int_type", "float_type", "bool_type"):
+            value = f" (got the string {shown!r}: write it without quotes)"
     msg = "unknown field" if err["type"] == "extra_forbidden" else err["msg"]
     return f"field {field}: {msg}{value}{more}"
 

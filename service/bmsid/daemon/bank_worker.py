@@ -215,6 +215,8 @@ class StartInfo:
     restored: bool
     seq: int
     t_s: float | None
+    #: the bank's counters as restored (lifetime totals; empty on a fresh start)
+    counters: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -381,7 +383,8 @@ class BankHost:
                 t_s = float(t_raw) if t_raw is not None else None
         self.seq = max(ck_seq, self._read_seq_file())
         self._seq_reserved = self.seq
-        return StartInfo(restored=restored, seq=self.seq, t_s=t_s)
+        counters = dict(self.bank.counters) if restored else {}
+        return StartInfo(restored=restored, seq=self.seq, t_s=t_s, counters=counters)
 
     def _read_seq_file(self) -> int:
         """The reserved high-water mark; 0 when there is no file yet.

@@ -20,7 +20,7 @@ import logging
 import time
 import zipfile
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,9 @@ class CheckpointKey:
     pack_id: str
     n_cells: int
     config_hash: str
+    #: what the hash covers, part by part (``Settings.config_parts``): saved in the header so
+    #: that a mismatch can name the part that changed; not compared itself
+    parts: dict[str, str] = field(default_factory=dict, compare=False)
 
 
 def _split(
@@ -83,6 +86,7 @@ def save_checkpoint(
         "pack_id": key.pack_id,
         "n_cells": key.n_cells,
         "config_hash": key.config_hash,
+        "config": key.parts,
         "saved_unix_s": time.time(),
         "extra": extra or {},
     }
@@ -129,12 +133,46 @@ def load_checkpoint(path: Path, key: CheckpointKey) -> Checkpoint | None:
         return None
     for k, v in scalars.items():
         _insert(state, k, v)
-    want = {"pack_id": key.pack_id, "n_cells": key.n_cells, "config_hash": key.config_hash}
-    got = {k: header.get(k) for k in want}
-    if header.get("format") != FORMAT_VERSION or got != want:
-        log.warning("checkpoint %s is for %s, not %s: starting fresh", path, got, want)
+    differs = mismatch(header, key)
+    if differs is not None:
+        log.warning("checkpoint %s is for another setup (%s): starting fresh", path, differs)
         return None
     return Checkpoint(header=header, state=state)
+
+
+def _part_change(part: str, saved: str, now: str) -> str:
+    """One changed part of ``Settings.config_parts`` in words (hashes are never shown)."""
+    if part == "variant":
+        return f"estimator.variant {saved!r}, not {now!r}"
+    if part == "cell":  # "<name> <hash>"
+        was, name = saved.rsplit(" ", 1)[0], now.rsplit(" ", 1)[0]
+        return (
+            f"cell config {was!r}, not {name!r}" if was != name else f"cell config {name!r} changed"
+        )
+    return f"estimator.{part} changed"
+
+
+def mismatch(header: dict[str, Any], key: CheckpointKey) -> str | None:
+    """What differs between a checkpoint's header and ``key``, for one log line; None: none."""
+    found = []
+    if header.get("format") != FORMAT_VERSION:
+        found.append(f"format {header.get('format')!r}, not {FORMAT_VERSION}")
+    for name in ("pack_id", "n_cells"):
+        if header.get(name) != getattr(key, name):
+            found.append(f"{name} {header.get(name)!r}, not {getattr(key, name)!r}")
+    if header.get("config_hash") != key.config_hash:
+        saved = header.get("config")
+        saved = saved if isinstance(saved, dict) else {}
+        changed = [
+            _part_change(k, str(saved[k]), v)
+            for k, v in key.parts.items()
+            if k in saved and saved[k] != v
+        ]
+        if changed:
+            found += changed
+        elif not found:  # a checkpoint from before the header named the parts
+            found.append("estimator.variant, estimator.tuning or the cell config changed")
+    return "; ".join(found) if found else None
 
 
 def _leaves(state: dict[str, Any], prefix: str = "") -> dict[str, Any]:

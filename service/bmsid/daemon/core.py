@@ -116,7 +116,12 @@ class Daemon:
         self.cycler: CellCycler = plan_output(
             cs.n_cells, frames_per_cell, bits, cs.bitrate_bps, cs.max_bus_share, cs.output_period_s
         )
-        self.ckpt_key = CheckpointKey(settings.pack_id, cs.n_cells, settings.config_hash(self.cell))
+        self.ckpt_key = CheckpointKey(
+            settings.pack_id,
+            cs.n_cells,
+            settings.config_hash(self.cell),
+            settings.config_parts(self.cell),
+        )
         self.ckpt_path = settings.state.directory / f"{settings.pack_id}.ckpt.npz"
         self.spool_path = settings.state.directory / f"{settings.pack_id}.spool"
         #: messages of the spool loaded at start; the file goes once they left the outbox
@@ -142,6 +147,9 @@ class Daemon:
         )
         #: the bank's counters (samples, ticks, swarms, ...) as of its latest batch
         self.bank_counters: dict[str, int] = dict.fromkeys(("samples", "ticks", "swarms"), 0)
+        #: the bank's counters as the checkpoint restored them: the status counts since this
+        #: process started, as frames and uptime do; the restored totals are only a baseline
+        self._restored_counters: dict[str, int] = {}
         self.worker: BankWorker | None = None
         self.prefix = settings.mqtt.topic_prefix
         self.sd = SdNotifier(settings.systemd_notify)
@@ -248,6 +256,7 @@ class Daemon:
         if info.restored:
             self.restored = True
             self._restored_t_s = info.t_s
+            self._restored_counters = dict(info.counters)
             log.info(
                 "restored %s (saved at sample time %s s); MQTT seq continues at %d",
                 self.ckpt_path,
@@ -686,6 +695,7 @@ class Daemon:
                 can_state=self.can_state,
                 uptime_s=time.monotonic() - self._t_start,
                 counters=self.snapshot(),
+                lifetime=self.lifetime(),
                 version=__version__,
                 inputs=self.inputs,
                 mqtt=(
@@ -708,9 +718,9 @@ class Daemon:
             "incomplete_cycles": f["incomplete_cycles"],
             "stale_current": f["stale_current"],
             "samples": f["samples"],
-            "ticks": self.bank_counters["ticks"],
-            "swarms": self.bank_counters["swarms"],
-            "time_jumps_back": self.bank_counters.get("time_jumps_back", 0),
+            "ticks": self._since_start("ticks"),
+            "swarms": self._since_start("swarms"),
+            "time_jumps_back": self._since_start("time_jumps_back"),
             **{k: self.bank_counters.get(k, 0) for k in GATE_COUNTERS},
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],
@@ -738,6 +748,14 @@ class Daemon:
                 "mqtt_connect_failures": self.mqtt.counters["connect_failures"],
             }
         return out
+
+    def _since_start(self, name: str) -> int:
+        """A bank counter since this process started (the checkpoint carries lifetime totals)."""
+        return self.bank_counters.get(name, 0) - self._restored_counters.get(name, 0)
+
+    def lifetime(self) -> dict[str, int]:
+        """The estimator state's totals since it began, across restarts from its checkpoint."""
+        return {k: self.bank_counters.get(k, 0) for k in ("samples", "ticks", "swarms")}
 
     def _start_line(self) -> str:
         """What this daemon is about to do: version, pack, bus, broker, state directory."""

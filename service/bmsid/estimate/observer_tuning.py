@@ -12,7 +12,10 @@ from pydantic import BaseModel, ConfigDict, Field
 class ObserverTuning(BaseModel):
     """The extended Kalman filter over [SOC of each cell, pack current offset]."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    # strict: part of the daemon TOML, where a quoted number is refused, not coerced
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, use_attribute_docstrings=True
+    )
 
     enabled: bool = True
     """Correct SOC, the current offset and capacity from the voltage. Off: SOC is a plain

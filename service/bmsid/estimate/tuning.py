@@ -19,7 +19,10 @@ VARIANTS_T: tuple[Variant, ...] = ("non-hy-affrls", "hy-affrls", "hy-affrls-lpso
 class EstimatorTuning(BaseModel):
     """Tuning of AFFRLS (Eq. 16-21), LPSO (Eq. 24-30) and their fusion."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    # strict: part of the daemon TOML, where a quoted number is refused, not coerced
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, use_attribute_docstrings=True
+    )
 
     # --- identification rate -------------------------------------------------------------
     id_period_s: float = Field(1.0, gt=0.0, le=10.0)

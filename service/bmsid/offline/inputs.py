@@ -627,7 +627,8 @@ def parse_tuning(items: Sequence[str]) -> EstimatorTuning:
         else:
             values[key] = val.strip()
     try:
-        return EstimatorTuning.model_validate(values)
+        # The option's values are text: convert them (the model is strict for TOML files).
+        return EstimatorTuning.model_validate(values, strict=False)
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(x) for x in err["loc"]) or "tuning"

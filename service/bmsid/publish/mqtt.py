@@ -407,6 +407,29 @@ def classify_connect_error(
     return ConnectFailure(UNREACHABLE, f"connect to {where} failed: {exc}")
 
 
+def lost_reason(exc: aiomqtt.MqttError, publish_timeout_s: float) -> str:
+    """Why an established connection ended, in an operator's words.
+
+    aiomqtt and paho word a loss by the call that noticed it ("[code:4] The client is not
+    currently connected." from a publish, "Disconnected during message iteration" from the
+    receiver); the disconnect reason they chain below it says more when there is one.
+    """
+    if str(exc) == "Operation timed out":  # aiomqtt's wording of publish_timeout_s passing
+        return (
+            "the broker acknowledged nothing within mqtt.publish_timeout_s = "
+            f"{publish_timeout_s:g} s"
+        )
+    cause: BaseException | None = exc
+    while cause is not None:
+        rc = getattr(cause, "rc", None)
+        if isinstance(rc, ReasonCode) and str(rc) == "Keep alive timeout":
+            return "the broker stopped answering (no reply within the keep-alive interval)"
+        if isinstance(rc, ReasonCode) and rc.value not in (0, 128):  # 128: paho's "no reason"
+            return f"the broker disconnected it: {str(rc).lower()}"
+        cause = cause.__cause__
+    return "the broker closed it or the network dropped it"
+
+
 def _retrieve_disconnect_reason(client: aiomqtt.Client) -> None:
     """Mark the reason of an unexpected disconnection as seen.
 
@@ -655,14 +678,23 @@ class MqttPublisher:
         return time.monotonic()
 
     def _on_lost(self, exc: aiomqtt.MqttError, client_log: _ClientLog, stable: bool) -> None:
-        detail = self._redact(str(exc))
-        if client_log.errors:
+        s = self.settings
+        detail = lost_reason(exc, s.publish_timeout_s)
+        if client_log.errors:  # the socket's own words ("Connection reset by peer")
             detail += f" ({self._redact(client_log.errors[-1])})"
+        log.debug("MQTT connection lost: %s", self._redact(repr(exc)))
         self.state = DISCONNECTED
         self.last_error = f"connection lost: {detail}"
+        # What happens next, so that the line alone tells an operator nothing is lost yet.
+        then = (
+            f"reconnecting (backoff {s.reconnect_min_s:g}-{s.reconnect_max_s:g} s); "
+            f"messages are held meanwhile ({len(self.outbox)} now, the oldest dropped beyond "
+            f"mqtt.outbox_size = {s.outbox_size}; spooled to the state directory at a stop) "
+            "and delivered in order once connected again"
+        )
         if stable:
             self._short_sessions.clear()
-            log.warning("MQTT connection to %s lost: %s", self.settings.url, detail)
+            log.warning("MQTT connection to %s lost: %s; %s", s.url, detail, then)
             return
         # Sessions that keep ending within seconds: typically a second client with the same
         # client id (the broker kicks the older one off). Log the 1st, 10th, 100th, ...
@@ -670,12 +702,13 @@ class MqttPublisher:
         if due:
             log.warning(
                 "MQTT connection to %s lost after less than %g s (%d such in a row): %s "
-                "(another client with the same client id %r?)",
-                self.settings.url,
+                "(another client with the same client id %r?); %s",
+                s.url,
                 STABLE_SESSION_S,
                 n,
                 detail,
                 self.client_id,
+                then,
             )
 
     async def _session(self, client: aiomqtt.Client) -> bool:

@@ -205,13 +205,16 @@ def status_payload(
     can_state: str = "unknown",
     uptime_s: float = 0.0,
     counters: dict[str, float] | None = None,
+    lifetime: dict[str, int] | None = None,
     version: str = "",
     mqtt: dict[str, str | None] | None = None,
     inputs: dict[str, Any] | None = None,
     state_dir: str | None = None,
     soc_init: str | None = None,
 ) -> dict[str, Any]:
-    """``online``/``offline`` with the daemon's counters (the will carries ``offline`` only);
+    """``online``/``offline`` with the daemon's counters since its process started (the will
+    carries ``offline`` only); ``lifetime`` the estimator state's samples, ticks and swarms since
+    it began, carried across restarts by the checkpoint;
     ``mqtt`` is the connection's ``{"state", "last_error"}`` (never a secret); ``inputs`` what
     the plausibility gates refused per cell, and the missing and no-data cells
     (``bmsid.gates.GateState.report``); ``state_dir`` ``"ok"`` or ``"failing"``
@@ -230,6 +233,8 @@ def status_payload(
             out["soc_init"] = soc_init
         out["uptime_s"] = round(float(uptime_s), 3)
         out["counters"] = dict(counters or {})
+        if lifetime is not None:
+            out["lifetime"] = dict(lifetime)
         if inputs is not None:
             out["inputs"] = inputs
     return out
