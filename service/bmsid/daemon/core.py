@@ -721,7 +721,7 @@ class Daemon:
             "ticks": self._since_start("ticks"),
             "swarms": self._since_start("swarms"),
             "time_jumps_back": self._since_start("time_jumps_back"),
-            **{k: self.bank_counters.get(k, 0) for k in GATE_COUNTERS},
+            **{k: self._since_start(k) for k in GATE_COUNTERS},
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],
             "can_reopens": self.counters["can_reopens"],
