@@ -113,8 +113,9 @@ def test_no_cell_config_says_what_it_assumes(
     assert rc == 0
     assert warnings(out) == [
         "WARNING: no --cell-config: assuming the paper's cell 'paper-70Ah-NMC' (Table 1 OCV, "
-        "15 mV hysteresis) with its 70 Ah; another cell needs its own config (bmsid fit-ocv) "
-        "or at least --capacity-ah",
+        "15 mV hysteresis) with its 70 Ah; SOC and the capacity follow that cell's OCV, and "
+        "another cell's differs (tens of SOC points off on other chemistries, --capacity-ah "
+        "alone included): give the cell's own config (bmsid fit-ocv on its OCV test)",
         # 20 minutes of DST move too little SOC to read the capacity off: said, not silent
         "WARNING: the capacity could not be read off the record (no discharge to a cut-off, no "
         "rests spanning 30 % of SOC on the assumed OCV): the assumed cell's 70 Ah is used, and "

@@ -991,8 +991,9 @@ def assumed_cell(
         "warning",
         "no_cell_config",
         f"no --cell-config: assuming the paper's cell {name!r} (Table 1 OCV, 15 mV hysteresis) "
-        f"with {source}{mismatch}; another cell needs its own config (bmsid fit-ocv) or at "
-        "least --capacity-ah",
+        f"with {source}{mismatch}; SOC and the capacity follow that cell's OCV, and another "
+        "cell's differs (tens of SOC points off on other chemistries, --capacity-ah alone "
+        "included): give the cell's own config (bmsid fit-ocv on its OCV test)",
     )
 
 
