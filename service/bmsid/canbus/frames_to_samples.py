@@ -34,10 +34,11 @@ Bad frames never raise and never reach a sample; each kind is counted in
 :attr:`FrameToSamples.counters` and logged at a rate that thins out (1st, 10th, 100th, ...):
 error frames, remote frames, unknown identifiers, wrong DLC, multiplexer index outside the DBC or
 outside ``n_cells``, values outside the signal's DBC range (that cell becomes NaN, flag
-``out_of_range``), and any other decode error. A temperature's not-available value (SNA,
-``dbc/README.md``: a sensor of a group that is not fitted, as ``make-log`` writes them) is a
-missing reading, not an error: NaN, neither counted nor logged (a cell's is counted: the cell is
-mapped, and its missing reading is worth knowing).
+``out_of_range``), and any other decode error. A signal's not-available value (SNA,
+``dbc/README.md``) is a missing reading, not a bad one: a cell's becomes NaN with the flag
+``not_available``, a current's keeps the held one, each counted as ``not_available``; a
+temperature's (a sensor of a group that is not fitted, as ``make-log`` writes them) is NaN,
+neither counted nor logged.
 """
 
 from __future__ import annotations
@@ -75,6 +76,7 @@ DECODE_ERROR_KINDS = (
     "error_frames",
     "remote_frames",
     "out_of_range",
+    "not_available",  # no decode error, but in the daemon's decode_errors as before its split
     "decode_error",
 )
 COUNTER_NAMES = (
@@ -296,7 +298,9 @@ class FrameToSamples:
     ) -> float:
         raw = values.get(s.signal)
         v = float(raw) if isinstance(raw, int | float) else math.nan
-        if quiet_sna and v == s.sna:  # a sensor not fitted: missing, not an error
+        if v == s.sna:  # missing, not out of range; a temperature's: a sensor not fitted
+            if not quiet_sna:
+                self._note("not_available", f"{what} signal {s.signal} not available")
             return math.nan
         if not (s.lo <= v <= s.hi):  # also catches NaN
             self._note("out_of_range", f"{what} signal {s.signal}={raw!r}")
@@ -368,7 +372,8 @@ class FrameToSamples:
                 continue  # padding of the last group beyond n_cells
             v = self._value(values, s, "cell voltage")
             if math.isnan(v):
-                self._flags.add("out_of_range")
+                sna = values.get(s.signal) == s.sna
+                self._flags.add("not_available" if sna else "out_of_range")
             self._v[j] = v
             self._seen[j] = 1
             self._n_seen += 1
