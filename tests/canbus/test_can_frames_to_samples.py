@@ -302,3 +302,20 @@ def test_random_frames_never_raise_and_samples_are_sane(frames_: list, mapping: 
         assert s.cell_voltages_V.shape == (8,) and math.isfinite(s.current_A)
         finite = s.cell_voltages_V[np.isfinite(s.cell_voltages_V)]
         assert ((finite >= 0) & (finite <= 17)).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from([OWN, FOREIGN]), st.lists(st.integers(0, 2), min_size=1, max_size=200))
+def test_a_repeated_frame_is_used_once(mapping: BusMapping, copies: list[int]) -> None:
+    """A sweep: a log holding each frame twice (same timestamp) gave twice the samples, each
+    repeated cell frame closing its cycle. Exact repeats are dropped and counted now."""
+    msgs = frames(mapping, n=10, n_cells=6)
+    twice = [m for m, k in zip(msgs, copies + [0] * len(msgs), strict=False) for _ in range(k + 1)]
+    f2s, ref = FrameToSamples(mapping, 6), FrameToSamples(mapping, 6)
+    got, want = run(f2s, twice) + f2s.flush(), run(ref, msgs) + ref.flush()
+    assert [s.t_s for s in got] == [s.t_s for s in want] and len(got) == 10
+    np.testing.assert_array_equal(
+        [s.cell_voltages_V for s in got], [s.cell_voltages_V for s in want]
+    )
+    assert f2s.counters["duplicate_frames"] == len(twice) - len(msgs)
+    assert f2s.counters["decoded"] == ref.counters["decoded"] == len(msgs)

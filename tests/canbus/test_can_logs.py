@@ -155,6 +155,18 @@ def test_samples_from_log_reproduce_the_csv(tmp_path: Path, mapping_file: str) -
     np.testing.assert_allclose([s.t_s for s in samples], t + 1000.0)
 
 
+def test_a_log_holding_each_frame_twice_gives_each_sample_once(tmp_path: Path) -> None:
+    """A sweep: every line twice (a log recorded or merged twice) gave 1600 samples of a
+    800-tick log in the header; the repeats are dropped, counted and said now."""
+    mapping = default_mapping()
+    msgs = frames(mapping, n=50, n_cells=6)
+    write_log(tmp_path / "x.log", [m for m in msgs for _ in range(2)])
+    assert len(samples_from_log(tmp_path / "x.log", mapping, 6)) == 50
+    text = summarize_log(tmp_path / "x.log", mapping).text()
+    assert f"{2 * len(msgs)} frames" in text
+    assert f"{len(msgs)} decoded by the mapping ({len(msgs)} repeated at the same timestamp" in text
+
+
 def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:
     p = tmp_path / "a.txt"
     p.write_text(

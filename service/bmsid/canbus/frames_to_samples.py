@@ -38,7 +38,9 @@ outside ``n_cells``, values outside the signal's DBC range (that cell becomes Na
 ``dbc/README.md``) is a missing reading, not a bad one: a cell's becomes NaN with the flag
 ``not_available``, a current's keeps the held one, each counted as ``not_available``; a
 temperature's (a sensor of a group that is not fitted, as ``make-log`` writes them) is NaN,
-neither counted nor logged.
+neither counted nor logged. A frame repeated with the same identifier, data and timestamp (a log
+recorded or merged twice) is counted as ``duplicate_frames`` and used once: a repeated cell frame
+would otherwise close its cycle half-complete and add samples the bus never sent.
 """
 
 from __future__ import annotations
@@ -82,6 +84,7 @@ DECODE_ERROR_KINDS = (
 COUNTER_NAMES = (
     "frames",
     "decoded",
+    "duplicate_frames",
     *DECODE_ERROR_KINDS,
     "samples",
     "incomplete_cycles",
@@ -132,6 +135,25 @@ def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float, float]:
     return lo, hi, math.nan if sna is None else sna * float(sig.scale) + float(sig.offset)
 
 
+class RepeatFilter:
+    """Tells exact repeats: a frame whose id and data came already with the same timestamp."""
+
+    def __init__(self) -> None:
+        self._t = math.nan
+        self._keys: set[tuple[int, bool, bytes]] = set()  # frames at timestamp _t
+
+    def seen(self, msg: can.Message) -> bool:
+        """Whether ``msg`` repeats a frame given before at its timestamp (then it is no new one)."""
+        key = (int(msg.arbitration_id), bool(msg.is_extended_id), bytes(msg.data))
+        if msg.timestamp != self._t:
+            self._t = msg.timestamp
+            self._keys.clear()
+        elif key in self._keys:
+            return True
+        self._keys.add(key)
+        return False
+
+
 class FrameToSamples:
     """Decode frames with cantools and assemble samples (rules in the module docstring)."""
 
@@ -174,6 +196,7 @@ class FrameToSamples:
         # monotonic guard
         self._t_offset = 0.0
         self._t_prev = -math.inf
+        self._repeats = RepeatFilter()
 
     # --- construction -------------------------------------------------------------------------
 
@@ -264,6 +287,10 @@ class FrameToSamples:
                 "wrong_dlc",
                 f"{plan.message.name}: {len(data)} bytes instead of {plan.length}",
             )
+            return []
+        if self._repeats.seen(msg):
+            again = f"{plan.message.name}: the same frame again at t={msg.timestamp:.6f} s"
+            self._note("duplicate_frames", again)
             return []
         try:
             values = plan.message.decode(data, decode_choices=False)

@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.canbus.codec import encode_saturating
-from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.frames_to_samples import FrameToSamples, RepeatFilter
 from bmsid.canbus.mapping import BusMapping, ListedGroup, MultiplexedGroup
 from bmsid.errors import UserError
 from bmsid.samples import Sample
@@ -369,16 +369,19 @@ class ChannelSummary:
     """The frames of one CAN channel of a log.
 
     ``ids`` counts frames per (arbitration id, extended); ``mapped`` counts the frames whose id
-    the mapping decodes (current, counter, cells, temperatures); ``cell_valid`` and
-    ``cell_seen`` count, per cell index (0-based), the frames with a valid voltage for it and
-    all frames that carried a slot for it.
+    the mapping decodes (current, counter, cells, temperatures), ``repeated`` those of them that
+    repeat a frame at its timestamp (dropped as :class:`FrameToSamples` drops them);
+    ``cell_valid`` and ``cell_seen`` count, per cell index (0-based), the frames with a valid
+    voltage for it and all frames that carried a slot for it.
     """
 
     frames: int = 0
     mapped: int = 0
+    repeated: int = 0
     ids: dict[tuple[int, bool], int] = field(default_factory=dict)
     cell_valid: dict[int, int] = field(default_factory=dict)
     cell_seen: dict[int, int] = field(default_factory=dict)
+    repeats: RepeatFilter = field(default_factory=RepeatFilter, repr=False, compare=False)
 
     @property
     def cells(self) -> list[int]:
@@ -399,8 +402,15 @@ class ChannelSummary:
         more = f", ... ({len(ids) - _IDS_LISTED} more ids)" if len(ids) > _IDS_LISTED else ""
         return (
             f"{name}: {self.frames} frames, {len(ids)} id(s) ({shown}{more}); "
-            f"{self.mapped} decoded by the mapping, {self.n_cells} cell(s)"
+            f"{self.mapped - self.repeated} decoded by the mapping{self._dropped()}, "
+            f"{self.n_cells} cell(s)"
         )
+
+    def _dropped(self) -> str:
+        """The mapped frames not decoded, by why (empty when none)."""
+        why = [(self.repeated, "repeated at the same timestamp")]
+        told = ", ".join(f"{n} {what}" for n, what in why if n)
+        return f" ({told}: dropped)" if told else ""
 
 
 @dataclass(frozen=True)
@@ -500,6 +510,9 @@ def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) 
         if key not in known:
             continue
         ch.mapped += 1
+        if ch.repeats.seen(msg):
+            ch.repeated += 1
+            continue
         cf = cell_frames.get(key) if cells else None
         if cf is None:
             continue
