@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from can_helpers import frames, synthetic
 
+from bmsid.canbus.frames_to_samples import FrameToSamples
 from bmsid.canbus.logs import (
     csv_to_messages,
     is_candump_path,
@@ -165,6 +166,27 @@ def test_a_log_holding_each_frame_twice_gives_each_sample_once(tmp_path: Path) -
     text = summarize_log(tmp_path / "x.log", mapping).text()
     assert f"{2 * len(msgs)} frames" in text
     assert f"{len(msgs)} decoded by the mapping ({len(msgs)} repeated at the same timestamp" in text
+
+
+def test_frames_of_a_wrong_dlc_are_counted_as_dropped_not_decoded(tmp_path: Path) -> None:
+    """A sweep: with every 10th cell frame cut to 6 bytes the summary said "2400 decoded by
+    the mapping" while the decoder dropped 80 of them; it counts and says them now."""
+    mapping = default_mapping()
+    msgs = frames(mapping, n=50, n_cells=4)
+    cut = [m for m in msgs if m.arbitration_id == 0x110][::10]
+    for m in cut:
+        m.data = m.data[:6]
+        m.dlc = 6
+    write_log(tmp_path / "x.log", msgs)
+    f2s = FrameToSamples(mapping, 4)
+    for m in read_log(tmp_path / "x.log"):
+        f2s.feed(m)
+    s = summarize_log(tmp_path / "x.log", mapping)
+    can0 = s.channels["can0"]
+    assert (can0.wrong_dlc, f2s.counters["wrong_dlc"]) == (len(cut), len(cut))
+    assert can0.decoded == f2s.counters["decoded"] == len(msgs) - len(cut)
+    text = s.text()
+    assert f"{len(msgs) - len(cut)} decoded by the mapping ({len(cut)} with a wrong DLC" in text
 
 
 def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:

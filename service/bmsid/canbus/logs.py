@@ -369,14 +369,16 @@ class ChannelSummary:
     """The frames of one CAN channel of a log.
 
     ``ids`` counts frames per (arbitration id, extended); ``mapped`` counts the frames whose id
-    the mapping decodes (current, counter, cells, temperatures), ``repeated`` those of them that
-    repeat a frame at its timestamp (dropped as :class:`FrameToSamples` drops them);
+    the mapping decodes (current, counter, cells, temperatures), ``wrong_dlc`` and ``repeated``
+    those of them of another length than the DBC's or repeating a frame at its timestamp
+    (dropped as :class:`FrameToSamples` drops them);
     ``cell_valid`` and ``cell_seen`` count, per cell index (0-based), the frames with a valid
     voltage for it and all frames that carried a slot for it.
     """
 
     frames: int = 0
     mapped: int = 0
+    wrong_dlc: int = 0
     repeated: int = 0
     ids: dict[tuple[int, bool], int] = field(default_factory=dict)
     cell_valid: dict[int, int] = field(default_factory=dict)
@@ -402,13 +404,21 @@ class ChannelSummary:
         more = f", ... ({len(ids) - _IDS_LISTED} more ids)" if len(ids) > _IDS_LISTED else ""
         return (
             f"{name}: {self.frames} frames, {len(ids)} id(s) ({shown}{more}); "
-            f"{self.mapped - self.repeated} decoded by the mapping{self._dropped()}, "
+            f"{self.decoded} decoded by the mapping{self._dropped()}, "
             f"{self.n_cells} cell(s)"
         )
 
+    @property
+    def decoded(self) -> int:
+        """Frames of the mapping that reach the decoder (not dropped before it)."""
+        return self.mapped - self.wrong_dlc - self.repeated
+
     def _dropped(self) -> str:
         """The mapped frames not decoded, by why (empty when none)."""
-        why = [(self.repeated, "repeated at the same timestamp")]
+        why = [
+            (self.wrong_dlc, "with a wrong DLC"),
+            (self.repeated, "repeated at the same timestamp"),
+        ]
         told = ", ".join(f"{n} {what}" for n, what in why if n)
         return f" ({told}: dropped)" if told else ""
 
@@ -475,6 +485,11 @@ def _cell_frames(mapping: BusMapping) -> dict[tuple[int, bool], _CellFrame]:
 
 def mapped_ids(mapping: BusMapping) -> set[tuple[int, bool]]:
     """(arbitration id, extended) of every frame the mapping decodes."""
+    return set(_mapped_lengths(mapping))
+
+
+def _mapped_lengths(mapping: BusMapping) -> dict[tuple[int, bool], int]:
+    """The DBC's data length (bytes) of every frame the mapping decodes, by (id, extended)."""
     db = mapping.database()
     names = {mapping.current.message}
     if mapping.counter is not None:
@@ -485,7 +500,7 @@ def mapped_ids(mapping: BusMapping) -> set[tuple[int, bool]]:
         elif isinstance(group, MultiplexedGroup):
             names.add(group.message)
     msgs = [db.get_message_by_name(n) for n in names]
-    return {(int(m.frame_id), bool(m.is_extended_frame)) for m in msgs}
+    return {(int(m.frame_id), bool(m.is_extended_frame)): int(m.length) for m in msgs}
 
 
 def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) -> LogSummary:
@@ -497,7 +512,7 @@ def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) 
     pass's time) when only the channels matter. Raises ``UserError`` for an unreadable file.
     """
     cell_frames = _cell_frames(mapping)
-    known = mapped_ids(mapping)
+    known = _mapped_lengths(mapping)
     channels: dict[str, ChannelSummary] = {}
     limit = mapping.max_cells()
     for msg in read_log(path):
@@ -510,6 +525,9 @@ def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) 
         if key not in known:
             continue
         ch.mapped += 1
+        if len(msg.data) != known[key]:  # as FrameToSamples: dropped, not decoded
+            ch.wrong_dlc += 1
+            continue
         if ch.repeats.seen(msg):
             ch.repeated += 1
             continue
