@@ -189,6 +189,27 @@ def test_frames_of_a_wrong_dlc_are_counted_as_dropped_not_decoded(tmp_path: Path
     assert f"{len(msgs) - len(cut)} decoded by the mapping ({len(cut)} with a wrong DLC" in text
 
 
+def test_error_frames_are_filed_under_their_channel(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A sweep: python-can's reader drops an error frame's channel, and the summary filed such
+    frames under a channel "None"; they keep the log's channel, class and data now."""
+    mapping = default_mapping()
+    write_log(tmp_path / "x.log", frames(mapping, n=20, n_cells=4), channel="can1")
+    with (tmp_path / "x.log").open("a") as fh:
+        fh.write("(1030.000000) can1 20000004#0004000000000000\n")
+        fh.write("(1030.100000) can1 20000080#0000000000000000\n")
+    errors = [m for m in read_log(tmp_path / "x.log") if m.is_error_frame]
+    assert [(m.channel, m.arbitration_id) for m in errors] == [("can1", 0x4), ("can1", 0x80)]
+    assert bytes(errors[0].data) == bytes.fromhex("0004000000000000")
+    s = summarize_log(tmp_path / "x.log", mapping)
+    assert list(s.channels) == ["can1"] and "None" not in s.text()
+    assert s.channels["can1"].frames == 20 * 2 + 2  # current and cell frames, 2 errors
+    with caplog.at_level(logging.WARNING):
+        samples_from_log(tmp_path / "x.log", mapping, 4, channel="can1")
+    assert any("error frame on can1 id=0x4 (1 so far)" in r.getMessage() for r in caplog.records)
+
+
 def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:
     p = tmp_path / "a.txt"
     p.write_text(

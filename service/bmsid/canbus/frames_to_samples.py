@@ -272,7 +272,8 @@ class FrameToSamples:
         """Take one frame; return the samples it completes (usually none or one). Never raises."""
         self.counters["frames"] += 1
         if msg.is_error_frame:
-            self._note("error_frames", f"error frame id=0x{msg.arbitration_id:X}")
+            on = "" if msg.channel is None else f" on {msg.channel}"
+            self._note("error_frames", f"error frame{on} id=0x{msg.arbitration_id:X}")
             return []
         if msg.is_remote_frame:
             self._note("remote_frames", f"remote frame id=0x{msg.arbitration_id:X}")

@@ -3,7 +3,8 @@
 Two candump text formats are read, chosen per line:
 
 - the log file format of ``candump -l`` / ``-L``: ``(1600000000.123456) can0 123#1122`` (read by
-  python-can's ``CanutilsLogReader``; error frames of every class are kept as error frames);
+  python-can's ``CanutilsLogReader``; error frames of every class are kept as error frames,
+  with their channel);
 - the console format of ``candump``: ``  can0  123   [2]  11 22``, optionally preceded by a
   ``-ta``/``-tz`` timestamp ``(1600000000.123456)`` or a ``-tA`` date; ``remote request``,
   ``ERRORFRAME`` and ``-a`` ASCII columns are understood. Without timestamps every frame gets
@@ -19,6 +20,7 @@ import gzip
 import logging
 import math
 import re
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +49,7 @@ _CONSOLE_RE = re.compile(
     rf"(?P<chan>\S+)\s+(?P<id>{_HEX}{{3}}|{_HEX}{{8}})\s+\[(?P<dlc>\d{{1,2}})\]"
     r"(?P<rest>.*)$"
 )
+_HEX_BYTES = re.compile(f"(?:{_HEX}{{2}})*")
 _CONSOLE_BYTES_RE = re.compile(rf"^\s*((?:{_HEX}{{2}}\s*)*)(?:'.*')?\s*(ERRORFRAME.*)?$")
 
 
@@ -128,7 +131,10 @@ def _parse_console(line: str) -> can.Message | None:
     )
 
 
-def _logfile_lines(lines: Iterable[tuple[int, str]], skipped: _SkipCounter) -> Iterator[str]:
+def _logfile_lines(
+    lines: Iterable[tuple[int, str]], skipped: _SkipCounter, errors: deque[can.Message]
+) -> Iterator[str]:
+    """The valid lines for python-can; an error frame's line is also built into ``errors``."""
     for lineno, line in lines:
         m = _LOGFILE_RE.match(line)
         if m is None:
@@ -136,11 +142,31 @@ def _logfile_lines(lines: Iterable[tuple[int, str]], skipped: _SkipCounter) -> I
             continue
         ident = m["id"]
         if len(ident) == 8 and int(ident, 16) & CAN_ERR_FLAG:
-            # python-can only recognises the bus-error class; keep every class an error frame
-            ts, chan = line.split()[:2]
+            # python-can only recognises the bus-error class and drops the channel (its error
+            # frames were filed under "None"): built here, python-can reads a placeholder
+            ts, chan, frame = line.split()[:3]
+            data = frame.partition("#")[2]
+            errors.append(
+                can.Message(
+                    timestamp=float(ts[1:-1]),
+                    is_error_frame=True,
+                    arbitration_id=int(ident, 16) & 0x1FFFFFFF,
+                    data=bytes.fromhex(data)[:8] if _HEX_BYTES.fullmatch(data) else None,
+                    channel=chan,
+                )
+            )
             yield f"{ts} {chan} {CAN_ERR_FLAG | 0x80:08X}#"
         else:
             yield line
+
+
+def _logfile_frames(
+    lines: Iterable[tuple[int, str]], skipped: _SkipCounter
+) -> Iterator[can.Message]:
+    """Frames of ``candump -l`` lines (python-can's reader, error frames as built above)."""
+    errors: deque[can.Message] = deque()
+    for msg in can.CanutilsLogReader(_logfile_lines(lines, skipped, errors)):  # type: ignore[arg-type]
+        yield errors.popleft() if msg.is_error_frame else msg
 
 
 #: Names of candump logs (a rotated or archived one gzipped), as inputs are told apart.
@@ -190,11 +216,11 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
             if "#" in line and line.startswith("("):
                 pending.append((lineno, line))
                 if len(pending) >= 1024:
-                    yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+                    yield from _logfile_frames(pending, skipped)
                     pending = []
                 continue
             if pending:
-                yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+                yield from _logfile_frames(pending, skipped)
                 pending = []
             msg = None
             try:
@@ -206,7 +232,7 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
                 continue
             yield msg
         if pending:
-            yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+            yield from _logfile_frames(pending, skipped)
     told = told_counts(p)
     if skipped.n > told.get("skipped_total", 0):
         told["skipped_total"] = skipped.n
