@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import gzip
 import logging
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 from can_helpers import frames, synthetic
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bmsid.canbus.frames_to_samples import FrameToSamples
 from bmsid.canbus.logs import (
@@ -208,6 +211,70 @@ def test_error_frames_are_filed_under_their_channel(
     with caplog.at_level(logging.WARNING):
         samples_from_log(tmp_path / "x.log", mapping, 4, channel="can1")
     assert any("error frame on can1 id=0x4 (1 so far)" in r.getMessage() for r in caplog.records)
+
+
+def _stamped(msgs: list, jitter_s: list[float]) -> list:
+    """``msgs`` (a tick's frames share a time) with each tick late by its jitter, s."""
+    ticks = sorted({m.timestamp for m in msgs})
+    late = dict(zip(ticks, jitter_s * len(ticks), strict=False))
+    for m in msgs:
+        m.timestamp += late[m.timestamp]
+    return msgs
+
+
+def _relative(text: str, delta: bool) -> str:
+    """A ``candump -l`` log's lines as ``-td`` (delta) or ``-tz`` (zero-based) prints them."""
+    out, prev, first = [], None, None
+    for line in text.splitlines():
+        stamp, rest = line[1:].split(")", 1)
+        us = int(stamp.replace(".", ""))
+        first = us if first is None else first
+        t = us - (prev if delta and prev is not None else first)
+        out.append(f"({t // 10**6:03d}.{t % 10**6:06d}){rest}")
+        prev = us
+    return "\n".join(out) + "\n"
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(0.0, 0.4), min_size=1, max_size=7), st.integers(3, 40))
+def test_delta_timestamps_are_summed_not_stepped_back(jitter_s: list[float], n: int) -> None:
+    """A sweep: ``candump -td`` stamps (the time since the previous frame) gave a
+    time_backwards note per tick (799 on an 800-tick log) and times off by the absorbed steps.
+    They are told once and summed now; ``-tz`` stamps read as they are."""
+    mapping = default_mapping()
+    with tempfile.TemporaryDirectory(dir="/tmp") as d:
+        tmp = Path(d)
+        write_log(tmp / "abs.log", _stamped(frames(mapping, n=n, n_cells=4), jitter_s))
+        ref = samples_from_log(tmp / "abs.log", mapping, 4)
+        t0 = next(read_log(tmp / "abs.log")).timestamp
+        for name, delta in (("td.log", True), ("tz.log", False)):
+            (tmp / name).write_text(_relative((tmp / "abs.log").read_text(), delta))
+            f2s = FrameToSamples(mapping, 4)
+            got = [s for m in read_log(tmp / name) for s in f2s.feed(m)] + f2s.flush()
+            assert f2s.counters["time_backwards"] == 0, name
+            np.testing.assert_allclose([s.t_s for s in got], [s.t_s - t0 for s in ref], atol=1e-6)
+            np.testing.assert_array_equal(
+                [s.cell_voltages_V for s in got], [s.cell_voltages_V for s in ref]
+            )
+
+
+def test_delta_timestamps_are_told_once_and_a_clock_step_is_no_delta(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    mapping = default_mapping()
+    write_log(tmp_path / "abs.log", frames(mapping, n=30, n_cells=4, t0=0.0))
+    (tmp_path / "td.log").write_text(_relative((tmp_path / "abs.log").read_text(), True))
+    with caplog.at_level(logging.WARNING):
+        for _ in range(3):  # an offline run's passes
+            assert len(samples_from_log(tmp_path / "td.log", mapping, 4)) == 30
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("relative timestamps (candump -td" in x for x in lines) == 1, lines
+    assert not any("time_backwards" in x for x in lines)
+    stepped = frames(mapping, n=30, n_cells=4, t0=0.0)
+    for m in stepped[20:]:
+        m.timestamp -= 5.0  # one clock step back on a log from 0 s: no delta stamps
+    write_log(tmp_path / "step.log", stepped)
+    assert [m.timestamp for m in read_log(tmp_path / "step.log")] == [m.timestamp for m in stepped]
 
 
 def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:

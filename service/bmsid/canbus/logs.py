@@ -8,7 +8,11 @@ Two candump text formats are read, chosen per line:
 - the console format of ``candump``: ``  can0  123   [2]  11 22``, optionally preceded by a
   ``-ta``/``-tz`` timestamp ``(1600000000.123456)`` or a ``-tA`` date; ``remote request``,
   ``ERRORFRAME`` and ``-a`` ASCII columns are understood. Without timestamps every frame gets
-  ``timestamp=0.0``. ``-td`` (delta) timestamps are not supported.
+  ``timestamp=0.0``.
+
+``-td`` (delta) timestamps, the time since the previous frame, are told once and summed into
+the time since the first frame (python-can's reader takes every timestamp as absolute); ``-tz``
+(zero-based) ones are read as they are.
 
 Malformed lines are skipped, counted and logged (thinning out: 1st, 10th, 100th, ...).
 """
@@ -17,6 +21,7 @@ from __future__ import annotations
 
 import datetime as dt
 import gzip
+import itertools
 import logging
 import math
 import re
@@ -195,10 +200,46 @@ def _lines_of(fh: Iterable[str], p: Path) -> Iterator[str]:
         log.warning("%s: gzip file cut short after line %d: the lines before are used", p, n)
 
 
+#: Delta stamps read as absolute ones step back at every longer interval (a false
+#: ``time_backwards`` per tick). A log is read as delta when its first frames step back at least
+#: twice (once: a clock set back) on no wall clock (``-ta`` stamps are ~1.7e9 s); ``-tz`` and
+#: ``make-log`` stamps never step back.
+_DELTA_HEAD = 1000
+_DELTA_MAX_S = 1e6
+
+
+def _absolute_times(msgs: Iterator[can.Message], p: Path) -> Iterator[can.Message]:
+    """``msgs`` with delta timestamps (``candump -td``) summed, in whole microseconds (exact)."""
+    head = list(itertools.islice(msgs, _DELTA_HEAD))
+    stamps = [m.timestamp for m in head]
+    backs = sum(b < a for a, b in itertools.pairwise(stamps))
+    if backs < 2 or max(stamps) >= _DELTA_MAX_S:
+        yield from head
+        yield from msgs
+        return
+    told = told_counts(p)
+    if not told.get("delta_timestamps"):
+        told["delta_timestamps"] = 1
+        log.warning(
+            "%s: relative timestamps (candump -td: each the time since the previous frame): "
+            "summed into the time since the first frame",
+            p,
+        )
+    us = 0
+    for m in itertools.chain(head, msgs):
+        us += round(m.timestamp * 1e6)
+        m.timestamp = us / 1e6
+        yield m
+
+
 def read_log(path: str | Path) -> Iterator[can.Message]:
     """Frames of a candump log (``-l``/``-L`` file or console output; gzipped when its name
-    ends in ``.gz``), in file order."""
+    ends in ``.gz``), in file order; delta timestamps (``-td``) summed from 0 s."""
     p = Path(path)
+    return _absolute_times(_frames_of(p), p)
+
+
+def _frames_of(p: Path) -> Iterator[can.Message]:
     try:
         if p.name.lower().endswith(".gz"):  # closed by the with below
             fh = gzip.open(p, "rt", encoding="utf-8", errors="replace")  # noqa: SIM115
