@@ -193,7 +193,7 @@ def _bad(**kw: object) -> can.Message:
         (_bad(data=bytes([5, 0, 0, 0, 0, 0, 0, 0])), "mux_out_of_range"),  # cells 20-23 of 8
         (_bad(is_error_frame=True), "error_frames"),
         (_bad(is_remote_frame=True, data=None, dlc=8), "remote_frames"),
-        (_bad(data=bytes([0, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF])), "out_of_range"),
+        (_bad(data=bytes([0, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF])), "not_available"),
     ],
 )
 def test_bad_frames_are_counted_not_used(msg: can.Message, counter: str) -> None:
@@ -203,7 +203,7 @@ def test_bad_frames_are_counted_not_used(msg: can.Message, counter: str) -> None
     assert f2s.counters["samples"] == 0
 
 
-def test_out_of_range_cell_is_nan_and_flagged() -> None:
+def test_a_cell_not_available_is_nan_and_flagged_not_available() -> None:
     msgs = frames(OWN, n=1, n_cells=4)
     cells = msgs[-1]
     cells.data = bytearray(cells.data)
@@ -212,7 +212,33 @@ def test_out_of_range_cell_is_nan_and_flagged() -> None:
     f2s = FrameToSamples(OWN, 4)
     out = run(f2s, msgs)
     assert len(out) == 1 and math.isnan(out[0].cell_voltages_V[0])
-    assert "out_of_range" in out[0].flags and f2s.counters["out_of_range"] == 1
+    assert out[0].flags == {"not_available"}
+    assert (f2s.counters["not_available"], f2s.counters["out_of_range"]) == (1, 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.sampled_from([OWN, FOREIGN]),
+    st.lists(st.booleans(), min_size=6 * 8, max_size=6 * 8),
+    st.lists(st.booleans(), min_size=8, max_size=8),
+)
+def test_a_not_available_value_is_counted_as_such_for_every_signal_kind(
+    mapping: BusMapping, cell_na: list[bool], current_na: list[bool]
+) -> None:
+    """A sweep: a BMS's SNA (NaN, as make-log sends it) was logged as ``out_of_range``. Every
+    cell's and current's is ``not_available`` now; a temperature's stays silent (not fitted)."""
+    t, i, v = synthetic(8, 6)
+    i[np.array(current_na)] = np.nan
+    v[np.array(cell_na).reshape(8, 6)] = np.nan
+    temps = np.full(8, 25.0)
+    f2s = FrameToSamples(mapping, 6)
+    out = run(f2s, list(csv_to_messages(t, i, v, mapping, temperature_C=temps, t0_s=1000.0)))
+    out += f2s.flush()
+    assert f2s.counters["not_available"] == sum(cell_na) + sum(current_na)
+    assert f2s.counters["out_of_range"] == 0
+    for s in out:
+        assert "out_of_range" not in s.flags
+        assert ("not_available" in s.flags) == bool(np.isnan(s.cell_voltages_V).any())
 
 
 def test_a_temperature_sensor_not_fitted_is_missing_not_an_error() -> None:
@@ -276,3 +302,20 @@ def test_random_frames_never_raise_and_samples_are_sane(frames_: list, mapping: 
         assert s.cell_voltages_V.shape == (8,) and math.isfinite(s.current_A)
         finite = s.cell_voltages_V[np.isfinite(s.cell_voltages_V)]
         assert ((finite >= 0) & (finite <= 17)).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from([OWN, FOREIGN]), st.lists(st.integers(0, 2), min_size=1, max_size=200))
+def test_a_repeated_frame_is_used_once(mapping: BusMapping, copies: list[int]) -> None:
+    """A sweep: a log holding each frame twice (same timestamp) gave twice the samples, each
+    repeated cell frame closing its cycle. Exact repeats are dropped and counted now."""
+    msgs = frames(mapping, n=10, n_cells=6)
+    twice = [m for m, k in zip(msgs, copies + [0] * len(msgs), strict=False) for _ in range(k + 1)]
+    f2s, ref = FrameToSamples(mapping, 6), FrameToSamples(mapping, 6)
+    got, want = run(f2s, twice) + f2s.flush(), run(ref, msgs) + ref.flush()
+    assert [s.t_s for s in got] == [s.t_s for s in want] and len(got) == 10
+    np.testing.assert_array_equal(
+        [s.cell_voltages_V for s in got], [s.cell_voltages_V for s in want]
+    )
+    assert f2s.counters["duplicate_frames"] == len(twice) - len(msgs)
+    assert f2s.counters["decoded"] == ref.counters["decoded"] == len(msgs)

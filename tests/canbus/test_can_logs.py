@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import gzip
 import logging
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 from can_helpers import frames, synthetic
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from bmsid.canbus.frames_to_samples import FrameToSamples
 from bmsid.canbus.logs import (
     csv_to_messages,
     is_candump_path,
@@ -153,6 +157,124 @@ def test_samples_from_log_reproduce_the_csv(tmp_path: Path, mapping_file: str) -
     np.testing.assert_allclose([s.current_A for s in samples], i, atol=0.05)
     np.testing.assert_allclose(np.array([s.cell_voltages_V for s in samples]), v, atol=5e-4)
     np.testing.assert_allclose([s.t_s for s in samples], t + 1000.0)
+
+
+def test_a_log_holding_each_frame_twice_gives_each_sample_once(tmp_path: Path) -> None:
+    """A sweep: every line twice (a log recorded or merged twice) gave 1600 samples of a
+    800-tick log in the header; the repeats are dropped, counted and said now."""
+    mapping = default_mapping()
+    msgs = frames(mapping, n=50, n_cells=6)
+    write_log(tmp_path / "x.log", [m for m in msgs for _ in range(2)])
+    assert len(samples_from_log(tmp_path / "x.log", mapping, 6)) == 50
+    text = summarize_log(tmp_path / "x.log", mapping).text()
+    assert f"{2 * len(msgs)} frames" in text
+    assert f"{len(msgs)} decoded by the mapping ({len(msgs)} repeated at the same timestamp" in text
+
+
+def test_frames_of_a_wrong_dlc_are_counted_as_dropped_not_decoded(tmp_path: Path) -> None:
+    """A sweep: with every 10th cell frame cut to 6 bytes the summary said "2400 decoded by
+    the mapping" while the decoder dropped 80 of them; it counts and says them now."""
+    mapping = default_mapping()
+    msgs = frames(mapping, n=50, n_cells=4)
+    cut = [m for m in msgs if m.arbitration_id == 0x110][::10]
+    for m in cut:
+        m.data = m.data[:6]
+        m.dlc = 6
+    write_log(tmp_path / "x.log", msgs)
+    f2s = FrameToSamples(mapping, 4)
+    for m in read_log(tmp_path / "x.log"):
+        f2s.feed(m)
+    s = summarize_log(tmp_path / "x.log", mapping)
+    can0 = s.channels["can0"]
+    assert (can0.wrong_dlc, f2s.counters["wrong_dlc"]) == (len(cut), len(cut))
+    assert can0.decoded == f2s.counters["decoded"] == len(msgs) - len(cut)
+    text = s.text()
+    assert f"{len(msgs) - len(cut)} decoded by the mapping ({len(cut)} with a wrong DLC" in text
+
+
+def test_error_frames_are_filed_under_their_channel(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A sweep: python-can's reader drops an error frame's channel, and the summary filed such
+    frames under a channel "None"; they keep the log's channel, class and data now."""
+    mapping = default_mapping()
+    write_log(tmp_path / "x.log", frames(mapping, n=20, n_cells=4), channel="can1")
+    with (tmp_path / "x.log").open("a") as fh:
+        fh.write("(1030.000000) can1 20000004#0004000000000000\n")
+        fh.write("(1030.100000) can1 20000080#0000000000000000\n")
+    errors = [m for m in read_log(tmp_path / "x.log") if m.is_error_frame]
+    assert [(m.channel, m.arbitration_id) for m in errors] == [("can1", 0x4), ("can1", 0x80)]
+    assert bytes(errors[0].data) == bytes.fromhex("0004000000000000")
+    s = summarize_log(tmp_path / "x.log", mapping)
+    assert list(s.channels) == ["can1"] and "None" not in s.text()
+    assert s.channels["can1"].frames == 20 * 2 + 2  # current and cell frames, 2 errors
+    with caplog.at_level(logging.WARNING):
+        samples_from_log(tmp_path / "x.log", mapping, 4, channel="can1")
+    assert any("error frame on can1 id=0x4 (1 so far)" in r.getMessage() for r in caplog.records)
+
+
+def _stamped(msgs: list, jitter_s: list[float]) -> list:
+    """``msgs`` (a tick's frames share a time) with each tick late by its jitter, s."""
+    ticks = sorted({m.timestamp for m in msgs})
+    late = dict(zip(ticks, jitter_s * len(ticks), strict=False))
+    for m in msgs:
+        m.timestamp += late[m.timestamp]
+    return msgs
+
+
+def _relative(text: str, delta: bool) -> str:
+    """A ``candump -l`` log's lines as ``-td`` (delta) or ``-tz`` (zero-based) prints them."""
+    out, prev, first = [], None, None
+    for line in text.splitlines():
+        stamp, rest = line[1:].split(")", 1)
+        us = int(stamp.replace(".", ""))
+        first = us if first is None else first
+        t = us - (prev if delta and prev is not None else first)
+        out.append(f"({t // 10**6:03d}.{t % 10**6:06d}){rest}")
+        prev = us
+    return "\n".join(out) + "\n"
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(0.0, 0.4), min_size=1, max_size=7), st.integers(3, 40))
+def test_delta_timestamps_are_summed_not_stepped_back(jitter_s: list[float], n: int) -> None:
+    """A sweep: ``candump -td`` stamps (the time since the previous frame) gave a
+    time_backwards note per tick (799 on an 800-tick log) and times off by the absorbed steps.
+    They are told once and summed now; ``-tz`` stamps read as they are."""
+    mapping = default_mapping()
+    with tempfile.TemporaryDirectory(dir="/tmp") as d:
+        tmp = Path(d)
+        write_log(tmp / "abs.log", _stamped(frames(mapping, n=n, n_cells=4), jitter_s))
+        ref = samples_from_log(tmp / "abs.log", mapping, 4)
+        t0 = next(read_log(tmp / "abs.log")).timestamp
+        for name, delta in (("td.log", True), ("tz.log", False)):
+            (tmp / name).write_text(_relative((tmp / "abs.log").read_text(), delta))
+            f2s = FrameToSamples(mapping, 4)
+            got = [s for m in read_log(tmp / name) for s in f2s.feed(m)] + f2s.flush()
+            assert f2s.counters["time_backwards"] == 0, name
+            np.testing.assert_allclose([s.t_s for s in got], [s.t_s - t0 for s in ref], atol=1e-6)
+            np.testing.assert_array_equal(
+                [s.cell_voltages_V for s in got], [s.cell_voltages_V for s in ref]
+            )
+
+
+def test_delta_timestamps_are_told_once_and_a_clock_step_is_no_delta(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    mapping = default_mapping()
+    write_log(tmp_path / "abs.log", frames(mapping, n=30, n_cells=4, t0=0.0))
+    (tmp_path / "td.log").write_text(_relative((tmp_path / "abs.log").read_text(), True))
+    with caplog.at_level(logging.WARNING):
+        for _ in range(3):  # an offline run's passes
+            assert len(samples_from_log(tmp_path / "td.log", mapping, 4)) == 30
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("relative timestamps (candump -td" in x for x in lines) == 1, lines
+    assert not any("time_backwards" in x for x in lines)
+    stepped = frames(mapping, n=30, n_cells=4, t0=0.0)
+    for m in stepped[20:]:
+        m.timestamp -= 5.0  # one clock step back on a log from 0 s: no delta stamps
+    write_log(tmp_path / "step.log", stepped)
+    assert [m.timestamp for m in read_log(tmp_path / "step.log")] == [m.timestamp for m in stepped]
 
 
 def test_log_without_timestamps_is_refused(tmp_path: Path) -> None:

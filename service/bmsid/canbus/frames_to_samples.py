@@ -34,10 +34,13 @@ Bad frames never raise and never reach a sample; each kind is counted in
 :attr:`FrameToSamples.counters` and logged at a rate that thins out (1st, 10th, 100th, ...):
 error frames, remote frames, unknown identifiers, wrong DLC, multiplexer index outside the DBC or
 outside ``n_cells``, values outside the signal's DBC range (that cell becomes NaN, flag
-``out_of_range``), and any other decode error. A temperature's not-available value (SNA,
-``dbc/README.md``: a sensor of a group that is not fitted, as ``make-log`` writes them) is a
-missing reading, not an error: NaN, neither counted nor logged (a cell's is counted: the cell is
-mapped, and its missing reading is worth knowing).
+``out_of_range``), and any other decode error. A signal's not-available value (SNA,
+``dbc/README.md``) is a missing reading, not a bad one: a cell's becomes NaN with the flag
+``not_available``, a current's keeps the held one, each counted as ``not_available``; a
+temperature's (a sensor of a group that is not fitted, as ``make-log`` writes them) is NaN,
+neither counted nor logged. A frame repeated with the same identifier, data and timestamp (a log
+recorded or merged twice) is counted as ``duplicate_frames`` and used once: a repeated cell frame
+would otherwise close its cycle half-complete and add samples the bus never sent.
 """
 
 from __future__ import annotations
@@ -75,11 +78,13 @@ DECODE_ERROR_KINDS = (
     "error_frames",
     "remote_frames",
     "out_of_range",
+    "not_available",  # no decode error, but in the daemon's decode_errors as before its split
     "decode_error",
 )
 COUNTER_NAMES = (
     "frames",
     "decoded",
+    "duplicate_frames",
     *DECODE_ERROR_KINDS,
     "samples",
     "incomplete_cycles",
@@ -130,6 +135,25 @@ def _bounds(sig: cantools.database.can.Signal) -> tuple[float, float, float]:
     return lo, hi, math.nan if sna is None else sna * float(sig.scale) + float(sig.offset)
 
 
+class RepeatFilter:
+    """Tells exact repeats: a frame whose id and data came already with the same timestamp."""
+
+    def __init__(self) -> None:
+        self._t = math.nan
+        self._keys: set[tuple[int, bool, bytes]] = set()  # frames at timestamp _t
+
+    def seen(self, msg: can.Message) -> bool:
+        """Whether ``msg`` repeats a frame given before at its timestamp (then it is no new one)."""
+        key = (int(msg.arbitration_id), bool(msg.is_extended_id), bytes(msg.data))
+        if msg.timestamp != self._t:
+            self._t = msg.timestamp
+            self._keys.clear()
+        elif key in self._keys:
+            return True
+        self._keys.add(key)
+        return False
+
+
 class FrameToSamples:
     """Decode frames with cantools and assemble samples (rules in the module docstring)."""
 
@@ -172,6 +196,7 @@ class FrameToSamples:
         # monotonic guard
         self._t_offset = 0.0
         self._t_prev = -math.inf
+        self._repeats = RepeatFilter()
 
     # --- construction -------------------------------------------------------------------------
 
@@ -247,7 +272,8 @@ class FrameToSamples:
         """Take one frame; return the samples it completes (usually none or one). Never raises."""
         self.counters["frames"] += 1
         if msg.is_error_frame:
-            self._note("error_frames", f"error frame id=0x{msg.arbitration_id:X}")
+            on = "" if msg.channel is None else f" on {msg.channel}"
+            self._note("error_frames", f"error frame{on} id=0x{msg.arbitration_id:X}")
             return []
         if msg.is_remote_frame:
             self._note("remote_frames", f"remote frame id=0x{msg.arbitration_id:X}")
@@ -262,6 +288,10 @@ class FrameToSamples:
                 "wrong_dlc",
                 f"{plan.message.name}: {len(data)} bytes instead of {plan.length}",
             )
+            return []
+        if self._repeats.seen(msg):
+            again = f"{plan.message.name}: the same frame again at t={msg.timestamp:.6f} s"
+            self._note("duplicate_frames", again)
             return []
         try:
             values = plan.message.decode(data, decode_choices=False)
@@ -296,7 +326,9 @@ class FrameToSamples:
     ) -> float:
         raw = values.get(s.signal)
         v = float(raw) if isinstance(raw, int | float) else math.nan
-        if quiet_sna and v == s.sna:  # a sensor not fitted: missing, not an error
+        if v == s.sna:  # missing, not out of range; a temperature's: a sensor not fitted
+            if not quiet_sna:
+                self._note("not_available", f"{what} signal {s.signal} not available")
             return math.nan
         if not (s.lo <= v <= s.hi):  # also catches NaN
             self._note("out_of_range", f"{what} signal {s.signal}={raw!r}")
@@ -368,7 +400,8 @@ class FrameToSamples:
                 continue  # padding of the last group beyond n_cells
             v = self._value(values, s, "cell voltage")
             if math.isnan(v):
-                self._flags.add("out_of_range")
+                sna = values.get(s.signal) == s.sna
+                self._flags.add("not_available" if sna else "out_of_range")
             self._v[j] = v
             self._seen[j] = 1
             self._n_seen += 1

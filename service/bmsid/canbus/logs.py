@@ -3,11 +3,16 @@
 Two candump text formats are read, chosen per line:
 
 - the log file format of ``candump -l`` / ``-L``: ``(1600000000.123456) can0 123#1122`` (read by
-  python-can's ``CanutilsLogReader``; error frames of every class are kept as error frames);
+  python-can's ``CanutilsLogReader``; error frames of every class are kept as error frames,
+  with their channel);
 - the console format of ``candump``: ``  can0  123   [2]  11 22``, optionally preceded by a
   ``-ta``/``-tz`` timestamp ``(1600000000.123456)`` or a ``-tA`` date; ``remote request``,
   ``ERRORFRAME`` and ``-a`` ASCII columns are understood. Without timestamps every frame gets
-  ``timestamp=0.0``. ``-td`` (delta) timestamps are not supported.
+  ``timestamp=0.0``.
+
+``-td`` (delta) timestamps, the time since the previous frame, are told once and summed into
+the time since the first frame (python-can's reader takes every timestamp as absolute); ``-tz``
+(zero-based) ones are read as they are.
 
 Malformed lines are skipped, counted and logged (thinning out: 1st, 10th, 100th, ...).
 """
@@ -16,9 +21,11 @@ from __future__ import annotations
 
 import datetime as dt
 import gzip
+import itertools
 import logging
 import math
 import re
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.canbus.codec import encode_saturating
-from bmsid.canbus.frames_to_samples import FrameToSamples
+from bmsid.canbus.frames_to_samples import FrameToSamples, RepeatFilter
 from bmsid.canbus.mapping import BusMapping, ListedGroup, MultiplexedGroup
 from bmsid.errors import UserError
 from bmsid.samples import Sample
@@ -47,6 +54,7 @@ _CONSOLE_RE = re.compile(
     rf"(?P<chan>\S+)\s+(?P<id>{_HEX}{{3}}|{_HEX}{{8}})\s+\[(?P<dlc>\d{{1,2}})\]"
     r"(?P<rest>.*)$"
 )
+_HEX_BYTES = re.compile(f"(?:{_HEX}{{2}})*")
 _CONSOLE_BYTES_RE = re.compile(rf"^\s*((?:{_HEX}{{2}}\s*)*)(?:'.*')?\s*(ERRORFRAME.*)?$")
 
 
@@ -128,7 +136,10 @@ def _parse_console(line: str) -> can.Message | None:
     )
 
 
-def _logfile_lines(lines: Iterable[tuple[int, str]], skipped: _SkipCounter) -> Iterator[str]:
+def _logfile_lines(
+    lines: Iterable[tuple[int, str]], skipped: _SkipCounter, errors: deque[can.Message]
+) -> Iterator[str]:
+    """The valid lines for python-can; an error frame's line is also built into ``errors``."""
     for lineno, line in lines:
         m = _LOGFILE_RE.match(line)
         if m is None:
@@ -136,11 +147,31 @@ def _logfile_lines(lines: Iterable[tuple[int, str]], skipped: _SkipCounter) -> I
             continue
         ident = m["id"]
         if len(ident) == 8 and int(ident, 16) & CAN_ERR_FLAG:
-            # python-can only recognises the bus-error class; keep every class an error frame
-            ts, chan = line.split()[:2]
+            # python-can only recognises the bus-error class and drops the channel (its error
+            # frames were filed under "None"): built here, python-can reads a placeholder
+            ts, chan, frame = line.split()[:3]
+            data = frame.partition("#")[2]
+            errors.append(
+                can.Message(
+                    timestamp=float(ts[1:-1]),
+                    is_error_frame=True,
+                    arbitration_id=int(ident, 16) & 0x1FFFFFFF,
+                    data=bytes.fromhex(data)[:8] if _HEX_BYTES.fullmatch(data) else None,
+                    channel=chan,
+                )
+            )
             yield f"{ts} {chan} {CAN_ERR_FLAG | 0x80:08X}#"
         else:
             yield line
+
+
+def _logfile_frames(
+    lines: Iterable[tuple[int, str]], skipped: _SkipCounter
+) -> Iterator[can.Message]:
+    """Frames of ``candump -l`` lines (python-can's reader, error frames as built above)."""
+    errors: deque[can.Message] = deque()
+    for msg in can.CanutilsLogReader(_logfile_lines(lines, skipped, errors)):  # type: ignore[arg-type]
+        yield errors.popleft() if msg.is_error_frame else msg
 
 
 #: Names of candump logs (a rotated or archived one gzipped), as inputs are told apart.
@@ -169,10 +200,46 @@ def _lines_of(fh: Iterable[str], p: Path) -> Iterator[str]:
         log.warning("%s: gzip file cut short after line %d: the lines before are used", p, n)
 
 
+#: Delta stamps read as absolute ones step back at every longer interval (a false
+#: ``time_backwards`` per tick). A log is read as delta when its first frames step back at least
+#: twice (once: a clock set back) on no wall clock (``-ta`` stamps are ~1.7e9 s); ``-tz`` and
+#: ``make-log`` stamps never step back.
+_DELTA_HEAD = 1000
+_DELTA_MAX_S = 1e6
+
+
+def _absolute_times(msgs: Iterator[can.Message], p: Path) -> Iterator[can.Message]:
+    """``msgs`` with delta timestamps (``candump -td``) summed, in whole microseconds (exact)."""
+    head = list(itertools.islice(msgs, _DELTA_HEAD))
+    stamps = [m.timestamp for m in head]
+    backs = sum(b < a for a, b in itertools.pairwise(stamps))
+    if backs < 2 or max(stamps) >= _DELTA_MAX_S:
+        yield from head
+        yield from msgs
+        return
+    told = told_counts(p)
+    if not told.get("delta_timestamps"):
+        told["delta_timestamps"] = 1
+        log.warning(
+            "%s: relative timestamps (candump -td: each the time since the previous frame): "
+            "summed into the time since the first frame",
+            p,
+        )
+    us = 0
+    for m in itertools.chain(head, msgs):
+        us += round(m.timestamp * 1e6)
+        m.timestamp = us / 1e6
+        yield m
+
+
 def read_log(path: str | Path) -> Iterator[can.Message]:
     """Frames of a candump log (``-l``/``-L`` file or console output; gzipped when its name
-    ends in ``.gz``), in file order."""
+    ends in ``.gz``), in file order; delta timestamps (``-td``) summed from 0 s."""
     p = Path(path)
+    return _absolute_times(_frames_of(p), p)
+
+
+def _frames_of(p: Path) -> Iterator[can.Message]:
     try:
         if p.name.lower().endswith(".gz"):  # closed by the with below
             fh = gzip.open(p, "rt", encoding="utf-8", errors="replace")  # noqa: SIM115
@@ -190,11 +257,11 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
             if "#" in line and line.startswith("("):
                 pending.append((lineno, line))
                 if len(pending) >= 1024:
-                    yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+                    yield from _logfile_frames(pending, skipped)
                     pending = []
                 continue
             if pending:
-                yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+                yield from _logfile_frames(pending, skipped)
                 pending = []
             msg = None
             try:
@@ -206,7 +273,7 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
                 continue
             yield msg
         if pending:
-            yield from can.CanutilsLogReader(_logfile_lines(pending, skipped))  # type: ignore[arg-type]
+            yield from _logfile_frames(pending, skipped)
     told = told_counts(p)
     if skipped.n > told.get("skipped_total", 0):
         told["skipped_total"] = skipped.n
@@ -369,16 +436,21 @@ class ChannelSummary:
     """The frames of one CAN channel of a log.
 
     ``ids`` counts frames per (arbitration id, extended); ``mapped`` counts the frames whose id
-    the mapping decodes (current, counter, cells, temperatures); ``cell_valid`` and
-    ``cell_seen`` count, per cell index (0-based), the frames with a valid voltage for it and
-    all frames that carried a slot for it.
+    the mapping decodes (current, counter, cells, temperatures), ``wrong_dlc`` and ``repeated``
+    those of them of another length than the DBC's or repeating a frame at its timestamp
+    (dropped as :class:`FrameToSamples` drops them);
+    ``cell_valid`` and ``cell_seen`` count, per cell index (0-based), the frames with a valid
+    voltage for it and all frames that carried a slot for it.
     """
 
     frames: int = 0
     mapped: int = 0
+    wrong_dlc: int = 0
+    repeated: int = 0
     ids: dict[tuple[int, bool], int] = field(default_factory=dict)
     cell_valid: dict[int, int] = field(default_factory=dict)
     cell_seen: dict[int, int] = field(default_factory=dict)
+    repeats: RepeatFilter = field(default_factory=RepeatFilter, repr=False, compare=False)
 
     @property
     def cells(self) -> list[int]:
@@ -399,8 +471,23 @@ class ChannelSummary:
         more = f", ... ({len(ids) - _IDS_LISTED} more ids)" if len(ids) > _IDS_LISTED else ""
         return (
             f"{name}: {self.frames} frames, {len(ids)} id(s) ({shown}{more}); "
-            f"{self.mapped} decoded by the mapping, {self.n_cells} cell(s)"
+            f"{self.decoded} decoded by the mapping{self._dropped()}, "
+            f"{self.n_cells} cell(s)"
         )
+
+    @property
+    def decoded(self) -> int:
+        """Frames of the mapping that reach the decoder (not dropped before it)."""
+        return self.mapped - self.wrong_dlc - self.repeated
+
+    def _dropped(self) -> str:
+        """The mapped frames not decoded, by why (empty when none)."""
+        why = [
+            (self.wrong_dlc, "with a wrong DLC"),
+            (self.repeated, "repeated at the same timestamp"),
+        ]
+        told = ", ".join(f"{n} {what}" for n, what in why if n)
+        return f" ({told}: dropped)" if told else ""
 
 
 @dataclass(frozen=True)
@@ -465,6 +552,11 @@ def _cell_frames(mapping: BusMapping) -> dict[tuple[int, bool], _CellFrame]:
 
 def mapped_ids(mapping: BusMapping) -> set[tuple[int, bool]]:
     """(arbitration id, extended) of every frame the mapping decodes."""
+    return set(_mapped_lengths(mapping))
+
+
+def _mapped_lengths(mapping: BusMapping) -> dict[tuple[int, bool], int]:
+    """The DBC's data length (bytes) of every frame the mapping decodes, by (id, extended)."""
     db = mapping.database()
     names = {mapping.current.message}
     if mapping.counter is not None:
@@ -475,7 +567,7 @@ def mapped_ids(mapping: BusMapping) -> set[tuple[int, bool]]:
         elif isinstance(group, MultiplexedGroup):
             names.add(group.message)
     msgs = [db.get_message_by_name(n) for n in names]
-    return {(int(m.frame_id), bool(m.is_extended_frame)) for m in msgs}
+    return {(int(m.frame_id), bool(m.is_extended_frame)): int(m.length) for m in msgs}
 
 
 def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) -> LogSummary:
@@ -487,7 +579,7 @@ def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) 
     pass's time) when only the channels matter. Raises ``UserError`` for an unreadable file.
     """
     cell_frames = _cell_frames(mapping)
-    known = mapped_ids(mapping)
+    known = _mapped_lengths(mapping)
     channels: dict[str, ChannelSummary] = {}
     limit = mapping.max_cells()
     for msg in read_log(path):
@@ -500,6 +592,12 @@ def summarize_log(path: str | Path, mapping: BusMapping, *, cells: bool = True) 
         if key not in known:
             continue
         ch.mapped += 1
+        if len(msg.data) != known[key]:  # as FrameToSamples: dropped, not decoded
+            ch.wrong_dlc += 1
+            continue
+        if ch.repeats.seen(msg):
+            ch.repeated += 1
+            continue
         cf = cell_frames.get(key) if cells else None
         if cf is None:
             continue
