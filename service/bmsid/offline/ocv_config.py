@@ -167,7 +167,8 @@ def fit_test_files(
             f"  rest after the {r.after} at SOC {100 * r.soc:.1f} % ({r.duration_s:.0f} s): "
             f"{1e3 * r.r_total_ohm:.1f} +- {1e3 * r.r_total_se_ohm:.1f} mOhm, tau "
             f"{r.tau1_s:.0f} / {r.tau2_s:.0f} s, fit RMSE {1e3 * r.rmse_V:.2f} mV"
-            for r in pol.relaxations
+            + (" (a knee: not used)" if r in pol.knee else "")
+            for r in (*pol.relaxations, *pol.knee)
         ],
         f"  one-sample current steps |dV/dI| [mOhm, +- noise 1 se]: {steps or 'none'}",
         f"hysteresis state h run along the test with gamma = {br.gamma:g}",
@@ -382,6 +383,7 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
             "R2_ohm": pol.R2_ohm, "tau2_s": pol.tau2_s, "r_total_ohm": pol.r_total_ohm,
             "r_total_se_ohm": pol.r_total_se_ohm, "source": pol.source,
             "relaxations": [asdict(x) for x in pol.relaxations],
+            "knee_relaxations": [asdict(x) for x in pol.knee],
             "step_resistances_ohm": list(pol.step_resistances_ohm),
             "step_se_ohm": [st.se_ohm for st in pol.steps],
         }  # fmt: skip

@@ -35,7 +35,10 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   larger than mid-SOC, and only ever larger, so the smallest fit is used, and the M knot at the
   end where a larger one was measured carries the difference in its CI. A polarisation larger
   than the mid-SOC raw half-gap allows with M >= 0 is reported, not scaled to fit the gap (the
-  corrected gap then comes out negative, and M is decided from its CI below). Without a rest
+  corrected gap then comes out negative, and M is decided from its CI below), unless it is
+  more than ``KNEE_FACTOR`` times that: then it measured the OCV relaxing at a knee and is left
+  out (so one export of a test gives what its split into files gives), as is a one-sample step
+  that large; a fit that does not settle within its rest is none. Without a rest
   long enough (>= 300 s) R0 is the smallest one-sample step |dV/dI| (R0 plus what relaxes within
   one sample) and the RC part, which the test does not measure, is taken as
   ``UNMEASURED_RC_SHARE`` times it with a standard error as large (the CI says so). The model
@@ -283,6 +286,12 @@ UNMEASURED_RC_SHARE = 1.0
 #: Time constant (s) given to that unmeasured RC part: where it matters (the first minutes of a
 #: branch) the M fit weighs little.
 UNMEASURED_RC_TAU_S = 300.0
+#: A polarisation candidate (relaxation fit or step) whose R0 + R1 + R2 exceeds this times what
+#: the mid-SOC raw half-gap allows with M >= 0 (beyond 2 se) would reverse the gap by more than
+#: the whole measured gap: it measured a knee (the OCV's own relaxation at an end of the SOC
+#: range, or a step taken there), not the polarisation mid-SOC, and is not used. A 1.4x excess
+#: (the DFN cell's 99 % relaxation) is within the polarisation's variation along SOC.
+KNEE_FACTOR = 2.0
 #: gamma is not fitted: each M knot's CI carries its change over gamma / GAMMA_SPAN .. gamma *
 #: GAMMA_SPAN (an order of magnitude; published one-state fits range over more).
 GAMMA_SPAN = 3.0
@@ -343,6 +352,7 @@ class Polarisation:
     source: str
     relaxations: tuple[RelaxationFit, ...] = ()
     steps: tuple[CurrentStep, ...] = ()
+    knee: tuple[RelaxationFit, ...] = ()  #: relaxations not used: they measured a knee
 
     @property
     def step_resistances_ohm(self) -> tuple[float, ...]:
@@ -484,6 +494,10 @@ def fit_relaxation(
         a1, tau1, a2, tau2 = float(p[1]), float(np.exp(p[2])), 0.0, 10.0 * float(np.exp(p[2]))
     resid = v - fit
     s2 = float(resid @ resid) / max(t.shape[0] - p.shape[0], 1)
+    # More left to relax after the rest than it showed: v_inf and the amplitudes extrapolate.
+    left = a1 * math.exp(-t[-1] / tau1) + a2 * math.exp(-t[-1] / tau2)
+    if not np.all(np.isfinite(p)) or left > max(span, 3.0 * math.sqrt(s2)):
+        return None
     i_abs = abs(current_A)
     se = float(np.sqrt(max(float(cov[0, 0]), 0.0) + v_load_se_V**2)) / i_abs
     if not np.isfinite(se):
@@ -492,15 +506,18 @@ def fit_relaxation(
     def steady(a: float, tau: float) -> float:  # the branch had run_s to charge up
         return a / (i_abs * -math.expm1(-run_s / tau))
 
+    r1, r2 = steady(a1, tau1), steady(a2, tau2)
+    if not (r1 >= 0 and r2 >= 0 and math.isfinite(r1 + r2)):
+        return None
     return RelaxationFit(
         after="discharge" if current_A > 0 else "charge",
         soc=float("nan"),
         duration_s=float(t[-1]),
         current_A=current_A,
         R0_ohm=max(sgn * float(fit[0] - v_load_V) / i_abs, 0.0),
-        R1_ohm=steady(a1, tau1),
+        R1_ohm=r1,
         tau1_s=tau1,
-        R2_ohm=steady(a2, tau2),
+        R2_ohm=r2,
         tau2_s=tau2,
         r_total_se_ohm=se,
         rmse_V=float(np.sqrt(s2)),
@@ -876,6 +893,49 @@ def _scale_charge(
     return Throughput(dis_Ah, chg_Ah, "counted", 1.0, why)
 
 
+def _knee_bound_ohm(r_max: float) -> float:
+    """The largest R0 + R1 + R2 (ohm) a polarisation candidate may have (``KNEE_FACTOR``)."""
+    return KNEE_FACTOR * r_max if r_max > 0 else math.inf
+
+
+def _drop_knees(
+    relax: Sequence[RelaxationFit], r_max: float, notes: list[str]
+) -> tuple[list[RelaxationFit], list[RelaxationFit]]:
+    """(used, knee) relaxation fits: a knee one reverses the mid-SOC gap by more than the gap."""
+    bound = _knee_bound_ohm(r_max)
+    knee = [f for f in relax if f.r_total_ohm - 2.0 * f.r_total_se_ohm > bound]
+    if knee:
+        notes.append(
+            "not used for the polarisation: the relaxation"
+            + ("s" if len(knee) > 1 else "")
+            + " after the "
+            + " and ".join(
+                f"{f.after} at SOC {100 * f.soc:.1f} % ({1e3 * f.r_total_ohm:.1f} mOhm)"
+                for f in knee
+            )
+            + f", more than {KNEE_FACTOR:g}x what the mid-SOC half-gap allows with M >= 0 "
+            f"({1e3 * r_max:.1f} mOhm): the OCV relaxing at a knee, not the polarisation mid-SOC"
+        )
+    return [f for f in relax if f not in knee], knee
+
+
+def _usable_steps(
+    steps: Sequence[CurrentStep], r_max: float, notes: list[str]
+) -> list[CurrentStep]:
+    """The steps whose R0 with the assumed RC part is within ``KNEE_FACTOR`` of ``r_max``."""
+    bound = _knee_bound_ohm(r_max) / (1.0 + UNMEASURED_RC_SHARE)
+    ok = [st for st in steps if st.r_ohm - 2.0 * st.se_ohm <= bound]
+    if len(ok) < len(steps):
+        notes.append(
+            "not used for R0: the one-sample step(s) of "
+            + ", ".join(f"{1e3 * st.r_ohm:.1f}" for st in steps if st not in ok)
+            + f" mOhm (with the RC part, more than {KNEE_FACTOR:g}x what the mid-SOC half-gap "
+            f"allows with M >= 0, {1e3 * r_max:.1f} mOhm): steps at a knee or sampled too "
+            "coarsely to separate R0 from the relaxation"
+        )
+    return ok
+
+
 def _choose_polarisation(
     relax: Sequence[RelaxationFit], steps: Sequence[CurrentStep], r_max: float, notes: list[str]
 ) -> Polarisation:
@@ -885,7 +945,10 @@ def _choose_polarisation(
     of it; onsets first; none: the one with the smallest error) with the unmeasured RC part
     assumed (``UNMEASURED_RC_SHARE``, in the standard error). ``r_max`` (ohm: the most the
     median mid-SOC half-gap allows with M >= 0) is only compared with, beyond two standard
-    errors, never imposed (module doc)."""
+    errors, never imposed (module doc); a candidate beyond ``KNEE_FACTOR`` times it measured a
+    knee and is left out (noted)."""
+    relax, knee = _drop_knees(relax, r_max, notes)
+    steps_ok = _usable_steps(steps, r_max, notes) if not relax else []
     if relax:
         r = min(relax, key=lambda f: f.r_total_ohm)
         agree = [
@@ -906,34 +969,39 @@ def _choose_polarisation(
             float(1.0 / np.sqrt(np.sum(w))),
             f"2RC relaxation fit{'s' if len(agree) > 1 else ''} of {where}"
             + (" (inverse-variance mean)" if len(agree) > 1 else ""),
-            tuple(relax), tuple(steps),
+            tuple(relax), tuple(steps), tuple(knee),
         )  # fmt: skip
-    elif steps:
-        onsets = [st for st in steps if st.onset]
+    elif steps_ok:
+        onsets = [st for st in steps_ok if st.onset]
         resolved = [st for st in onsets if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
-        resolved = resolved or [st for st in steps if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
+        resolved = resolved or [st for st in steps_ok if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
         if resolved:
             st = min(resolved, key=lambda x: x.r_ohm)
             which = "the smallest one-sample step |dV/dI| that resolves it"
         else:
-            st = min(steps, key=lambda x: x.se_ohm)
+            st = min(steps_ok, key=lambda x: x.se_ohm)
             which = "the one-sample step |dV/dI| with the smallest noise error (none resolves it)"
         r0 = st.r_ohm
         rc = UNMEASURED_RC_SHARE * r0
         se = math.hypot(st.se_ohm, rc)
+        why = (
+            "the relaxations measured a knee"
+            if knee
+            else f"no rest after a branch long enough (>= {MIN_RELAX_S:.0f} s) to fit its "
+            "relaxation"
+        )
         notes.append(
-            f"no rest after a branch long enough (>= {MIN_RELAX_S:.0f} s) to fit its relaxation: "
-            f"R0 = {which} ({1e3 * r0:.1f} +- {1e3 * st.se_ohm:.1f} mOhm); the test does not "
-            f"measure the RC part, taken as {1e3 * rc:.1f} +- {1e3 * rc:.1f} mOhm (1 se); both "
-            "errors are in the CI of M"
+            f"{why}: R0 = {which} ({1e3 * r0:.1f} +- {1e3 * st.se_ohm:.1f} mOhm); the test "
+            f"does not measure the RC part, taken as {1e3 * rc:.1f} +- {1e3 * rc:.1f} mOhm (1 se); "
+            "both errors are in the CI of M"
         )
         pol = Polarisation(
             r0, 0.0, 1.0, rc, UNMEASURED_RC_TAU_S, se,
-            "one-sample current step for R0, RC part assumed", (), tuple(steps),
+            "one-sample current step for R0, RC part assumed", (), tuple(steps), tuple(knee),
         )  # fmt: skip
     else:
         notes.append("no rest or step in the test: the branches are not corrected")
-        return Polarisation(0.0, 0.0, 1.0, 0.0, 1.0, None, "none")
+        return Polarisation(0.0, 0.0, 1.0, 0.0, 1.0, None, "none", (), tuple(steps), tuple(knee))
     if pol.r_total_ohm - 2.0 * (pol.r_total_se_ohm or 0.0) > r_max > 0:
         notes.append(
             f"the {pol.source} gives {1e3 * pol.r_total_ohm:.1f} mOhm, more than the mid-SOC "
@@ -1226,6 +1294,23 @@ def _join_ends(
     return lo, hi, v_empty, v_full
 
 
+def check_physical(mean: Eq4Fit, v_raw_V: FloatArray, pol: Polarisation) -> None:
+    """Refuse a mean OCV that leaves the branches' measured voltage range by more than its span
+    over the fit range: no polarisation a cell can have puts the OCV there (a fit that failed).
+    """
+    z = np.linspace(mean.soc_lo, mean.soc_hi, 201)
+    u = eval_ocv(mean.coeffs, z)
+    v_lo, v_hi = float(np.min(v_raw_V)), float(np.max(v_raw_V))
+    margin = v_hi - v_lo
+    if float(np.min(u)) < v_lo - margin or float(np.max(u)) > v_hi + margin:
+        raise UserError(
+            f"the fit is not physical: the mean OCV reaches {float(np.min(u)):.3f}.."
+            f"{float(np.max(u)):.3f} V, the branches measure {v_lo:.3f}..{v_hi:.3f} V "
+            f"(polarisation {1e3 * pol.r_total_ohm:.1f} mOhm from the {pol.source}); no config "
+            "written"
+        )
+
+
 def fit_ocv_test(
     branches: OcvTestBranches, *, trim_soc: float = 0.02, knots: Sequence[float] = EQ32_KNOTS
 ) -> OcvFitResult:
@@ -1263,7 +1348,7 @@ def fit_ocv_test(
             w_slow = np.minimum(w_slow, w_alt)
     # A larger polarisation measured at one end of the test may hold at the knot there.
     ci_end = np.zeros_like(m_fit)
-    for r in pol.relaxations:
+    for r in (*pol.relaxations, *pol.knee):  # a knee's relaxation too: it is at that end
         if r.r_total_ohm > pol.r_total_ohm and np.isfinite(r.soc):
             at = _hats(np.array([np.clip(r.soc, m_soc[0], m_soc[-1])]), m_soc)[0]
             extra = 0.5 * (chg.current_A + dis.current_A) * (r.r_total_ohm - pol.r_total_ohm)
@@ -1289,6 +1374,7 @@ def fit_ocv_test(
     fit_d, fit_c = fit_eq4(zd, vd), fit_eq4(zc, vc)
     (zmd, vmd), (zmc, vmc) = mean_data(dis), mean_data(chg)
     mean = fit_eq4(np.concatenate([zmd, zmc]), np.concatenate([vmd, vmc]))
+    check_physical(mean, np.concatenate([dis.v_raw_V, chg.v_raw_V]), branches.polarisation)
 
     lo_j, hi_j, v_empty, v_full = _join_ends(
         mean.coeffs, lo, hi, branches.v_empty_V, branches.v_full_V, notes
