@@ -18,7 +18,7 @@ from bmsid.offline.ocv_fit import (
     fit_ocv_test,
     fit_relaxation,
 )
-from bmsid.synthetic.ocv_test import LFP_CELL, SyntheticOcvTest, c20_ocv_test
+from bmsid.synthetic.ocv_test import LFP_CELL, NMC_CELL, SyntheticOcvTest, c20_ocv_test
 
 M_TRUE = 0.015
 
@@ -81,3 +81,19 @@ def test_a_knee_step_is_not_r0() -> None:
     assert res.test.polarisation.R0_ohm < 3 * LFP_CELL.R0_ohm
     assert any("not used for R0" in n for n in res.notes)
     _assert_m_recovered(res)
+
+
+def test_a_test_without_rests_does_not_claim_hysteresis() -> None:
+    """The branches alone (rests cut out) of a cell without hysteresis: the gap is polarisation,
+    which the test cannot measure (W5: "M 9.9 +- 0.9 mV, hysteresis present")."""
+    test = c20_ocv_test(NMC_CELL, m_V=0.0)
+    keep = np.concatenate(
+        [np.arange(a, b) for n, a, b in test.segments if n in ("discharge", "charge")]
+    )
+    part = OcvTestPart(test.t_s[keep], test.current_A[keep], test.v_V[keep])
+    res = fit_ocv_test(extract_branches([part]))
+    ev = res.hysteresis
+    assert ev is not None and ev.unresolved is not None and not ev.present
+    assert ev.pooled_V - ev.pooled_ci95_V > 0  # the gap alone would have said "present"
+    assert np.all(res.m_V == 0.0)
+    assert any("hysteresis not resolved" in n for n in res.notes)

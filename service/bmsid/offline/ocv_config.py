@@ -291,7 +291,9 @@ def _hysteresis_lines(r: OcvFitResult) -> list[str]:
         )
     if ev is not None:
         verdict = (
-            "hysteresis present"
+            f"not resolved: {ev.unresolved}"
+            if ev.unresolved is not None
+            else "hysteresis present"
             if ev.present
             else "negative: the polarisation over-corrects"
             if ev.pooled_V + ev.pooled_ci95_V < 0

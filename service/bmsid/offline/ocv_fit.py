@@ -1042,11 +1042,12 @@ class HysteresisEvidence:
     soc_lo: float
     soc_hi: float
     status: tuple[KnotStatus, ...]
+    unresolved: str | None = None  #: why the test cannot tell hysteresis from polarisation
 
     @property
     def present(self) -> bool:
-        """True when the pooled M's 95 % CI lies above 0."""
-        return self.pooled_V - self.pooled_ci95_V > 0
+        """True when the pooled M's 95 % CI lies above 0 and the test can tell it."""
+        return self.unresolved is None and self.pooled_V - self.pooled_ci95_V > 0
 
 
 def decide_hysteresis(
@@ -1057,6 +1058,7 @@ def decide_hysteresis(
     notes: list[str],
     *,
     m_raw: FloatArray | None = None,
+    unresolved: str | None = None,
 ) -> tuple[FloatArray, FloatArray, HysteresisEvidence]:
     """The stored M table (V, in [0, 0.5]) and its CI half-widths from the fitted knots ``m_fit``
     (V) with CI half-widths ``m_ci`` and the ``pooled`` (M, CI, SOC lo, SOC hi) evidence.
@@ -1068,19 +1070,20 @@ def decide_hysteresis(
     and, when raised to the pooled bound, the pooled CI. A pooled M below 0 beyond its CI means
     the polarisation over-corrects (M < 0 is not physical): the test cannot tell whether there
     is hysteresis, so a zeroed knot's CI reaches up to ``m_raw`` (the knots fitted to the raw,
-    uncorrected gap: the most M can be, with no polarisation at all) and the note says so.
+    uncorrected gap: the most M can be, with no polarisation at all) and the note says so;
+    so does ``unresolved`` (the reason the test cannot separate them: then no knot is kept).
     """
     m_pool, ci_pool, lo, hi = pooled
     m = np.array(m_fit, dtype=np.float64)
     ci = np.array(m_ci, dtype=np.float64)
     status: list[KnotStatus] = []
-    ev = HysteresisEvidence(m_pool, ci_pool, lo, hi, ())
+    ev = HysteresisEvidence(m_pool, ci_pool, lo, hi, (), unresolved)
     floor = m_pool - ci_pool
-    over = m_pool + ci_pool < 0
+    over = m_pool + ci_pool < 0 or unresolved is not None
     wide, raised, zeroed = [], [], []
     for k in range(m.shape[0]):
         f, c = float(m_fit[k]), float(m_ci[k])
-        if f - c > 0:
+        if f - c > 0 and unresolved is None:
             status.append("fit")
             continue
         k_lo, k_hi = max(f - c, 0.0), max(f + c, 0.0)
@@ -1117,7 +1120,12 @@ def decide_hysteresis(
             f"are negative or below the pooled lower bound with a CI that includes 0: stored at "
             f"that bound, {1e3 * floor:.1f} mV (conservative), not 0"
         )
-    if zeroed and over:
+    if zeroed and unresolved is not None:
+        notes.append(
+            f"hysteresis not resolved (pooled M {pooled_txt}): {unresolved}; M = 0 at "
+            f"{knots(zeroed)} mV, with the raw half-gap as the upper end of its CI"
+        )
+    elif zeroed and over:
         notes.append(
             f"the corrected half-gap is negative (pooled M {pooled_txt}): the polarisation "
             "over-corrects mid-SOC (it varies along SOC), so the test cannot tell a hysteresis "
@@ -1362,7 +1370,15 @@ def fit_ocv_test(
     )
     raw_gap = on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V)
     _, m_raw, _ = fit_hysteresis(grid, raw_gap, weight, knots)
-    m_vals, m_ci_store, evidence = decide_hysteresis(m_soc, m_fit, m_ci, pooled, notes, m_raw=m_raw)
+    unresolved = (
+        None
+        if pol.r_total_se_ohm is not None
+        else "the test has no rest or current step, so its IR drop and polarisation, which "
+        "open the gap like a hysteresis does, are not measured"
+    )
+    m_vals, m_ci_store, evidence = decide_hysteresis(
+        m_soc, m_fit, m_ci, pooled, notes, m_raw=m_raw, unresolved=unresolved
+    )
     half_raw = 0.5 * (on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V))
 
     def mean_data(b: Branch) -> tuple[FloatArray, FloatArray]:
