@@ -20,6 +20,7 @@ from bmsid.offline.csvio import TesterData, read_tester_csv, write_tester_csv
 from bmsid.offline.ocv_fit import (
     OcvTestPart,
     build_cell_config,
+    c_rate_text,
     extract_branches,
     fit_eq4,
     fit_ocv_test,
@@ -331,3 +332,29 @@ def test_fit_ocv_reports_merged_repeated_timestamps(tmp_path: Path) -> None:
     path.write_text("\n".join(doubled) + "\n", encoding="utf-8")
     fit = fit_ocv_files([path], OcvFitSpec("repeat"))
     assert any("merged 1 rows with repeated timestamps" in line for line in fit.info)
+
+
+def test_c_rates_print_as_a_tester_writes_them() -> None:
+    assert [c_rate_text(r) for r in (0.05, 1 / 27, 0.25, 1.0, 2.0, 15.3)] == [
+        "C/20", "C/27", "C/4", "1C", "2C", "15.3C",
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("capacity", "expected"),
+    [
+        ("1.0", "warning: capacity_mismatch: --capacity-ah 1 Ah is 0.5x the 2 Ah the test"),
+        ("0.04", "= 2C for 0.04 Ah (given by --capacity-ah; the test measures 2 Ah)"),
+        ("2000", "of the capacity, 2000 Ah (given by --capacity-ah; the test measures 2 Ah: Ah, "),
+    ],
+    ids=["half", "fast", "mAh"],
+)
+def test_cli_says_a_given_capacity_is_off_the_measured_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], capacity: str, expected: str
+) -> None:
+    src = tmp_path / "ocv.csv"
+    write_tester_csv(_synthetic_ocv_test(r_ohm=0.03, m_V=0.01), src)
+    code = main(["fit-ocv", str(src), "--capacity-ah", capacity, "--out", str(tmp_path / "c.toml")])
+    out, err = capsys.readouterr()
+    assert code == (0 if capacity == "1.0" else 2)
+    assert expected in out + err

@@ -107,6 +107,28 @@ class OcvFit:
         return format_report(self.result, self.info)
 
 
+#: A capacity given with --capacity-ah this many times above or below the charge the test
+#: measures is warned about: a full low-rate discharge counts it to about 1 %, so beyond 10 %
+#: the SOC axis is stretched (a branch runs past 0 or 100 % and only its overlap is fitted) or
+#: the given figure is a nominal one the cell no longer has. ``bmsid identify``'s
+#: ``capacity_mismatch`` allows 3x: its records only imply a capacity roughly.
+OCV_CAPACITY_MISMATCH = 1.1
+
+
+def capacity_warning(given_Ah: float | None, measured_Ah: float) -> list[str]:
+    """A report line when ``given_Ah`` is ``OCV_CAPACITY_MISMATCH`` off ``measured_Ah``."""
+    if given_Ah is None or not (given_Ah > 0 and measured_Ah > 0):
+        return []
+    ratio = given_Ah / measured_Ah
+    if 1.0 / OCV_CAPACITY_MISMATCH <= ratio <= OCV_CAPACITY_MISMATCH:
+        return []
+    return [
+        f"warning: capacity_mismatch: --capacity-ah {given_Ah:g} Ah is {ratio:.3g}x the "
+        f"{measured_Ah:.4g} Ah the test measures (full to empty): the SOC axis and every "
+        "curve on it are scaled by that; leave --capacity-ah out to use the measured capacity"
+    ]
+
+
 def fit_test_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
 ) -> tuple[OcvFitResult, float, float, list[str]]:
@@ -150,6 +172,7 @@ def fit_test_files(
         *input_notes,
         f"capacity measured from the test: {br.measured_capacity_Ah:.4f} Ah "
         f"(used: {br.capacity_Ah:.4f} Ah)",
+        *capacity_warning(spec.capacity_Ah, br.measured_capacity_Ah),
         f"throughput: discharge {tp.discharge_Ah:.4f} Ah, charge {tp.charge_Ah:.4f} Ah, "
         f"mismatch {tp.mismatch_Ah:+.4f} Ah ({tp.mismatch_pct:+.2f} %); SOC {tp.method}, "
         f"coulombic efficiency (charge-counting factor) {tp.eta:.4f}: {tp.reason}",

@@ -424,6 +424,13 @@ class OcvTestBranches:
     notes: tuple[str, ...] = ()
 
 
+def c_rate_text(rate: float) -> str:
+    """A C-rate (1/h) as a tester writes it: ``C/20`` below 1C, ``2C`` or ``15.3C`` above."""
+    if rate <= 0:
+        return "0C"
+    return f"{rate:.3g}C" if rate >= 1.0 else f"C/{1.0 / rate:.3g}"
+
+
 def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
     """Contiguous True runs as (start, stop) index pairs, stop exclusive."""
     m = np.concatenate([[False], mask, [False]]).astype(np.int8)
@@ -730,6 +737,13 @@ def extract_branches(
     cap = capacity_Ah if capacity_Ah is not None else measured_q
     z_all = (1.0 if s1 > 0 else 0.0) - s1 * (q - q[f0]) / cap
 
+    cap_src = (
+        "given by --capacity-ah; the test measures "
+        f"{measured_q:.4g} Ah{': Ah, not mAh?' if cap > 10 * measured_q else ''}"
+        if capacity_Ah is not None
+        else "measured: the charge from full to the deepest point before the other branch"
+    )
+
     def keep(a: int, b: int, name: str) -> tuple[npt.NDArray[np.intp], float]:
         i_run = np.abs(i_all[a:b])
         i_med = float(np.median(i_run))
@@ -737,14 +751,17 @@ def extract_branches(
         rate = i_med / cap
         if rate > MAX_OCV_C_RATE:
             raise UserError(
-                f"the {name} branch runs at {i_med:g} A = C/{1 / rate:.1f} for {cap:.4g} Ah: too "
-                "fast for an OCV test (want C/20-C/30); current in mA or wrong capacity?"
+                f"the {name} branch runs at {i_med:g} A = {c_rate_text(rate)} for {cap:.4g} Ah "
+                f"({cap_src}): too fast for an OCV test (want C/20-C/30); current in mA or "
+                "wrong capacity?"
             )
         span = float(np.ptp(z_all[idx]))
         if span < MIN_BRANCH_SPAN:
             raise UserError(
-                f"the {name} branch covers only {100 * span:.0f} % of {cap:.4g} Ah; an OCV test "
-                f"needs a full {name}"
+                f"the {name} branch (the sustained {'positive' if a == da else 'negative'} "
+                f"current with the most charge: {i_med:.4g} A for {t_all[b - 1] - t_all[a]:.0f} "
+                f"s, {abs(float(q1[b - 1] - q1[a])):.4g} Ah) covers only {100 * span:.0f} % of the "
+                f"capacity, {cap:.4g} Ah ({cap_src}); an OCV test needs a full {name}"
             )
         return idx, i_med
 
