@@ -4,6 +4,7 @@ errors (the hysteresis against known-truth tests: ``test_ocv_fit_hysteresis.py``
 from __future__ import annotations
 
 import gzip
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from bmsid.config.engine import ocv_model
 from bmsid.model.ocv import OcvModel, eval_ocv
 from bmsid.model.simulator import simulate
 from bmsid.offline.csvio import TesterData, read_tester_csv, write_tester_csv
+from bmsid.offline.ocv_config import partial_range_warning
 from bmsid.offline.ocv_fit import (
     OcvTestPart,
     build_cell_config,
@@ -358,3 +360,16 @@ def test_cli_says_a_given_capacity_is_off_the_measured_one(
     out, err = capsys.readouterr()
     assert code == (0 if capacity == "1.0" else 2)
     assert expected in out + err
+
+
+@pytest.mark.parametrize("charge_to", [0.6, 0.9])
+def test_a_charge_stopped_early_is_warned_and_no_soc_beyond_100(charge_to: float) -> None:
+    """An LFP charge cut short below its top knee (W7: accepted silently with "SOC 172.86 %")."""
+    br = extract_branches([_c20_test(LFP, charge_to=charge_to)])
+    res = fit_ocv_test(br)
+    [line] = partial_range_warning(res, 0.02)
+    assert f"OCV above {100 * res.mean.soc_hi:.1f} % is not measured" in line
+    assert res.mean.soc_hi == pytest.approx(charge_to, abs=0.01)
+    pcts = [float(x) for x in re.findall(r"([-\d.]+) %", br.throughput.reason)]
+    assert pcts and all(0.0 <= x <= 100.0 for x in pcts)
+    assert partial_range_warning(fit_ocv_test(extract_branches([_c20_test(LFP)])), 0.02) == []

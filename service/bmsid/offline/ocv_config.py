@@ -129,6 +129,30 @@ def capacity_warning(given_Ah: float | None, measured_Ah: float) -> list[str]:
     ]
 
 
+#: The branches' overlap may stop this much (SOC) short of the trimmed range before the config
+#: is called partial: a test's branches reach both ends, only a cut-short one does not.
+PARTIAL_SOC = 0.02
+
+
+def partial_range_warning(result: OcvFitResult, trim_soc: float) -> list[str]:
+    """A report line when the fit range stops short of an end: the OCV is not measured beyond
+    it (a charge stopped early gave SOC 2-60 % and 11.7 mV on DYN50)."""
+    lo, hi = result.mean.soc_lo, result.mean.soc_hi
+    short = []
+    if hi < 1.0 - trim_soc - PARTIAL_SOC:
+        short.append(f"above {100 * hi:.1f} %")
+    if lo > trim_soc + PARTIAL_SOC:
+        short.append(f"below {100 * lo:.1f} %")
+    if not short:
+        return []
+    return [
+        f"warning: partial test: the branches overlap only on SOC {100 * lo:.1f}-{100 * hi:.1f} "
+        f"%, so the config's OCV {' and '.join(short)} is not measured (clamped, or bridged to a "
+        "rested end voltage); a charge or discharge that stopped early does this: fit the whole "
+        "test"
+    ]
+
+
 def fit_test_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
 ) -> tuple[OcvFitResult, float, float, list[str]]:
@@ -195,6 +219,7 @@ def fit_test_files(
         ],
         f"  one-sample current steps |dV/dI| [mOhm, +- noise 1 se]: {steps or 'none'}",
         f"hysteresis state h run along the test with gamma = {br.gamma:g}",
+        *partial_range_warning(result, spec.trim_soc),
     ]
     return result, br.capacity_Ah, br.coulombic_efficiency, info
 

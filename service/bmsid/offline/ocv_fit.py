@@ -902,10 +902,16 @@ def _scale_charge(
             "short: a counting mismatch, each branch normalised to its own throughput"
         )
         return Throughput(dis_Ah, chg_Ah, "normalised", eta_meas, why)
+    # A slope taken below a knee the branch never reached turns the mV into more than all SOC.
+    soc_v = (
+        f"SOC {100 * short_v:.2f} % at the end's slope"
+        if short_v <= 1.0
+        else "more than the whole SOC range at the end's slope: the knee was not reached"
+    )
     why = (
-        f"the test ends {1e3 * dv:+.1f} mV below its starting rested voltage (SOC "
-        f"{100 * short_v:.2f} % at the end's slope), as the Ah say ({100 * short_q:.2f} %): the "
-        "second branch ends short; charge counted with eta = 1"
+        f"the test ends {1e3 * dv:+.1f} mV below its starting rested voltage ({soc_v}), as the "
+        f"Ah say ({100 * short_q:.2f} % short): the second branch ends short; charge counted "
+        "with eta = 1"
     )
     return Throughput(dis_Ah, chg_Ah, "counted", 1.0, why)
 
