@@ -373,3 +373,26 @@ def test_a_charge_stopped_early_is_warned_and_no_soc_beyond_100(charge_to: float
     pcts = [float(x) for x in re.findall(r"([-\d.]+) %", br.throughput.reason)]
     assert pcts and all(0.0 <= x <= 100.0 for x in pcts)
     assert partial_range_warning(fit_ocv_test(extract_branches([_c20_test(LFP)])), 0.02) == []
+
+
+@pytest.mark.parametrize("fault", ["order", "sign"])
+def test_files_out_of_order_or_sign_flipped_get_a_hint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fault: str
+) -> None:
+    """M2: the files in the wrong order or charge counted positive gave "overlap only on SOC
+    2--1 %" without a hint."""
+    data = _synthetic_ocv_test(r_ohm=0.03, m_V=0.01)
+    k = int(np.flatnonzero(data.current_A < 0)[0]) - 30  # the discharge file, then the charge
+    parts = [
+        TesterData(data.t_s[a:b], data.current_A[a:b], data.cell_voltages_V[a:b], ["voltage_V"])
+        for a, b in ((0, k), (k, data.t_s.shape[0]))
+    ]
+    paths = [tmp_path / "dis.csv", tmp_path / "chg.csv"]
+    for part, path in zip(parts, paths, strict=True):
+        write_tester_csv(part, path)
+    files = [str(p) for p in (paths[::-1] if fault == "order" else paths)]
+    sign = ["--charge-positive"] if fault == "sign" else []
+    code, err = _run_cli([*files, *sign, "--out", str(tmp_path / "c.toml")], capsys)
+    assert code == 2
+    assert "--charge-positive" in err
+    assert not re.search(r"\d--\d", err)  # no "2--1 %"

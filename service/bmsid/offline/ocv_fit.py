@@ -683,7 +683,10 @@ def extract_branches(
     for s, name in ((1, "discharge"), (-1, "charge")):
         if s not in best:
             hint = (
-                " (does the tester count charge positive? use --charge-positive)" if s == 1 else ""
+                " (does the tester count charge positive? use --charge-positive)"
+                if s == 1
+                else " (do all the files count current with one sign? --charge-positive applies "
+                "to every file)"
             )
             raise UserError(
                 f"the OCV test has no {name} branch: no sustained "
@@ -1325,6 +1328,18 @@ def _join_ends(
     return lo, hi, v_empty, v_full
 
 
+def _overlap_error(lo: float, hi: float) -> str:
+    """Why the branches do not overlap, with the two usual causes."""
+    overlap = (
+        f"overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %" if hi > lo else "do not overlap"
+    )
+    return (
+        f"the charge and discharge branches {overlap} (SOC counted along the files in the order "
+        "given): give the files in the order they were recorded, and --charge-positive if the "
+        "tester counts charge positive"
+    )
+
+
 def check_physical(mean: Eq4Fit, v_raw_V: FloatArray, pol: Polarisation) -> None:
     """Refuse a mean OCV that leaves the branches' measured voltage range by more than its span
     over the fit range: no polarisation a cell can have puts the OCV there (a fit that failed).
@@ -1352,9 +1367,7 @@ def fit_ocv_test(
     lo = max(float(np.min(dis.z)), float(np.min(chg.z)), trim_soc)
     hi = min(float(np.max(dis.z)), float(np.max(chg.z)), 1.0 - trim_soc)
     if hi - lo < MIN_BRANCH_SPAN:
-        raise UserError(
-            f"the charge and discharge branches overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %"
-        )
+        raise UserError(_overlap_error(lo, hi))
     grid = np.linspace(lo, hi, 401)
 
     def on_grid(b: Branch, y: FloatArray) -> FloatArray:
