@@ -396,3 +396,26 @@ def test_files_out_of_order_or_sign_flipped_get_a_hint(
     assert code == 2
     assert "--charge-positive" in err
     assert not re.search(r"\d--\d", err)  # no "2--1 %"
+
+
+def test_cli_reads_another_export_with_columns(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """M1: fit-ocv's errors suggested --columns, which it did not take; an ms/mA export loads."""
+    data = _synthetic_ocv_test(r_ohm=0.03, m_V=0.01)
+    src = tmp_path / "msma.csv"
+    rows = zip(1e3 * data.t_s, 1e3 * data.current_A, data.cell_voltages_V[:, 0], strict=True)
+    src.write_text("Time_ms,I_mA,U\n" + "".join(f"{t:.1f},{i:.4f},{v:.6f}\n" for t, i, v in rows))
+    out = tmp_path / "c.toml"
+    cols = "t_s=Time_ms*0.001,current_A=I_mA*0.001,voltage_V=U"
+    code, err = _run_cli([str(src), "--columns", cols, "--out", str(out)], capsys)
+    assert code == 0, err
+    assert load_cell_config(out).capacity_Ah == pytest.approx(2.0, rel=2e-3)
+
+
+def test_cli_says_a_directory_is_a_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, err = _run_cli([str(tmp_path), "--out", str(tmp_path / "c.toml")], capsys)
+    assert code == 2
+    assert f"{tmp_path}: is a directory; give the CSV files in it" in err

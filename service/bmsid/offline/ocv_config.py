@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -18,7 +18,7 @@ import numpy as np
 
 from bmsid.config.cell import CellConfig, InitialParameters, ParameterBounds, load_cell_config
 from bmsid.errors import UserError
-from bmsid.offline.csvio import read_ocv_points, read_tester_csv
+from bmsid.offline.csvio import ColumnMap, read_ocv_points, read_tester_csv
 from bmsid.offline.ocv_fit import (
     EQ32_KNOTS,
     Eq4Fit,
@@ -53,6 +53,8 @@ class OcvFitSpec:
         None: measured from the test (1 for tables).
     charge_positive : bool
         The test files count charge current positive.
+    columns : mapping of canonical name to ColumnMap, or None
+        Where the test files' columns are (``--columns``, as ``bmsid identify`` reads them).
     cell : str or None
         Voltage column of a multi-cell test file.
     trim_soc : float
@@ -82,6 +84,7 @@ class OcvFitSpec:
     capacity_Ah: float | None = None
     coulombic_efficiency: float | None = None
     charge_positive: bool = False
+    columns: Mapping[str, ColumnMap] | None = None
     cell: str | None = None
     trim_soc: float = 0.02
     gamma: float = 30.0
@@ -166,7 +169,7 @@ def fit_test_files(
     parts: list[OcvTestPart] = []
     input_notes: list[str] = []
     for path in paths:
-        data = read_tester_csv(path, charge_positive=spec.charge_positive)
+        data = read_tester_csv(path, charge_positive=spec.charge_positive, columns=spec.columns)
         if data.merged_repeats or data.time_restarts:
             input_notes.append(
                 f"{path}: merged {data.merged_repeats} rows with repeated timestamps (the last "
@@ -230,6 +233,10 @@ def fit_point_files(
     """Fit rest-point tables (SOC, OCV pairs per branch); returns as :func:`fit_test_files`."""
     if spec.capacity_Ah is None:
         raise UserError("--points needs --capacity-ah (rest tables carry no charge count)")
+    if spec.columns:
+        raise UserError(
+            "--columns maps test files' columns; rest-point tables (--points) do not take it"
+        )
     pooled: dict[str, tuple[list[FloatArray], list[FloatArray]]] = {
         "discharge": ([], []),
         "charge": ([], []),
