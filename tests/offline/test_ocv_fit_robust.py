@@ -4,14 +4,18 @@ unphysical fit is refused instead of written."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from bmsid.errors import UserError
+from bmsid.offline.ocv_config import efficiency_warning
 from bmsid.offline.ocv_fit import (
     OcvFitResult,
     OcvTestPart,
     Polarisation,
+    Throughput,
     check_physical,
     extract_branches,
     fit_eq4,
@@ -97,3 +101,12 @@ def test_a_test_without_rests_does_not_claim_hysteresis() -> None:
     assert ev.pooled_V - ev.pooled_ci95_V > 0  # the gap alone would have said "present"
     assert np.all(res.m_V == 0.0)
     assert any("hysteresis not resolved" in n for n in res.notes)
+
+
+def test_an_implausible_coulombic_efficiency_is_warned() -> None:
+    """The A123 test resampled to 60 s counts 6 % more charge in than out (its pulses held over
+    whole samples): 0.942 was stored silently, and identify gave 9.5 mV instead of 4.9."""
+    off = Throughput(2.0774, 2.2100, "normalised", 2.0774 / 2.2100, "measured")
+    [line] = efficiency_warning(off)
+    assert "0.9400" in line and "--coulombic-efficiency" in line
+    assert efficiency_warning(replace(off, charge_Ah=2.0859, eta=2.0774 / 2.0859)) == []

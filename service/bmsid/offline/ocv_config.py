@@ -25,6 +25,7 @@ from bmsid.offline.ocv_fit import (
     FloatArray,
     OcvFitResult,
     OcvTestPart,
+    Throughput,
     build_cell_config,
     extract_branches,
     fit_ocv_test,
@@ -132,6 +133,24 @@ def capacity_warning(given_Ah: float | None, measured_Ah: float) -> list[str]:
     ]
 
 
+#: A measured coulombic efficiency below this is not a Li-ion cell's (above 0.99 at C/20) but
+#: a charge count that is off: pulses sampled too coarsely (the A123 test resampled to 60 s
+#: measured 0.942, and identify then gave 9.5 mV on DYN50 instead of 4.9 with 0.995).
+MIN_PLAUSIBLE_EFFICIENCY = 0.98
+
+
+def efficiency_warning(tp: Throughput) -> list[str]:
+    """A report line when the measured coulombic efficiency is implausibly low."""
+    if tp.method != "normalised" or tp.eta >= MIN_PLAUSIBLE_EFFICIENCY:
+        return []
+    return [
+        f"warning: the measured coulombic efficiency {tp.eta:.4f} ({tp.charge_Ah:.4g} Ah in for "
+        f"{tp.discharge_Ah:.4g} Ah out) is below {MIN_PLAUSIBLE_EFFICIENCY:g}, which no Li-ion "
+        "cell has: the charge count is off (pulses sampled too coarsely, a current offset); "
+        "give --coulombic-efficiency (e.g. 0.995) or a finer-sampled export"
+    ]
+
+
 #: The branches' overlap may stop this much (SOC) short of the trimmed range before the config
 #: is called partial: a test's branches reach both ends, only a cut-short one does not.
 PARTIAL_SOC = 0.02
@@ -151,8 +170,8 @@ def partial_range_warning(result: OcvFitResult, trim_soc: float) -> list[str]:
     return [
         f"warning: partial test: the branches overlap only on SOC {100 * lo:.1f}-{100 * hi:.1f} "
         f"%, so the config's OCV {' and '.join(short)} is not measured (clamped, or bridged to a "
-        "rested end voltage); a charge or discharge that stopped early does this: fit the whole "
-        "test"
+        "rested end voltage): a charge or discharge that stopped early (fit the whole test) or "
+        "a charge count that is off"
     ]
 
 
@@ -200,6 +219,7 @@ def fit_test_files(
         f"capacity measured from the test: {br.measured_capacity_Ah:.4f} Ah "
         f"(used: {br.capacity_Ah:.4f} Ah)",
         *capacity_warning(spec.capacity_Ah, br.measured_capacity_Ah),
+        *efficiency_warning(tp),
         f"throughput: discharge {tp.discharge_Ah:.4f} Ah, charge {tp.charge_Ah:.4f} Ah, "
         f"mismatch {tp.mismatch_Ah:+.4f} Ah ({tp.mismatch_pct:+.2f} %); SOC {tp.method}, "
         f"coulombic efficiency (charge-counting factor) {tp.eta:.4f}: {tp.reason}",
