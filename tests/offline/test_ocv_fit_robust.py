@@ -12,10 +12,12 @@ import pytest
 from bmsid.errors import UserError
 from bmsid.offline.ocv_config import efficiency_warning
 from bmsid.offline.ocv_fit import (
+    CurrentStep,
     OcvFitResult,
     OcvTestPart,
     Polarisation,
     Throughput,
+    _choose_polarisation,
     check_physical,
     extract_branches,
     fit_eq4,
@@ -110,3 +112,11 @@ def test_an_implausible_coulombic_efficiency_is_warned() -> None:
     [line] = efficiency_warning(off)
     assert "0.9400" in line and "--coulombic-efficiency" in line
     assert efficiency_warning(replace(off, charge_Ah=2.0859, eta=2.0774 / 2.0859)) == []
+
+
+def test_r0_is_the_step_with_the_lowest_upper_bound() -> None:
+    """The A123 test resampled to 60 s: a 216.7 +- 28.3 mOhm step (a minute of relaxation in
+    it) "resolves" R0 and zeroed M; an 18.3 +- 9.4 mOhm one bounds R0 tighter (W1/W3)."""
+    steps = [CurrentStep(0.2167, 0.0283, 10, True), CurrentStep(0.0183, 0.0094, 20, True)]
+    pol = _choose_polarisation([], steps, 0.29, [])
+    assert pol.R0_ohm == pytest.approx(0.0183)

@@ -39,8 +39,9 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   more than ``KNEE_FACTOR`` times that: then it measured the OCV relaxing at a knee and is left
   out (so one export of a test gives what its split into files gives), as is a one-sample step
   that large; a fit that does not settle within its rest is none. Without a rest
-  long enough (>= 300 s) R0 is the smallest one-sample step |dV/dI| (R0 plus what relaxes within
-  one sample) and the RC part, which the test does not measure, is taken as
+  long enough (>= 300 s) R0 is the one-sample step |dV/dI| (R0 plus what relaxes within one
+  sample) with the lowest upper bound |dV/dI| + 2 se (a coarse sample's step holds more
+  relaxation; its noise counts) and the RC part, which the test does not measure, is taken as
   ``UNMEASURED_RC_SHARE`` times it with a standard error as large (the CI says so). The model
   runs over the whole test with its own current and corrects every sample:
   ``v + R0 i + R1 x1 + R2 x2`` (x the unit-gain branch states), the polarisation as it builds
@@ -275,10 +276,8 @@ LOAD_FIT_DEGREE = 2
 MIN_STEP_RUN_S = 30.0
 #: Floor of the voltage noise estimate (V): a quantised logger's rests can show no spread.
 MIN_VOLTAGE_NOISE_V = 1e-4
-#: A current step resolves R0 when its noise error is at most this fraction of it.
-STEP_RESOLVED = 0.25
 #: Without a relaxation fit, the RC part R1 + R2 (not measured by the test) is taken as this
-#: times the smallest one-sample step, with a standard error as large (an assumption the CI
+#: times the chosen one-sample step, with a standard error as large (an assumption the CI
 #: carries): a Li-ion cell's DC resistance at low rate is typically one to three times R0 (the
 #: DFN cell's relaxation at 99 % SOC: 3.6 times its jump), and the step already holds one
 #: sample's worth of relaxation.
@@ -967,8 +966,8 @@ def _choose_polarisation(
 ) -> Polarisation:
     """The relaxation fits (knees and diffusion at the test's ends only inflate them): the
     smallest, combined (inverse-variance) with those that agree with it within two standard
-    errors. Else the smallest current step that resolves R0 (noise error <= ``STEP_RESOLVED``
-    of it; onsets first; none: the one with the smallest error) with the unmeasured RC part
+    errors. Else the current step with the lowest upper bound |dV/dI| + 2 se (onsets first)
+    with the unmeasured RC part
     assumed (``UNMEASURED_RC_SHARE``, in the standard error). ``r_max`` (ohm: the most the
     median mid-SOC half-gap allows with M >= 0) is only compared with, beyond two standard
     errors, never imposed (module doc); a candidate beyond ``KNEE_FACTOR`` times it measured a
@@ -998,15 +997,11 @@ def _choose_polarisation(
             tuple(relax), tuple(steps), tuple(knee),
         )  # fmt: skip
     elif steps_ok:
-        onsets = [st for st in steps_ok if st.onset]
-        resolved = [st for st in onsets if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
-        resolved = resolved or [st for st in steps_ok if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
-        if resolved:
-            st = min(resolved, key=lambda x: x.r_ohm)
-            which = "the smallest one-sample step |dV/dI| that resolves it"
-        else:
-            st = min(steps_ok, key=lambda x: x.se_ohm)
-            which = "the one-sample step |dV/dI| with the smallest noise error (none resolves it)"
+        # Each step is R0 plus what relaxes within its sample: the one whose upper bound is
+        # lowest bounds R0 best (a coarse sample's resolved step holds more relaxation).
+        onsets = [st for st in steps_ok if st.onset] or steps_ok
+        st = min(onsets, key=lambda x: x.r_ohm + 2.0 * x.se_ohm)
+        which = "the one-sample step |dV/dI| with the lowest upper bound (|dV/dI| + 2 se)"
         r0 = st.r_ohm
         rc = UNMEASURED_RC_SHARE * r0
         se = math.hypot(st.se_ohm, rc)
