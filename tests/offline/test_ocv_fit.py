@@ -419,3 +419,14 @@ def test_cli_says_a_directory_is_a_directory(
     code, err = _run_cli([str(tmp_path), "--out", str(tmp_path / "c.toml")], capsys)
     assert code == 2
     assert f"{tmp_path}: is a directory; give the CSV files in it" in err
+
+
+def test_cli_says_a_rest_point_table_needs_points(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """M1: a rest-point table without --points got the --columns hint."""
+    src = tmp_path / "pts.csv"
+    src.write_text("SOC_percent,OCV_discharge_V\n10,3.45\n50,3.70\n90,4.05\n")
+    code, err = _run_cli([str(src), "--out", str(tmp_path / "c.toml")], capsys)
+    assert code == 2
+    assert "a rest-point table (SOC and OCV columns), not a test: pass --points" in err

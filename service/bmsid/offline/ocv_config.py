@@ -18,7 +18,7 @@ import numpy as np
 
 from bmsid.config.cell import CellConfig, InitialParameters, ParameterBounds, load_cell_config
 from bmsid.errors import UserError
-from bmsid.offline.csvio import ColumnMap, read_ocv_points, read_tester_csv
+from bmsid.offline.csvio import ColumnMap, TesterData, read_ocv_points, read_tester_csv
 from bmsid.offline.ocv_fit import (
     EQ32_KNOTS,
     Eq4Fit,
@@ -175,6 +175,21 @@ def partial_range_warning(result: OcvFitResult, trim_soc: float) -> list[str]:
     ]
 
 
+def _read_test_file(path: str | Path, spec: OcvFitSpec) -> TesterData:
+    """A test file; one that fails as one but reads as a rest-point table says --points."""
+    try:
+        return read_tester_csv(path, charge_positive=spec.charge_positive, columns=spec.columns)
+    except UserError as exc:
+        try:
+            read_ocv_points(path)
+        except UserError:
+            raise exc from None
+        raise UserError(
+            f"{path}: a rest-point table (SOC and OCV columns), not a test: pass --points "
+            "(with --capacity-ah)"
+        ) from None
+
+
 def fit_test_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
 ) -> tuple[OcvFitResult, float, float, list[str]]:
@@ -188,7 +203,7 @@ def fit_test_files(
     parts: list[OcvTestPart] = []
     input_notes: list[str] = []
     for path in paths:
-        data = read_tester_csv(path, charge_positive=spec.charge_positive, columns=spec.columns)
+        data = _read_test_file(path, spec)
         if data.merged_repeats or data.time_restarts:
             input_notes.append(
                 f"{path}: merged {data.merged_repeats} rows with repeated timestamps (the last "
