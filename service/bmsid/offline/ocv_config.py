@@ -456,7 +456,8 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
                        "pooled_ci95_V": r.hysteresis.pooled_ci95_V if r.hysteresis else None,
                        "pooled_soc": [r.hysteresis.soc_lo, r.hysteresis.soc_hi]
                        if r.hysteresis else None,
-                       "present": r.hysteresis.present if r.hysteresis else None},
+                       "present": r.hysteresis.present if r.hysteresis else None,
+                       "unresolved": r.hysteresis.unresolved if r.hysteresis else None},
         "fits": {
             name: {"coeffs": arr(f.coeffs), "ci_low": arr(f.ci_low), "ci_high": arr(f.ci_high),
                    "sse_V2": f.sse_V2, "r2": f.r2, "r2_adj": f.r2_adj, "rmse_V": f.rmse_V,
