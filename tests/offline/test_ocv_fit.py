@@ -4,6 +4,7 @@ errors (the hysteresis against known-truth tests: ``test_ocv_fit_hysteresis.py``
 from __future__ import annotations
 
 import gzip
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,9 +18,11 @@ from bmsid.config.engine import ocv_model
 from bmsid.model.ocv import OcvModel, eval_ocv
 from bmsid.model.simulator import simulate
 from bmsid.offline.csvio import TesterData, read_tester_csv, write_tester_csv
+from bmsid.offline.ocv_config import partial_range_warning
 from bmsid.offline.ocv_fit import (
     OcvTestPart,
     build_cell_config,
+    c_rate_text,
     extract_branches,
     fit_eq4,
     fit_ocv_test,
@@ -331,3 +334,99 @@ def test_fit_ocv_reports_merged_repeated_timestamps(tmp_path: Path) -> None:
     path.write_text("\n".join(doubled) + "\n", encoding="utf-8")
     fit = fit_ocv_files([path], OcvFitSpec("repeat"))
     assert any("merged 1 rows with repeated timestamps" in line for line in fit.info)
+
+
+def test_c_rates_print_as_a_tester_writes_them() -> None:
+    assert [c_rate_text(r) for r in (0.05, 1 / 27, 0.25, 1.0, 2.0, 15.3)] == [
+        "C/20", "C/27", "C/4", "1C", "2C", "15.3C",
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("capacity", "expected"),
+    [
+        ("1.0", "warning: capacity_mismatch: --capacity-ah 1 Ah is 0.5x the 2 Ah the test"),
+        ("0.04", "= 2C for 0.04 Ah (given by --capacity-ah; the test measures 2 Ah)"),
+        ("2000", "of the capacity, 2000 Ah (given by --capacity-ah; the test measures 2 Ah: Ah, "),
+    ],
+    ids=["half", "fast", "mAh"],
+)
+def test_cli_says_a_given_capacity_is_off_the_measured_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], capacity: str, expected: str
+) -> None:
+    src = tmp_path / "ocv.csv"
+    write_tester_csv(_synthetic_ocv_test(r_ohm=0.03, m_V=0.01), src)
+    code = main(["fit-ocv", str(src), "--capacity-ah", capacity, "--out", str(tmp_path / "c.toml")])
+    out, err = capsys.readouterr()
+    assert code == (0 if capacity == "1.0" else 2)
+    assert expected in out + err
+
+
+@pytest.mark.parametrize("charge_to", [0.6, 0.9])
+def test_a_charge_stopped_early_is_warned_and_no_soc_beyond_100(charge_to: float) -> None:
+    """An LFP charge cut short below its top knee (W7: accepted silently with "SOC 172.86 %")."""
+    br = extract_branches([_c20_test(LFP, charge_to=charge_to)])
+    res = fit_ocv_test(br)
+    [line] = partial_range_warning(res, 0.02)
+    assert f"OCV above {100 * res.mean.soc_hi:.1f} % is not measured" in line
+    assert res.mean.soc_hi == pytest.approx(charge_to, abs=0.01)
+    pcts = [float(x) for x in re.findall(r"([-\d.]+) %", br.throughput.reason)]
+    assert pcts and all(0.0 <= x <= 100.0 for x in pcts)
+    assert partial_range_warning(fit_ocv_test(extract_branches([_c20_test(LFP)])), 0.02) == []
+
+
+@pytest.mark.parametrize("fault", ["order", "sign"])
+def test_files_out_of_order_or_sign_flipped_get_a_hint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fault: str
+) -> None:
+    """M2: the files in the wrong order or charge counted positive gave "overlap only on SOC
+    2--1 %" without a hint."""
+    data = _synthetic_ocv_test(r_ohm=0.03, m_V=0.01)
+    k = int(np.flatnonzero(data.current_A < 0)[0]) - 30  # the discharge file, then the charge
+    parts = [
+        TesterData(data.t_s[a:b], data.current_A[a:b], data.cell_voltages_V[a:b], ["voltage_V"])
+        for a, b in ((0, k), (k, data.t_s.shape[0]))
+    ]
+    paths = [tmp_path / "dis.csv", tmp_path / "chg.csv"]
+    for part, path in zip(parts, paths, strict=True):
+        write_tester_csv(part, path)
+    files = [str(p) for p in (paths[::-1] if fault == "order" else paths)]
+    sign = ["--charge-positive"] if fault == "sign" else []
+    code, err = _run_cli([*files, *sign, "--out", str(tmp_path / "c.toml")], capsys)
+    assert code == 2
+    assert "--charge-positive" in err
+    assert not re.search(r"\d--\d", err)  # no "2--1 %"
+
+
+def test_cli_reads_another_export_with_columns(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """M1: fit-ocv's errors suggested --columns, which it did not take; an ms/mA export loads."""
+    data = _synthetic_ocv_test(r_ohm=0.03, m_V=0.01)
+    src = tmp_path / "msma.csv"
+    rows = zip(1e3 * data.t_s, 1e3 * data.current_A, data.cell_voltages_V[:, 0], strict=True)
+    src.write_text("Time_ms,I_mA,U\n" + "".join(f"{t:.1f},{i:.4f},{v:.6f}\n" for t, i, v in rows))
+    out = tmp_path / "c.toml"
+    cols = "t_s=Time_ms*0.001,current_A=I_mA*0.001,voltage_V=U"
+    code, err = _run_cli([str(src), "--columns", cols, "--out", str(out)], capsys)
+    assert code == 0, err
+    assert load_cell_config(out).capacity_Ah == pytest.approx(2.0, rel=2e-3)
+
+
+def test_cli_says_a_directory_is_a_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, err = _run_cli([str(tmp_path), "--out", str(tmp_path / "c.toml")], capsys)
+    assert code == 2
+    assert f"{tmp_path}: is a directory; give the CSV files in it" in err
+
+
+def test_cli_says_a_rest_point_table_needs_points(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """M1: a rest-point table without --points got the --columns hint."""
+    src = tmp_path / "pts.csv"
+    src.write_text("SOC_percent,OCV_discharge_V\n10,3.45\n50,3.70\n90,4.05\n")
+    code, err = _run_cli([str(src), "--out", str(tmp_path / "c.toml")], capsys)
+    assert code == 2
+    assert "a rest-point table (SOC and OCV columns), not a test: pass --points" in err

@@ -21,6 +21,7 @@ from pathlib import Path
 from bmsid.cli.outputs import output_dir, output_file
 from bmsid.config.cell import InitialParameters, ParameterBounds, Range, save_cell_config
 from bmsid.errors import UserError
+from bmsid.offline.inputs import COLUMNS_HELP, parse_columns
 from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files, write_report
 from bmsid.offline.ocv_fit import EQ32_KNOTS
 
@@ -58,6 +59,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     p.add_argument("--charge-positive", action="store_true", help="the files count charge positive")
     p.add_argument("--cell", default=None, help="voltage column to use when a file has several")
+    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...", help=COLUMNS_HELP)
     p.add_argument(
         "--trim-soc",
         type=float,
@@ -174,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         capacity_Ah=args.capacity_ah,
         coulombic_efficiency=args.coulombic_efficiency,
         charge_positive=args.charge_positive,
+        columns=parse_columns(args.columns),
         cell=args.cell,
         trim_soc=args.trim_soc,
         gamma=args.gamma,

@@ -58,6 +58,7 @@ from bmsid.offline.identify import (
     too_short,
 )
 from bmsid.offline.inputs import (
+    COLUMNS_HELP,
     cell_config,
     check_soc0,
     open_input,
@@ -163,9 +164,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--columns",
         default=None,
         metavar="NAME=COLUMN,...",
-        help="CSV column names of another export, e.g. t_s=Time,current_A=Current*0.001,"
-        "voltage_V=Voltage (NAME: t_s, current_A, voltage_V, temperature_C, v_cell_NN; "
-        "*SCALE converts the unit)",
+        help=COLUMNS_HELP,
     )
     p.add_argument(
         "--every",

@@ -144,9 +144,15 @@ def _encoding(path: Path) -> tuple[str, str]:
     return "utf-8-sig", "strict"
 
 
-def _read_text(path: Path) -> str:
+def _require_file(path: Path) -> None:
+    if path.is_dir():  # a folder of exports: say so, not "no such file"
+        raise UserError(f"{path}: is a directory; give the CSV files in it")
     if not path.is_file():
         raise UserError(f"{path}: no such file")
+
+
+def _read_text(path: Path) -> str:
+    _require_file(path)
     enc, errors = _encoding(path)
     try:
         if path.name.lower().endswith(".gz"):
@@ -160,8 +166,7 @@ def _read_text(path: Path) -> str:
 def _read_lines(path: Path) -> Iterator[str]:
     """The file's lines without their ends, read as they are needed; blank lines at the end of
     the file are dropped (blank lines before a data line are kept: they are bad rows)."""
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
+    _require_file(path)
     blanks = 0
     enc, errors = _encoding(path)
     try:

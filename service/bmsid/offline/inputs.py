@@ -640,6 +640,14 @@ def tuning_overrides(items: Sequence[str]) -> dict[str, str]:
     return dict(item.partition("=")[::2] for item in items)
 
 
+#: ``--columns``'s help, one text for every command that reads tester CSVs.
+COLUMNS_HELP = (
+    "CSV column names of another export, e.g. t_s=Time,current_A=Current*0.001,"
+    "voltage_V=Voltage (NAME: t_s, current_A, voltage_V, temperature_C, v_cell_NN; "
+    "*SCALE converts the unit)"
+)
+
+
 def parse_columns(text: str | None) -> dict[str, ColumnMap] | None:
     """``--columns t_s=Time,current_A=Current*0.001,voltage_V=Voltage`` as column maps.
 

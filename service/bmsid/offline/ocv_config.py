@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -18,13 +18,14 @@ import numpy as np
 
 from bmsid.config.cell import CellConfig, InitialParameters, ParameterBounds, load_cell_config
 from bmsid.errors import UserError
-from bmsid.offline.csvio import read_ocv_points, read_tester_csv
+from bmsid.offline.csvio import ColumnMap, TesterData, read_ocv_points, read_tester_csv
 from bmsid.offline.ocv_fit import (
     EQ32_KNOTS,
     Eq4Fit,
     FloatArray,
     OcvFitResult,
     OcvTestPart,
+    Throughput,
     build_cell_config,
     extract_branches,
     fit_ocv_test,
@@ -53,6 +54,8 @@ class OcvFitSpec:
         None: measured from the test (1 for tables).
     charge_positive : bool
         The test files count charge current positive.
+    columns : mapping of canonical name to ColumnMap, or None
+        Where the test files' columns are (``--columns``, as ``bmsid identify`` reads them).
     cell : str or None
         Voltage column of a multi-cell test file.
     trim_soc : float
@@ -82,6 +85,7 @@ class OcvFitSpec:
     capacity_Ah: float | None = None
     coulombic_efficiency: float | None = None
     charge_positive: bool = False
+    columns: Mapping[str, ColumnMap] | None = None
     cell: str | None = None
     trim_soc: float = 0.02
     gamma: float = 30.0
@@ -107,6 +111,85 @@ class OcvFit:
         return format_report(self.result, self.info)
 
 
+#: A capacity given with --capacity-ah this many times above or below the charge the test
+#: measures is warned about: a full low-rate discharge counts it to about 1 %, so beyond 10 %
+#: the SOC axis is stretched (a branch runs past 0 or 100 % and only its overlap is fitted) or
+#: the given figure is a nominal one the cell no longer has. ``bmsid identify``'s
+#: ``capacity_mismatch`` allows 3x: its records only imply a capacity roughly.
+OCV_CAPACITY_MISMATCH = 1.1
+
+
+def capacity_warning(given_Ah: float | None, measured_Ah: float) -> list[str]:
+    """A report line when ``given_Ah`` is ``OCV_CAPACITY_MISMATCH`` off ``measured_Ah``."""
+    if given_Ah is None or not (given_Ah > 0 and measured_Ah > 0):
+        return []
+    ratio = given_Ah / measured_Ah
+    if 1.0 / OCV_CAPACITY_MISMATCH <= ratio <= OCV_CAPACITY_MISMATCH:
+        return []
+    return [
+        f"warning: capacity_mismatch: --capacity-ah {given_Ah:g} Ah is {ratio:.3g}x the "
+        f"{measured_Ah:.4g} Ah the test measures (full to empty): the SOC axis and every "
+        "curve on it are scaled by that; leave --capacity-ah out to use the measured capacity"
+    ]
+
+
+#: A measured coulombic efficiency below this is not a Li-ion cell's (above 0.99 at C/20) but
+#: a charge count that is off: pulses sampled too coarsely (the A123 test resampled to 60 s
+#: measured 0.942, and identify then gave 9.5 mV on DYN50 instead of 4.9 with 0.995).
+MIN_PLAUSIBLE_EFFICIENCY = 0.98
+
+
+def efficiency_warning(tp: Throughput) -> list[str]:
+    """A report line when the measured coulombic efficiency is implausibly low."""
+    if tp.method != "normalised" or tp.eta >= MIN_PLAUSIBLE_EFFICIENCY:
+        return []
+    return [
+        f"warning: the measured coulombic efficiency {tp.eta:.4f} ({tp.charge_Ah:.4g} Ah in for "
+        f"{tp.discharge_Ah:.4g} Ah out) is below {MIN_PLAUSIBLE_EFFICIENCY:g}, which no Li-ion "
+        "cell has: the charge count is off (pulses sampled too coarsely, a current offset); "
+        "give --coulombic-efficiency (e.g. 0.995) or a finer-sampled export"
+    ]
+
+
+#: The branches' overlap may stop this much (SOC) short of the trimmed range before the config
+#: is called partial: a test's branches reach both ends, only a cut-short one does not.
+PARTIAL_SOC = 0.02
+
+
+def partial_range_warning(result: OcvFitResult, trim_soc: float) -> list[str]:
+    """A report line when the fit range stops short of an end: the OCV is not measured beyond
+    it (a charge stopped early gave SOC 2-60 % and 11.7 mV on DYN50)."""
+    lo, hi = result.mean.soc_lo, result.mean.soc_hi
+    short = []
+    if hi < 1.0 - trim_soc - PARTIAL_SOC:
+        short.append(f"above {100 * hi:.1f} %")
+    if lo > trim_soc + PARTIAL_SOC:
+        short.append(f"below {100 * lo:.1f} %")
+    if not short:
+        return []
+    return [
+        f"warning: partial test: the branches overlap only on SOC {100 * lo:.1f}-{100 * hi:.1f} "
+        f"%, so the config's OCV {' and '.join(short)} is not measured (clamped, or bridged to a "
+        "rested end voltage): a charge or discharge that stopped early (fit the whole test) or "
+        "a charge count that is off"
+    ]
+
+
+def _read_test_file(path: str | Path, spec: OcvFitSpec) -> TesterData:
+    """A test file; one that fails as one but reads as a rest-point table says --points."""
+    try:
+        return read_tester_csv(path, charge_positive=spec.charge_positive, columns=spec.columns)
+    except UserError as exc:
+        try:
+            read_ocv_points(path)
+        except UserError:
+            raise exc from None
+        raise UserError(
+            f"{path}: a rest-point table (SOC and OCV columns), not a test: pass --points "
+            "(with --capacity-ah)"
+        ) from None
+
+
 def fit_test_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
 ) -> tuple[OcvFitResult, float, float, list[str]]:
@@ -120,7 +203,7 @@ def fit_test_files(
     parts: list[OcvTestPart] = []
     input_notes: list[str] = []
     for path in paths:
-        data = read_tester_csv(path, charge_positive=spec.charge_positive)
+        data = _read_test_file(path, spec)
         if data.merged_repeats or data.time_restarts:
             input_notes.append(
                 f"{path}: merged {data.merged_repeats} rows with repeated timestamps (the last "
@@ -150,6 +233,8 @@ def fit_test_files(
         *input_notes,
         f"capacity measured from the test: {br.measured_capacity_Ah:.4f} Ah "
         f"(used: {br.capacity_Ah:.4f} Ah)",
+        *capacity_warning(spec.capacity_Ah, br.measured_capacity_Ah),
+        *efficiency_warning(tp),
         f"throughput: discharge {tp.discharge_Ah:.4f} Ah, charge {tp.charge_Ah:.4f} Ah, "
         f"mismatch {tp.mismatch_Ah:+.4f} Ah ({tp.mismatch_pct:+.2f} %); SOC {tp.method}, "
         f"coulombic efficiency (charge-counting factor) {tp.eta:.4f}: {tp.reason}",
@@ -167,10 +252,12 @@ def fit_test_files(
             f"  rest after the {r.after} at SOC {100 * r.soc:.1f} % ({r.duration_s:.0f} s): "
             f"{1e3 * r.r_total_ohm:.1f} +- {1e3 * r.r_total_se_ohm:.1f} mOhm, tau "
             f"{r.tau1_s:.0f} / {r.tau2_s:.0f} s, fit RMSE {1e3 * r.rmse_V:.2f} mV"
-            for r in pol.relaxations
+            + (" (a knee: not used)" if r in pol.knee else "")
+            for r in (*pol.relaxations, *pol.knee)
         ],
         f"  one-sample current steps |dV/dI| [mOhm, +- noise 1 se]: {steps or 'none'}",
         f"hysteresis state h run along the test with gamma = {br.gamma:g}",
+        *partial_range_warning(result, spec.trim_soc),
     ]
     return result, br.capacity_Ah, br.coulombic_efficiency, info
 
@@ -181,6 +268,10 @@ def fit_point_files(
     """Fit rest-point tables (SOC, OCV pairs per branch); returns as :func:`fit_test_files`."""
     if spec.capacity_Ah is None:
         raise UserError("--points needs --capacity-ah (rest tables carry no charge count)")
+    if spec.columns:
+        raise UserError(
+            "--columns maps test files' columns; rest-point tables (--points) do not take it"
+        )
     pooled: dict[str, tuple[list[FloatArray], list[FloatArray]]] = {
         "discharge": ([], []),
         "charge": ([], []),
@@ -290,7 +381,9 @@ def _hysteresis_lines(r: OcvFitResult) -> list[str]:
         )
     if ev is not None:
         verdict = (
-            "hysteresis present"
+            f"not resolved: {ev.unresolved}"
+            if ev.unresolved is not None
+            else "hysteresis present"
             if ev.present
             else "negative: the polarisation over-corrects"
             if ev.pooled_V + ev.pooled_ci95_V < 0
@@ -363,7 +456,8 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
                        "pooled_ci95_V": r.hysteresis.pooled_ci95_V if r.hysteresis else None,
                        "pooled_soc": [r.hysteresis.soc_lo, r.hysteresis.soc_hi]
                        if r.hysteresis else None,
-                       "present": r.hysteresis.present if r.hysteresis else None},
+                       "present": r.hysteresis.present if r.hysteresis else None,
+                       "unresolved": r.hysteresis.unresolved if r.hysteresis else None},
         "fits": {
             name: {"coeffs": arr(f.coeffs), "ci_low": arr(f.ci_low), "ci_high": arr(f.ci_high),
                    "sse_V2": f.sse_V2, "r2": f.r2, "r2_adj": f.r2_adj, "rmse_V": f.rmse_V,
@@ -382,6 +476,7 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
             "R2_ohm": pol.R2_ohm, "tau2_s": pol.tau2_s, "r_total_ohm": pol.r_total_ohm,
             "r_total_se_ohm": pol.r_total_se_ohm, "source": pol.source,
             "relaxations": [asdict(x) for x in pol.relaxations],
+            "knee_relaxations": [asdict(x) for x in pol.knee],
             "step_resistances_ohm": list(pol.step_resistances_ohm),
             "step_se_ohm": [st.se_ohm for st in pol.steps],
         }  # fmt: skip

@@ -35,9 +35,13 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   larger than mid-SOC, and only ever larger, so the smallest fit is used, and the M knot at the
   end where a larger one was measured carries the difference in its CI. A polarisation larger
   than the mid-SOC raw half-gap allows with M >= 0 is reported, not scaled to fit the gap (the
-  corrected gap then comes out negative, and M is decided from its CI below). Without a rest
-  long enough (>= 300 s) R0 is the smallest one-sample step |dV/dI| (R0 plus what relaxes within
-  one sample) and the RC part, which the test does not measure, is taken as
+  corrected gap then comes out negative, and M is decided from its CI below), unless it is
+  more than ``KNEE_FACTOR`` times that: then it measured the OCV relaxing at a knee and is left
+  out (so one export of a test gives what its split into files gives), as is a one-sample step
+  that large; a fit that does not settle within its rest is none. Without a rest
+  long enough (>= 300 s) R0 is the one-sample step |dV/dI| (R0 plus what relaxes within one
+  sample) with the lowest upper bound |dV/dI| + 2 se (a coarse sample's step holds more
+  relaxation; its noise counts) and the RC part, which the test does not measure, is taken as
   ``UNMEASURED_RC_SHARE`` times it with a standard error as large (the CI says so). The model
   runs over the whole test with its own current and corrects every sample:
   ``v + R0 i + R1 x1 + R2 x2`` (x the unit-gain branch states), the polarisation as it builds
@@ -272,10 +276,8 @@ LOAD_FIT_DEGREE = 2
 MIN_STEP_RUN_S = 30.0
 #: Floor of the voltage noise estimate (V): a quantised logger's rests can show no spread.
 MIN_VOLTAGE_NOISE_V = 1e-4
-#: A current step resolves R0 when its noise error is at most this fraction of it.
-STEP_RESOLVED = 0.25
 #: Without a relaxation fit, the RC part R1 + R2 (not measured by the test) is taken as this
-#: times the smallest one-sample step, with a standard error as large (an assumption the CI
+#: times the chosen one-sample step, with a standard error as large (an assumption the CI
 #: carries): a Li-ion cell's DC resistance at low rate is typically one to three times R0 (the
 #: DFN cell's relaxation at 99 % SOC: 3.6 times its jump), and the step already holds one
 #: sample's worth of relaxation.
@@ -283,6 +285,12 @@ UNMEASURED_RC_SHARE = 1.0
 #: Time constant (s) given to that unmeasured RC part: where it matters (the first minutes of a
 #: branch) the M fit weighs little.
 UNMEASURED_RC_TAU_S = 300.0
+#: A polarisation candidate (relaxation fit or step) whose R0 + R1 + R2 exceeds this times what
+#: the mid-SOC raw half-gap allows with M >= 0 (beyond 2 se) would reverse the gap by more than
+#: the whole measured gap: it measured a knee (the OCV's own relaxation at an end of the SOC
+#: range, or a step taken there), not the polarisation mid-SOC, and is not used. A 1.4x excess
+#: (the DFN cell's 99 % relaxation) is within the polarisation's variation along SOC.
+KNEE_FACTOR = 2.0
 #: gamma is not fitted: each M knot's CI carries its change over gamma / GAMMA_SPAN .. gamma *
 #: GAMMA_SPAN (an order of magnitude; published one-state fits range over more).
 GAMMA_SPAN = 3.0
@@ -343,6 +351,7 @@ class Polarisation:
     source: str
     relaxations: tuple[RelaxationFit, ...] = ()
     steps: tuple[CurrentStep, ...] = ()
+    knee: tuple[RelaxationFit, ...] = ()  #: relaxations not used: they measured a knee
 
     @property
     def step_resistances_ohm(self) -> tuple[float, ...]:
@@ -412,6 +421,13 @@ class OcvTestBranches:
     v_empty_V: float | None = None
     v_full_V: float | None = None
     notes: tuple[str, ...] = ()
+
+
+def c_rate_text(rate: float) -> str:
+    """A C-rate (1/h) as a tester writes it: ``C/20`` below 1C, ``2C`` or ``15.3C`` above."""
+    if rate <= 0:
+        return "0C"
+    return f"{rate:.3g}C" if rate >= 1.0 else f"C/{1.0 / rate:.3g}"
 
 
 def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
@@ -484,6 +500,10 @@ def fit_relaxation(
         a1, tau1, a2, tau2 = float(p[1]), float(np.exp(p[2])), 0.0, 10.0 * float(np.exp(p[2]))
     resid = v - fit
     s2 = float(resid @ resid) / max(t.shape[0] - p.shape[0], 1)
+    # More left to relax after the rest than it showed: v_inf and the amplitudes extrapolate.
+    left = a1 * math.exp(-t[-1] / tau1) + a2 * math.exp(-t[-1] / tau2)
+    if not np.all(np.isfinite(p)) or left > max(span, 3.0 * math.sqrt(s2)):
+        return None
     i_abs = abs(current_A)
     se = float(np.sqrt(max(float(cov[0, 0]), 0.0) + v_load_se_V**2)) / i_abs
     if not np.isfinite(se):
@@ -492,15 +512,18 @@ def fit_relaxation(
     def steady(a: float, tau: float) -> float:  # the branch had run_s to charge up
         return a / (i_abs * -math.expm1(-run_s / tau))
 
+    r1, r2 = steady(a1, tau1), steady(a2, tau2)
+    if not (r1 >= 0 and r2 >= 0 and math.isfinite(r1 + r2)):
+        return None
     return RelaxationFit(
         after="discharge" if current_A > 0 else "charge",
         soc=float("nan"),
         duration_s=float(t[-1]),
         current_A=current_A,
         R0_ohm=max(sgn * float(fit[0] - v_load_V) / i_abs, 0.0),
-        R1_ohm=steady(a1, tau1),
+        R1_ohm=r1,
         tau1_s=tau1,
-        R2_ohm=steady(a2, tau2),
+        R2_ohm=r2,
         tau2_s=tau2,
         r_total_se_ohm=se,
         rmse_V=float(np.sqrt(s2)),
@@ -659,7 +682,10 @@ def extract_branches(
     for s, name in ((1, "discharge"), (-1, "charge")):
         if s not in best:
             hint = (
-                " (does the tester count charge positive? use --charge-positive)" if s == 1 else ""
+                " (does the tester count charge positive? use --charge-positive)"
+                if s == 1
+                else " (do all the files count current with one sign? --charge-positive applies "
+                "to every file)"
             )
             raise UserError(
                 f"the OCV test has no {name} branch: no sustained "
@@ -713,6 +739,13 @@ def extract_branches(
     cap = capacity_Ah if capacity_Ah is not None else measured_q
     z_all = (1.0 if s1 > 0 else 0.0) - s1 * (q - q[f0]) / cap
 
+    cap_src = (
+        "given by --capacity-ah; the test measures "
+        f"{measured_q:.4g} Ah{': Ah, not mAh?' if cap > 10 * measured_q else ''}"
+        if capacity_Ah is not None
+        else "measured: the charge from full to the deepest point before the other branch"
+    )
+
     def keep(a: int, b: int, name: str) -> tuple[npt.NDArray[np.intp], float]:
         i_run = np.abs(i_all[a:b])
         i_med = float(np.median(i_run))
@@ -720,14 +753,17 @@ def extract_branches(
         rate = i_med / cap
         if rate > MAX_OCV_C_RATE:
             raise UserError(
-                f"the {name} branch runs at {i_med:g} A = C/{1 / rate:.1f} for {cap:.4g} Ah: too "
-                "fast for an OCV test (want C/20-C/30); current in mA or wrong capacity?"
+                f"the {name} branch runs at {i_med:g} A = {c_rate_text(rate)} for {cap:.4g} Ah "
+                f"({cap_src}): too fast for an OCV test (want C/20-C/30); current in mA or "
+                "wrong capacity?"
             )
         span = float(np.ptp(z_all[idx]))
         if span < MIN_BRANCH_SPAN:
             raise UserError(
-                f"the {name} branch covers only {100 * span:.0f} % of {cap:.4g} Ah; an OCV test "
-                f"needs a full {name}"
+                f"the {name} branch (the sustained {'positive' if a == da else 'negative'} "
+                f"current with the most charge: {i_med:.4g} A for {t_all[b - 1] - t_all[a]:.0f} "
+                f"s, {abs(float(q1[b - 1] - q1[a])):.4g} Ah) covers only {100 * span:.0f} % of the "
+                f"capacity, {cap:.4g} Ah ({cap_src}); an OCV test needs a full {name}"
             )
         return idx, i_med
 
@@ -868,12 +904,61 @@ def _scale_charge(
             "short: a counting mismatch, each branch normalised to its own throughput"
         )
         return Throughput(dis_Ah, chg_Ah, "normalised", eta_meas, why)
+    # A slope taken below a knee the branch never reached turns the mV into more than all SOC.
+    soc_v = (
+        f"SOC {100 * short_v:.2f} % at the end's slope"
+        if short_v <= 1.0
+        else "more than the whole SOC range at the end's slope: the knee was not reached"
+    )
     why = (
-        f"the test ends {1e3 * dv:+.1f} mV below its starting rested voltage (SOC "
-        f"{100 * short_v:.2f} % at the end's slope), as the Ah say ({100 * short_q:.2f} %): the "
-        "second branch ends short; charge counted with eta = 1"
+        f"the test ends {1e3 * dv:+.1f} mV below its starting rested voltage ({soc_v}), as the "
+        f"Ah say ({100 * short_q:.2f} % short): the second branch ends short; charge counted "
+        "with eta = 1"
     )
     return Throughput(dis_Ah, chg_Ah, "counted", 1.0, why)
+
+
+def _knee_bound_ohm(r_max: float) -> float:
+    """The largest R0 + R1 + R2 (ohm) a polarisation candidate may have (``KNEE_FACTOR``)."""
+    return KNEE_FACTOR * r_max if r_max > 0 else math.inf
+
+
+def _drop_knees(
+    relax: Sequence[RelaxationFit], r_max: float, notes: list[str]
+) -> tuple[list[RelaxationFit], list[RelaxationFit]]:
+    """(used, knee) relaxation fits: a knee one reverses the mid-SOC gap by more than the gap."""
+    bound = _knee_bound_ohm(r_max)
+    knee = [f for f in relax if f.r_total_ohm - 2.0 * f.r_total_se_ohm > bound]
+    if knee:
+        notes.append(
+            "not used for the polarisation: the relaxation"
+            + ("s" if len(knee) > 1 else "")
+            + " after the "
+            + " and ".join(
+                f"{f.after} at SOC {100 * f.soc:.1f} % ({1e3 * f.r_total_ohm:.1f} mOhm)"
+                for f in knee
+            )
+            + f", more than {KNEE_FACTOR:g}x what the mid-SOC half-gap allows with M >= 0 "
+            f"({1e3 * r_max:.1f} mOhm): the OCV relaxing at a knee, not the polarisation mid-SOC"
+        )
+    return [f for f in relax if f not in knee], knee
+
+
+def _usable_steps(
+    steps: Sequence[CurrentStep], r_max: float, notes: list[str]
+) -> list[CurrentStep]:
+    """The steps whose R0 with the assumed RC part is within ``KNEE_FACTOR`` of ``r_max``."""
+    bound = _knee_bound_ohm(r_max) / (1.0 + UNMEASURED_RC_SHARE)
+    ok = [st for st in steps if st.r_ohm - 2.0 * st.se_ohm <= bound]
+    if len(ok) < len(steps):
+        notes.append(
+            "not used for R0: the one-sample step(s) of "
+            + ", ".join(f"{1e3 * st.r_ohm:.1f}" for st in steps if st not in ok)
+            + f" mOhm (with the RC part, more than {KNEE_FACTOR:g}x what the mid-SOC half-gap "
+            f"allows with M >= 0, {1e3 * r_max:.1f} mOhm): steps at a knee or sampled too "
+            "coarsely to separate R0 from the relaxation"
+        )
+    return ok
 
 
 def _choose_polarisation(
@@ -881,11 +966,14 @@ def _choose_polarisation(
 ) -> Polarisation:
     """The relaxation fits (knees and diffusion at the test's ends only inflate them): the
     smallest, combined (inverse-variance) with those that agree with it within two standard
-    errors. Else the smallest current step that resolves R0 (noise error <= ``STEP_RESOLVED``
-    of it; onsets first; none: the one with the smallest error) with the unmeasured RC part
+    errors. Else the current step with the lowest upper bound |dV/dI| + 2 se (onsets first)
+    with the unmeasured RC part
     assumed (``UNMEASURED_RC_SHARE``, in the standard error). ``r_max`` (ohm: the most the
     median mid-SOC half-gap allows with M >= 0) is only compared with, beyond two standard
-    errors, never imposed (module doc)."""
+    errors, never imposed (module doc); a candidate beyond ``KNEE_FACTOR`` times it measured a
+    knee and is left out (noted)."""
+    relax, knee = _drop_knees(relax, r_max, notes)
+    steps_ok = _usable_steps(steps, r_max, notes) if not relax else []
     if relax:
         r = min(relax, key=lambda f: f.r_total_ohm)
         agree = [
@@ -906,34 +994,35 @@ def _choose_polarisation(
             float(1.0 / np.sqrt(np.sum(w))),
             f"2RC relaxation fit{'s' if len(agree) > 1 else ''} of {where}"
             + (" (inverse-variance mean)" if len(agree) > 1 else ""),
-            tuple(relax), tuple(steps),
+            tuple(relax), tuple(steps), tuple(knee),
         )  # fmt: skip
-    elif steps:
-        onsets = [st for st in steps if st.onset]
-        resolved = [st for st in onsets if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
-        resolved = resolved or [st for st in steps if st.se_ohm <= STEP_RESOLVED * st.r_ohm]
-        if resolved:
-            st = min(resolved, key=lambda x: x.r_ohm)
-            which = "the smallest one-sample step |dV/dI| that resolves it"
-        else:
-            st = min(steps, key=lambda x: x.se_ohm)
-            which = "the one-sample step |dV/dI| with the smallest noise error (none resolves it)"
+    elif steps_ok:
+        # Each step is R0 plus what relaxes within its sample: the one whose upper bound is
+        # lowest bounds R0 best (a coarse sample's resolved step holds more relaxation).
+        onsets = [st for st in steps_ok if st.onset] or steps_ok
+        st = min(onsets, key=lambda x: x.r_ohm + 2.0 * x.se_ohm)
+        which = "the one-sample step |dV/dI| with the lowest upper bound (|dV/dI| + 2 se)"
         r0 = st.r_ohm
         rc = UNMEASURED_RC_SHARE * r0
         se = math.hypot(st.se_ohm, rc)
+        why = (
+            "the relaxations measured a knee"
+            if knee
+            else f"no rest after a branch long enough (>= {MIN_RELAX_S:.0f} s) to fit its "
+            "relaxation"
+        )
         notes.append(
-            f"no rest after a branch long enough (>= {MIN_RELAX_S:.0f} s) to fit its relaxation: "
-            f"R0 = {which} ({1e3 * r0:.1f} +- {1e3 * st.se_ohm:.1f} mOhm); the test does not "
-            f"measure the RC part, taken as {1e3 * rc:.1f} +- {1e3 * rc:.1f} mOhm (1 se); both "
-            "errors are in the CI of M"
+            f"{why}: R0 = {which} ({1e3 * r0:.1f} +- {1e3 * st.se_ohm:.1f} mOhm); the test "
+            f"does not measure the RC part, taken as {1e3 * rc:.1f} +- {1e3 * rc:.1f} mOhm (1 se); "
+            "both errors are in the CI of M"
         )
         pol = Polarisation(
             r0, 0.0, 1.0, rc, UNMEASURED_RC_TAU_S, se,
-            "one-sample current step for R0, RC part assumed", (), tuple(steps),
+            "one-sample current step for R0, RC part assumed", (), tuple(steps), tuple(knee),
         )  # fmt: skip
     else:
         notes.append("no rest or step in the test: the branches are not corrected")
-        return Polarisation(0.0, 0.0, 1.0, 0.0, 1.0, None, "none")
+        return Polarisation(0.0, 0.0, 1.0, 0.0, 1.0, None, "none", (), tuple(steps), tuple(knee))
     if pol.r_total_ohm - 2.0 * (pol.r_total_se_ohm or 0.0) > r_max > 0:
         notes.append(
             f"the {pol.source} gives {1e3 * pol.r_total_ohm:.1f} mOhm, more than the mid-SOC "
@@ -974,11 +1063,12 @@ class HysteresisEvidence:
     soc_lo: float
     soc_hi: float
     status: tuple[KnotStatus, ...]
+    unresolved: str | None = None  #: why the test cannot tell hysteresis from polarisation
 
     @property
     def present(self) -> bool:
-        """True when the pooled M's 95 % CI lies above 0."""
-        return self.pooled_V - self.pooled_ci95_V > 0
+        """True when the pooled M's 95 % CI lies above 0 and the test can tell it."""
+        return self.unresolved is None and self.pooled_V - self.pooled_ci95_V > 0
 
 
 def decide_hysteresis(
@@ -989,6 +1079,7 @@ def decide_hysteresis(
     notes: list[str],
     *,
     m_raw: FloatArray | None = None,
+    unresolved: str | None = None,
 ) -> tuple[FloatArray, FloatArray, HysteresisEvidence]:
     """The stored M table (V, in [0, 0.5]) and its CI half-widths from the fitted knots ``m_fit``
     (V) with CI half-widths ``m_ci`` and the ``pooled`` (M, CI, SOC lo, SOC hi) evidence.
@@ -1000,19 +1091,20 @@ def decide_hysteresis(
     and, when raised to the pooled bound, the pooled CI. A pooled M below 0 beyond its CI means
     the polarisation over-corrects (M < 0 is not physical): the test cannot tell whether there
     is hysteresis, so a zeroed knot's CI reaches up to ``m_raw`` (the knots fitted to the raw,
-    uncorrected gap: the most M can be, with no polarisation at all) and the note says so.
+    uncorrected gap: the most M can be, with no polarisation at all) and the note says so;
+    so does ``unresolved`` (the reason the test cannot separate them: then no knot is kept).
     """
     m_pool, ci_pool, lo, hi = pooled
     m = np.array(m_fit, dtype=np.float64)
     ci = np.array(m_ci, dtype=np.float64)
     status: list[KnotStatus] = []
-    ev = HysteresisEvidence(m_pool, ci_pool, lo, hi, ())
+    ev = HysteresisEvidence(m_pool, ci_pool, lo, hi, (), unresolved)
     floor = m_pool - ci_pool
-    over = m_pool + ci_pool < 0
+    over = m_pool + ci_pool < 0 or unresolved is not None
     wide, raised, zeroed = [], [], []
     for k in range(m.shape[0]):
         f, c = float(m_fit[k]), float(m_ci[k])
-        if f - c > 0:
+        if f - c > 0 and unresolved is None:
             status.append("fit")
             continue
         k_lo, k_hi = max(f - c, 0.0), max(f + c, 0.0)
@@ -1049,7 +1141,12 @@ def decide_hysteresis(
             f"are negative or below the pooled lower bound with a CI that includes 0: stored at "
             f"that bound, {1e3 * floor:.1f} mV (conservative), not 0"
         )
-    if zeroed and over:
+    if zeroed and unresolved is not None:
+        notes.append(
+            f"hysteresis not resolved (pooled M {pooled_txt}): {unresolved}; M = 0 at "
+            f"{knots(zeroed)} mV, with the raw half-gap as the upper end of its CI"
+        )
+    elif zeroed and over:
         notes.append(
             f"the corrected half-gap is negative (pooled M {pooled_txt}): the polarisation "
             "over-corrects mid-SOC (it varies along SOC), so the test cannot tell a hysteresis "
@@ -1226,6 +1323,35 @@ def _join_ends(
     return lo, hi, v_empty, v_full
 
 
+def _overlap_error(lo: float, hi: float) -> str:
+    """Why the branches do not overlap, with the two usual causes."""
+    overlap = (
+        f"overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %" if hi > lo else "do not overlap"
+    )
+    return (
+        f"the charge and discharge branches {overlap} (SOC counted along the files in the order "
+        "given): give the files in the order they were recorded, and --charge-positive if the "
+        "tester counts charge positive"
+    )
+
+
+def check_physical(mean: Eq4Fit, v_raw_V: FloatArray, pol: Polarisation) -> None:
+    """Refuse a mean OCV that leaves the branches' measured voltage range by more than its span
+    over the fit range: no polarisation a cell can have puts the OCV there (a fit that failed).
+    """
+    z = np.linspace(mean.soc_lo, mean.soc_hi, 201)
+    u = eval_ocv(mean.coeffs, z)
+    v_lo, v_hi = float(np.min(v_raw_V)), float(np.max(v_raw_V))
+    margin = v_hi - v_lo
+    if float(np.min(u)) < v_lo - margin or float(np.max(u)) > v_hi + margin:
+        raise UserError(
+            f"the fit is not physical: the mean OCV reaches {float(np.min(u)):.3f}.."
+            f"{float(np.max(u)):.3f} V, the branches measure {v_lo:.3f}..{v_hi:.3f} V "
+            f"(polarisation {1e3 * pol.r_total_ohm:.1f} mOhm from the {pol.source}); no config "
+            "written"
+        )
+
+
 def fit_ocv_test(
     branches: OcvTestBranches, *, trim_soc: float = 0.02, knots: Sequence[float] = EQ32_KNOTS
 ) -> OcvFitResult:
@@ -1236,9 +1362,7 @@ def fit_ocv_test(
     lo = max(float(np.min(dis.z)), float(np.min(chg.z)), trim_soc)
     hi = min(float(np.max(dis.z)), float(np.max(chg.z)), 1.0 - trim_soc)
     if hi - lo < MIN_BRANCH_SPAN:
-        raise UserError(
-            f"the charge and discharge branches overlap only on SOC {100 * lo:.0f}-{100 * hi:.0f} %"
-        )
+        raise UserError(_overlap_error(lo, hi))
     grid = np.linspace(lo, hi, 401)
 
     def on_grid(b: Branch, y: FloatArray) -> FloatArray:
@@ -1263,7 +1387,7 @@ def fit_ocv_test(
             w_slow = np.minimum(w_slow, w_alt)
     # A larger polarisation measured at one end of the test may hold at the knot there.
     ci_end = np.zeros_like(m_fit)
-    for r in pol.relaxations:
+    for r in (*pol.relaxations, *pol.knee):  # a knee's relaxation too: it is at that end
         if r.r_total_ohm > pol.r_total_ohm and np.isfinite(r.soc):
             at = _hats(np.array([np.clip(r.soc, m_soc[0], m_soc[-1])]), m_soc)[0]
             extra = 0.5 * (chg.current_A + dis.current_A) * (r.r_total_ohm - pol.r_total_ohm)
@@ -1277,7 +1401,15 @@ def fit_ocv_test(
     )
     raw_gap = on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V)
     _, m_raw, _ = fit_hysteresis(grid, raw_gap, weight, knots)
-    m_vals, m_ci_store, evidence = decide_hysteresis(m_soc, m_fit, m_ci, pooled, notes, m_raw=m_raw)
+    unresolved = (
+        None
+        if pol.r_total_se_ohm is not None
+        else "the test has no rest or current step, so its IR drop and polarisation, which "
+        "open the gap like a hysteresis does, are not measured"
+    )
+    m_vals, m_ci_store, evidence = decide_hysteresis(
+        m_soc, m_fit, m_ci, pooled, notes, m_raw=m_raw, unresolved=unresolved
+    )
     half_raw = 0.5 * (on_grid(chg, chg.v_raw_V) - on_grid(dis, dis.v_raw_V))
 
     def mean_data(b: Branch) -> tuple[FloatArray, FloatArray]:
@@ -1289,6 +1421,7 @@ def fit_ocv_test(
     fit_d, fit_c = fit_eq4(zd, vd), fit_eq4(zc, vc)
     (zmd, vmd), (zmc, vmc) = mean_data(dis), mean_data(chg)
     mean = fit_eq4(np.concatenate([zmd, zmc]), np.concatenate([vmd, vmc]))
+    check_physical(mean, np.concatenate([dis.v_raw_V, chg.v_raw_V]), branches.polarisation)
 
     lo_j, hi_j, v_empty, v_full = _join_ends(
         mean.coeffs, lo, hi, branches.v_empty_V, branches.v_full_V, notes
