@@ -260,3 +260,76 @@ def test_consistency_spread_counts_wandering() -> None:
     assert c.spread_pct["a"] == pytest.approx(0.0)  # median of |dev| = 0 (3 of 5 at the level)
     c2 = consistency("g", "x", medians, {"a": {p: [1.2] * 5 for p in level}, "b": steady})
     assert c2.spread_pct["a"] == pytest.approx(20.0)
+
+
+# ----------------------------------------------------------------------------- inputs (sweep D)
+def _one_variant(path: Path, cfg: Path, out: Path, *extra: str) -> list[str]:
+    return ["compare", str(path), "--cell-config", str(cfg), "--out", str(out),
+            "--algorithms", "non-hy-affrls", *extra]  # fmt: skip
+
+
+def test_compare_refuses_what_identify_refuses(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """compare ran no record checks: a sign-flipped file went into Table 2 at 676 mV, one in
+    ms at 27 mV. Now identify's message, exit 2; the fix it names (``--columns``) works."""
+    _, _, cfg = dst_bus_csvs
+    cols = synthetic_columns(1500, seed=1)
+    flipped = write_csv(tmp_path / "flip_dst_25C.csv", {**cols, "current_A": -cols["current_A"]})
+    ms = write_csv(tmp_path / "ms_dst_25C.csv", {**cols, "t_s": 1000.0 * cols["t_s"]})
+    assert main(_one_variant(flipped, cfg, tmp_path / "a")) == 2
+    assert main(_one_variant(ms, cfg, tmp_path / "b")) == 2
+    errs = capsys.readouterr().err.strip().splitlines()
+    assert len(errs) == 2
+    assert f"{flipped}: current sign looks flipped" in errs[0]
+    assert errs[0].endswith("pass --charge-positive")
+    assert f"{ms}: t_s looks like milliseconds" in errs[1]
+    assert errs[1].endswith("--columns t_s=t_s*0.001")
+    assert not (tmp_path / "a" / "table2.csv").exists()
+    assert main(_one_variant(flipped, cfg, tmp_path / "c", "--charge-positive")) == 0
+    assert main(_one_variant(ms, cfg, tmp_path / "d", "--columns", "t_s=t_s*0.001")) == 0
+
+
+def test_compare_notes_nan_readings_as_identify(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, _, cfg = dst_bus_csvs
+    cols = synthetic_columns(1500, seed=1)
+    cols["voltage_V"][[100, 700]] = np.nan
+    path = write_csv(tmp_path / "nan_dst_25C.csv", cols)
+    assert main(_one_variant(path, cfg, tmp_path / "o")) == 0
+    assert f"{path}: 2 empty or NaN current/voltage/temperature value(s) read as missing" in (
+        capsys.readouterr().out
+    )
+
+
+def test_compare_reads_a_candump_log(dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """The README says compare reads candump logs; it read a .log as a CSV and failed. Now its
+    row is identify's on the same log."""
+    dst, _, cfg = dst_bus_csvs
+    log = tmp_path / "syn_dst_25C.log"
+    assert main(["make-log", str(dst), "--out", str(log), "--t0", "1.7e9"]) == 0
+    assert main(_one_variant(log, cfg, tmp_path / "o")) == 0
+    with (tmp_path / "o" / "table2.csv").open(encoding="utf-8") as fh:
+        (row,) = list(csv.DictReader(fh))
+    one = ["identify", str(log), "--cell-config", str(cfg), "--algorithm", "non-hy-affrls"]
+    assert main([*one, "--out", str(tmp_path / "i")]) == 0
+    doc = json.loads((tmp_path / "i" / "metrics.json").read_text(encoding="utf-8"))
+    assert int(row["n_samples"]) == doc["n_samples"] == 1500
+    assert float(row["rmse_V"]) == pytest.approx(doc["rmse_V"], rel=1e-6)
+
+
+def test_compare_refuses_a_directory_and_a_file_twice(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A directory was 'no such file'; a file given twice shared one output folder and the
+    consistency analysis found no group."""
+    dst, _, cfg = dst_bus_csvs
+    base = ["--cell-config", str(cfg), "--out", str(tmp_path / "o")]
+    assert main(["compare", str(dst.parent), *base]) == 2
+    assert main(["compare", str(dst), str(dst), *base]) == 2
+    errs = capsys.readouterr().err.strip().splitlines()
+    assert len(errs) == 2
+    d = dst.parent
+    assert errs[0].endswith(f"{d}: is a directory: give its files (e.g. {d}/*.csv)")
+    assert errs[1].endswith(f"{dst}: given twice: give each dataset once")

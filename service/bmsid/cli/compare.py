@@ -1,7 +1,8 @@
 """``bmsid compare DATASETS... --out DIR``: the paper's comparison on your data.
 
 Runs the three variants (non-hy-affrls, hy-affrls, hy-affrls-lpso) on every dataset (tester
-CSVs) and writes:
+CSVs or candump logs, read as ``bmsid identify`` reads them, ``--columns`` and ``--mapping``
+included) and writes:
 
 - ``table2.md`` / ``table2.csv``: per dataset (profile and temperature, read from names such as
   ``..._dst_25C...``) and variant, the RMSE over the whole record, over its first 10 % of the
@@ -14,6 +15,10 @@ CSVs) and writes:
   ``bmsid.offline.report``);
 - ``rmse.png`` and, per dataset and variant, ``<dataset>/<variant>/`` with ``metrics.json`` and
   the Fig. 10/11 plots (``--params-csv`` also writes each ``params.csv``).
+
+Every dataset first gets identify's record checks for its cell config (time unit, current
+sign, capacity, ...): their notes and warnings are printed, an error refuses the run (exit 2)
+before any identification. A directory or a file given twice is refused too.
 
 Cell configs: one ``--cell-config`` for every dataset, or one per dataset in the same order.
 For several cells per file, Table 2 pools all cells and the consistency analysis uses the first.
@@ -40,11 +45,11 @@ from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import Variant
 from bmsid.estimate.types import VARIANTS
-from bmsid.offline.csvio import read_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_source
 from bmsid.offline.inputs import (
     LoadedInput,
     load_config,
+    parse_columns,
     parse_tuning,
     parse_window,
     tuning_overrides,
@@ -76,7 +81,8 @@ from bmsid.offline.scoring import (
     parameter_trajectories,
 )
 
-from .identify import add_model_options, progress_bar
+from .compare_inputs import check_paths, load_dataset
+from .identify import add_input_options, add_model_options, progress_bar
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -86,7 +92,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("datasets", nargs="+", metavar="DATASET", help="tester CSV files")
+    p.add_argument(
+        "datasets", nargs="+", metavar="DATASET",
+        help="tester CSVs (.csv/.csv.gz) or candump logs (.log/.log.gz), as identify reads them",
+    )  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument(
         "--cell-config",
@@ -118,6 +127,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help=SCORE_SOC0_HELP + "; once for all datasets, or once per dataset",
     )
     p.add_argument("--params-csv", action="store_true", help="also write each run's params.csv")
+    add_input_options(p)
     add_model_options(p)
     p.set_defaults(func=run)
 
@@ -185,13 +195,13 @@ def run(args: argparse.Namespace) -> int:
     configs = _configs(args.cell_config, len(args.datasets))
     soc0s = _soc0s(args.soc0, len(args.datasets))
     score_soc0s = _soc0s(args.score_soc0, len(args.datasets), "--score-soc0")
+    columns = parse_columns(args.columns)
+    check_paths(args.datasets)
     out = output_dir(Path(args.out))  # before hours of identification, not after
-    # Read everything first: a bad file fails before hours of identification.
+    # Read and check everything first: a bad file fails before hours of identification.
     data: list[LoadedInput] = [
-        LoadedInput.from_tester(
-            read_tester_csv(p, charge_positive=args.charge_positive, missing_ok=True)
-        )
-        for p in args.datasets
+        load_dataset(p, args, columns, cell, z, tuning)
+        for p, (cell, _), z in zip(args.datasets, configs, soc0s, strict=True)
     ]
     labels = [
         label_dataset(p, float(np.median(d.temperature_C)) if d.temperature_C is not None else None)
