@@ -12,15 +12,19 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_identify_cli import synthetic_columns, write_csv
+from test_identify_cli import _trace, synthetic_columns, write_csv
 
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell, save_cell_config
-from bmsid.estimate.types import VARIANTS
+from bmsid.estimate.guard import WATCHED
+from bmsid.estimate.types import VARIANTS, Quality
 from bmsid.offline.report import (
     CONSISTENCY_PARAMS,
+    HeldShare,
     Table2Row,
     consistency,
+    consistency_csv,
+    consistency_markdown,
     label_dataset,
     soc_band_rows,
     soc_bands_csv,
@@ -29,6 +33,7 @@ from bmsid.offline.report import (
     table2_markdown,
     unique_displays,
 )
+from bmsid.offline.scoring import EvalWindow, held_share
 
 
 @pytest.fixture(scope="module")
@@ -142,6 +147,7 @@ def test_compare_writes_consistency(compare_out: Path) -> None:
     for r in rows:
         assert math.isfinite(float(r["consistency_error_pct"]))
         assert math.isfinite(float(r["trajectory_spread_pct"]))
+        assert 0.0 <= float(r["held_pct"]) <= 100.0
     # Two profiles of one simulated cell: R0 agrees to a few percent after fusion.
     lpso = [r for r in rows if r["algorithm"] == "hy-affrls-lpso"]
     assert all(abs(float(r["R0_ohm_normalised"]) - 1) < 0.05 for r in lpso)
@@ -333,3 +339,33 @@ def test_compare_refuses_a_directory_and_a_file_twice(
     d = dst.parent
     assert errs[0].endswith(f"{d}: is a directory: give its files (e.g. {d}/*.csv)")
     assert errs[1].endswith(f"{dst}: given twice: give each dataset once")
+
+
+# ----------------------------------------------------------------------------- held values (S1)
+def test_held_share_over_the_scored_ticks() -> None:
+    """spread == error in every baseline row: one held last good value on 94 % of the ticks
+    (tau1 on its bound) is the median over time. The share is measured on the scored ticks."""
+    trace = _trace(np.linspace(1.0, 0.0, 10)[:, None])
+    trace.quality[2:, 0] = Quality.OUT_OF_BOUNDS  # 8 of 10 held
+    tau1 = 1 << WATCHED.index("tau1_s")
+    trace["on_bound"][2:9, 0] = tau1
+    trace["on_bound"][9, 0] = tau1 | (1 << WATCHED.index("R2_ohm"))
+    h = held_share(trace, EvalWindow(), 0)
+    assert (h.held, h.bound_param, h.bound) == (0.8, "tau1_s", 0.8) and h.flagged
+    top = held_share(trace, EvalWindow(soc_lo=0.75), 0)  # SOC 1.0, 0.89, 0.78: one held
+    assert top.held == pytest.approx(1 / 3) and not top.flagged
+    assert held_share(_trace(np.ones((4, 1))), EvalWindow(), 0) == HeldShare(0.0)
+
+
+def test_consistency_table_flags_held_rows() -> None:
+    level = {p: 1.0 for p in CONSISTENCY_PARAMS}
+    held = {"a": HeldShare(0.94, "tau1_s", 0.937), "b": HeldShare(0.1)}
+    c = consistency("g", "non-hy-affrls", {"a": level, "b": level}, None, held)
+    md = consistency_markdown([c])
+    assert "| error / % | spread / % | held / % | on a bound |" in md
+    assert "| 94 **!** | tau1 94 % |" in md and "| 10 | - |" in md
+    assert "**!** held on 50 % or more of the scored ticks" in md
+    lines = consistency_csv([c]).splitlines()
+    assert lines[0].endswith(",held_pct,most_on_bound,most_on_bound_pct")
+    assert lines[1].endswith(",94.0,tau1_s,93.7") and lines[2].endswith(",10.0,,0.0")
+    assert "**!**" not in consistency_markdown([consistency("g", "x", {"a": level, "b": level})])

@@ -59,6 +59,7 @@ from bmsid.offline.plots import plot_consistency, plot_rmse_bars
 from bmsid.offline.report import (
     Consistency,
     DatasetLabel,
+    HeldShare,
     SocBandRow,
     Table2Row,
     consistency,
@@ -76,6 +77,7 @@ from bmsid.offline.scoring import (
     EvalWindow,
     IdentifyResult,
     SocReference,
+    held_share,
     metrics_document,
     parameter_medians,
     parameter_trajectories,
@@ -217,6 +219,7 @@ def run(args: argparse.Namespace) -> int:
     ]
     medians: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
     trajectories: dict[str, dict[str, dict[str, dict[str, list[float]]]]] = {}
+    helds: dict[str, dict[str, dict[str, HeldShare]]] = {}
     runs: list[dict[str, Any]] = []
     for d, lb, shown, (cell, cfg_path), soc0, win in zip(
         data, labels, displays, configs, soc0s, windows, strict=True
@@ -269,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
             trajectories.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: v.tolist() for k, v in traj.items()
             }
+            held = held_share(res.kept_trace(), win, 0)
+            helds.setdefault(group, {}).setdefault(variant, {})[shown] = held
             runs.append(
                 {"dataset": shown, "algorithm": variant, "soc_init": res.soc_init_method,
                  "soc0": z0, "scoring_soc": doc["scoring_soc"]}
@@ -287,6 +292,8 @@ def run(args: argparse.Namespace) -> int:
                 f"max {1e3 * r.max_abs_error_V:7.1f} mV  {res.runtime_s:6.1f} s",
                 flush=True,
             )
+            if held.flagged:
+                print(f"{shown}: {variant}: {_held_text(held)}", flush=True)
 
     window_text = _distinct([w.describe() for w in windows])
     soc_text = _distinct(
@@ -310,7 +317,8 @@ def run(args: argparse.Namespace) -> int:
         if len(next(iter(by_variant.values()))) < 2:
             continue  # one profile only: nothing to be consistent with
         group_results = [
-            consistency(group, v, m, trajectories[group][v]) for v, m in by_variant.items()
+            consistency(group, v, m, trajectories[group][v], helds[group][v])
+            for v, m in by_variant.items()
         ]
         cons += group_results
         plot_consistency(
@@ -341,3 +349,11 @@ def _err(x: float | None) -> float:
     """An error figure of metrics_document for Table 2: null (no scored tick) as the 0 of
     ``VoltageMetrics`` with ``n_samples`` 0, which the table shows beside it."""
     return 0.0 if x is None else float(x)
+
+
+def _held_text(h: HeldShare) -> str:
+    bound = f"; {h.bound_param} on a bound on {100 * h.bound:.0f} %" if h.bound_param else ""
+    return (
+        f"parameters held (last good values) on {100 * h.held:.0f} % of the scored ticks{bound}: "
+        "its consistency row shows where the estimate stopped"
+    )
