@@ -369,3 +369,31 @@ def test_consistency_table_flags_held_rows() -> None:
     assert lines[0].endswith(",held_pct,most_on_bound,most_on_bound_pct")
     assert lines[1].endswith(",94.0,tau1_s,93.7") and lines[2].endswith(",10.0,,0.0")
     assert "**!**" not in consistency_markdown([consistency("g", "x", {"a": level, "b": level})])
+
+
+# ----------------------------------------------------------------------------- cell fit (S2)
+def test_compare_warns_when_a_record_does_not_fit_its_cell(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An LFP record run with an NMC config (a mixture of cells) ran without a word (61.7 %
+    consistency error, 129 mV); the record checks now say it does not fit, in compare and
+    identify alike; the LFP config's own run does not."""
+    from test_pseudo_ocv import LFP, Q_AH, lfp_record
+
+    from bmsid.offline.csvio import TesterData, write_tester_csv
+
+    t, i, v = lfp_record()
+    src = tmp_path / "lfp_dst_25C.csv"
+    write_tester_csv(TesterData(t, i, v[:, None], ["voltage_V"]), src)
+    nmc, lfp = tmp_path / "nmc.toml", tmp_path / "lfp.toml"
+    save_cell_config(paper_cell().model_copy(update={"capacity_Ah": Q_AH}), nmc)
+    save_cell_config(LFP.model_copy(update={"capacity_Ah": Q_AH}), lfp)
+    assert main(_one_variant(src, nmc, tmp_path / "a")) == 0
+    assert main(["identify", str(src), "--cell-config", str(nmc), "--out", str(tmp_path / "i"),
+                 "--algorithm", "non-hy-affrls"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    line = "WARNING: the record does not fit the cell config 'paper-70Ah-NMC' (NMC): a full-to"
+    assert f"{src}: {line}" in out and out.count(line) == 2
+    assert "LFP-like) moves 1.98 Ah; an NMC OCV cannot follow it: give this cell's config" in out
+    assert main(_one_variant(src, lfp, tmp_path / "b")) == 0
+    assert "does not fit" not in capsys.readouterr().out
