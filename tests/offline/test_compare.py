@@ -143,7 +143,7 @@ def test_compare_writes_consistency(compare_out: Path) -> None:
     with (compare_out / "consistency.csv").open(encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 2 * len(VARIANTS)
-    assert {r["group"] for r in rows} == {"paper-70Ah-NMC_25C"}
+    assert {r["group"] for r in rows} == {"config paper-70Ah-NMC, data 25 C"}
     for r in rows:
         assert math.isfinite(float(r["consistency_error_pct"]))
         assert math.isfinite(float(r["trajectory_spread_pct"]))
@@ -151,7 +151,7 @@ def test_compare_writes_consistency(compare_out: Path) -> None:
     # Two profiles of one simulated cell: R0 agrees to a few percent after fusion.
     lpso = [r for r in rows if r["algorithm"] == "hy-affrls-lpso"]
     assert all(abs(float(r["R0_ohm_normalised"]) - 1) < 0.05 for r in lpso)
-    assert (compare_out / "consistency_paper-70Ah-NMC_25C.png").exists()
+    assert (compare_out / "consistency_config_paper-70Ah-NMC_data_25_C.png").exists()
     assert "Fig. 14" in (compare_out / "consistency.md").read_text(encoding="utf-8")
 
 
@@ -397,3 +397,15 @@ def test_compare_warns_when_a_record_does_not_fit_its_cell(
     assert "LFP-like) moves 1.98 Ah; an NMC OCV cannot follow it: give this cell's config" in out
     assert main(_one_variant(src, lfp, tmp_path / "b")) == 0
     assert "does not fit" not in capsys.readouterr().out
+
+
+def test_group_names_say_config_and_data_temperature() -> None:
+    """``dfn-nmc-lgm50-25C_15C`` read as a contradiction; the 25 C data of a 25C-named config
+    were ``dfn-nmc-lgm50-25C`` alone."""
+    from bmsid.cli.compare import _file_stem, _group_name
+
+    cell = paper_cell().model_copy(update={"name": "dfn-nmc-lgm50-25C"})
+    names = [_group_name(label_dataset(f"dfn_nmc_dst_{t}C.csv"), cell) for t in (15, 25)]
+    assert names == ["config dfn-nmc-lgm50-25C, data 15 C", "config dfn-nmc-lgm50-25C, data 25 C"]
+    assert _group_name(label_dataset("run.csv"), cell) == "config dfn-nmc-lgm50-25C"
+    assert _file_stem(names[0]) == "config_dfn-nmc-lgm50-25C_data_15_C"

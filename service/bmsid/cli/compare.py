@@ -11,8 +11,8 @@ included) and writes:
 - ``soc_bands.md`` / ``soc_bands.csv``: RMSE, max error and MAPE per 10 % SOC band of every
   dataset and variant;
 - ``consistency.md`` / ``consistency.csv`` and ``consistency_<group>.png``: the parameters'
-  agreement across the profiles of one cell at one temperature (Fig. 14, method in
-  ``bmsid.offline.report``);
+  agreement across the profiles of one cell at one temperature (group ``config NAME, data T C``;
+  Fig. 14, method in ``bmsid.offline.report``);
 - ``rmse.png`` and, per dataset and variant, ``<dataset>/<variant>/`` with ``metrics.json`` and
   the Fig. 10/11 plots (``--params-csv`` also writes each ``params.csv``).
 
@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -182,10 +183,16 @@ def _variants(text: str) -> list[Variant]:
 
 
 def _group_name(label: DatasetLabel, cell: CellConfig) -> str:
-    """Cell name plus temperature (unless the name already says it): one consistency group."""
-    if label.temperature_C is None or f"{label.temperature_C:g}C" in cell.name:
-        return cell.name
-    return f"{cell.name}_{label.temperature_C:g}C"
+    """One consistency group: the cell config and the data's temperature, each named as such
+    (``dfn-nmc-lgm50-25C_15C`` read as a contradiction: a 25 C config's name, 15 C data)."""
+    if label.temperature_C is None:
+        return f"config {cell.name}"
+    return f"config {cell.name}, data {label.temperature_C:g} C"
+
+
+def _file_stem(group: str) -> str:
+    """A group name as a file name part: ``config_x-25C_data_15C``."""
+    return re.sub(r"[^A-Za-z0-9.-]+", "_", group).strip("_")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -324,7 +331,7 @@ def run(args: argparse.Namespace) -> int:
         plot_consistency(
             {c.algorithm: c.normalised for c in group_results},
             {c.algorithm: c.error_pct for c in group_results},
-            out / f"consistency_{group}.png",
+            out / f"consistency_{_file_stem(group)}.png",
             f"parameter consistency - {group}",
         )
     (out / "consistency.md").write_text(consistency_markdown(cons), encoding="utf-8")
