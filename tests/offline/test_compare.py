@@ -334,8 +334,15 @@ def test_compare_refuses_a_directory_and_a_file_twice(
     base = ["--cell-config", str(cfg), "--out", str(tmp_path / "o")]
     assert main(["compare", str(dst.parent), *base]) == 2
     assert main(["compare", str(dst), str(dst), *base]) == 2
+    (tmp_path / "b").mkdir()
+    other = write_csv(tmp_path / "b" / dst.name, synthetic_columns(30))
+    assert main(["compare", str(dst), str(other), *base]) == 2
     errs = capsys.readouterr().err.strip().splitlines()
-    assert len(errs) == 2
+    assert len(errs) == 3
+    assert errs[2].endswith(
+        f"{other} and {dst} have one name (syn_dst_25C): their outputs would share one folder; "
+        "rename one"
+    )
     d = dst.parent
     assert errs[0].endswith(f"{d}: is a directory: give its files (e.g. {d}/*.csv)")
     assert errs[1].endswith(f"{dst}: given twice: give each dataset once")

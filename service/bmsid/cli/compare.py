@@ -191,7 +191,7 @@ def _group_name(label: DatasetLabel, cell: CellConfig) -> str:
 
 
 def _file_stem(group: str) -> str:
-    """A group name as a file name part: ``config_x-25C_data_15C``."""
+    """A group name as a file name part: ``config_x-25C_data_15_C``."""
     return re.sub(r"[^A-Za-z0-9.-]+", "_", group).strip("_")
 
 

@@ -20,13 +20,17 @@ from bmsid.offline.csvio import ColumnMap
 from bmsid.offline.identify import too_short
 from bmsid.offline.inputs import LoadedInput, StreamedInput, open_input
 from bmsid.offline.record_checks import CheckOptions, check_record
+from bmsid.offline.report import file_stem
 from bmsid.offline.tick_count import count_tick_times
 from bmsid.samples import SampleBlock
 
 
 def check_paths(paths: list[str]) -> None:
-    """One line for a directory or a file given twice (it would share one output folder)."""
+    """One line for a directory, or a file given twice or two files of one name: each dataset
+    gets the output folder and the table row of its name (a file given twice overwrote its
+    folder, and the consistency analysis then found no group)."""
     seen: dict[Path, str] = {}
+    names: dict[str, str] = {}
     for p in paths:
         if Path(p).is_dir():
             raise UserError(f"{p}: is a directory: give its files (e.g. {p}/*.csv)")
@@ -34,7 +38,12 @@ def check_paths(paths: list[str]) -> None:
         if key in seen:
             also = "" if seen[key] == p else f" (also as {seen[key]})"
             raise UserError(f"{p}: given twice{also}: give each dataset once")
-        seen[key] = p
+        if (stem := file_stem(p)) in names:
+            raise UserError(
+                f"{p} and {names[stem]} have one name ({stem}): their outputs would share "
+                "one folder; rename one"
+            )
+        seen[key], names[stem] = p, p
 
 
 def load_dataset(
