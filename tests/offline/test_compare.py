@@ -12,15 +12,19 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_identify_cli import synthetic_columns, write_csv
+from test_identify_cli import _trace, synthetic_columns, write_csv
 
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell, save_cell_config
-from bmsid.estimate.types import VARIANTS
+from bmsid.estimate.guard import WATCHED
+from bmsid.estimate.types import VARIANTS, Quality
 from bmsid.offline.report import (
     CONSISTENCY_PARAMS,
+    HeldShare,
     Table2Row,
     consistency,
+    consistency_csv,
+    consistency_markdown,
     label_dataset,
     soc_band_rows,
     soc_bands_csv,
@@ -29,6 +33,7 @@ from bmsid.offline.report import (
     table2_markdown,
     unique_displays,
 )
+from bmsid.offline.scoring import EvalWindow, held_share
 
 
 @pytest.fixture(scope="module")
@@ -138,14 +143,15 @@ def test_compare_writes_consistency(compare_out: Path) -> None:
     with (compare_out / "consistency.csv").open(encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 2 * len(VARIANTS)
-    assert {r["group"] for r in rows} == {"paper-70Ah-NMC_25C"}
+    assert {r["group"] for r in rows} == {"config paper-70Ah-NMC, data 25 C"}
     for r in rows:
         assert math.isfinite(float(r["consistency_error_pct"]))
         assert math.isfinite(float(r["trajectory_spread_pct"]))
+        assert 0.0 <= float(r["held_pct"]) <= 100.0
     # Two profiles of one simulated cell: R0 agrees to a few percent after fusion.
     lpso = [r for r in rows if r["algorithm"] == "hy-affrls-lpso"]
     assert all(abs(float(r["R0_ohm_normalised"]) - 1) < 0.05 for r in lpso)
-    assert (compare_out / "consistency_paper-70Ah-NMC_25C.png").exists()
+    assert (compare_out / "consistency_config_paper-70Ah-NMC_data_25_C.png").exists()
     assert "Fig. 14" in (compare_out / "consistency.md").read_text(encoding="utf-8")
 
 
@@ -260,3 +266,153 @@ def test_consistency_spread_counts_wandering() -> None:
     assert c.spread_pct["a"] == pytest.approx(0.0)  # median of |dev| = 0 (3 of 5 at the level)
     c2 = consistency("g", "x", medians, {"a": {p: [1.2] * 5 for p in level}, "b": steady})
     assert c2.spread_pct["a"] == pytest.approx(20.0)
+
+
+# ----------------------------------------------------------------------------- inputs (sweep D)
+def _one_variant(path: Path, cfg: Path, out: Path, *extra: str) -> list[str]:
+    return ["compare", str(path), "--cell-config", str(cfg), "--out", str(out),
+            "--algorithms", "non-hy-affrls", *extra]  # fmt: skip
+
+
+def test_compare_refuses_what_identify_refuses(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """compare ran no record checks: a sign-flipped file went into Table 2 at 676 mV, one in
+    ms at 27 mV. Now identify's message, exit 2; the fix it names (``--columns``) works."""
+    _, _, cfg = dst_bus_csvs
+    cols = synthetic_columns(1500, seed=1)
+    flipped = write_csv(tmp_path / "flip_dst_25C.csv", {**cols, "current_A": -cols["current_A"]})
+    ms = write_csv(tmp_path / "ms_dst_25C.csv", {**cols, "t_s": 1000.0 * cols["t_s"]})
+    assert main(_one_variant(flipped, cfg, tmp_path / "a")) == 2
+    assert main(_one_variant(ms, cfg, tmp_path / "b")) == 2
+    errs = capsys.readouterr().err.strip().splitlines()
+    assert len(errs) == 2
+    assert f"{flipped}: current sign looks flipped" in errs[0]
+    assert errs[0].endswith("pass --charge-positive")
+    assert f"{ms}: t_s looks like milliseconds" in errs[1]
+    assert errs[1].endswith("--columns t_s=t_s*0.001")
+    assert not (tmp_path / "a" / "table2.csv").exists()
+    assert main(_one_variant(flipped, cfg, tmp_path / "c", "--charge-positive")) == 0
+    assert main(_one_variant(ms, cfg, tmp_path / "d", "--columns", "t_s=t_s*0.001")) == 0
+
+
+def test_compare_notes_nan_readings_as_identify(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _, _, cfg = dst_bus_csvs
+    cols = synthetic_columns(1500, seed=1)
+    cols["voltage_V"][[100, 700]] = np.nan
+    path = write_csv(tmp_path / "nan_dst_25C.csv", cols)
+    assert main(_one_variant(path, cfg, tmp_path / "o")) == 0
+    assert f"{path}: 2 empty or NaN current/voltage/temperature value(s) read as missing" in (
+        capsys.readouterr().out
+    )
+
+
+def test_compare_reads_a_candump_log(dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """The README says compare reads candump logs; it read a .log as a CSV and failed. Now its
+    row is identify's on the same log."""
+    dst, _, cfg = dst_bus_csvs
+    log = tmp_path / "syn_dst_25C.log"
+    assert main(["make-log", str(dst), "--out", str(log), "--t0", "1.7e9"]) == 0
+    assert main(_one_variant(log, cfg, tmp_path / "o")) == 0
+    with (tmp_path / "o" / "table2.csv").open(encoding="utf-8") as fh:
+        (row,) = list(csv.DictReader(fh))
+    one = ["identify", str(log), "--cell-config", str(cfg), "--algorithm", "non-hy-affrls"]
+    assert main([*one, "--out", str(tmp_path / "i")]) == 0
+    doc = json.loads((tmp_path / "i" / "metrics.json").read_text(encoding="utf-8"))
+    assert int(row["n_samples"]) == doc["n_samples"] == 1500
+    assert float(row["rmse_V"]) == pytest.approx(doc["rmse_V"], rel=1e-6)
+
+
+def test_compare_refuses_a_directory_and_a_file_twice(
+    dst_bus_csvs: tuple[Path, Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A directory was 'no such file'; a file given twice shared one output folder and the
+    consistency analysis found no group."""
+    dst, _, cfg = dst_bus_csvs
+    base = ["--cell-config", str(cfg), "--out", str(tmp_path / "o")]
+    assert main(["compare", str(dst.parent), *base]) == 2
+    assert main(["compare", str(dst), str(dst), *base]) == 2
+    (tmp_path / "b").mkdir()
+    other = write_csv(tmp_path / "b" / dst.name, synthetic_columns(30))
+    assert main(["compare", str(dst), str(other), *base]) == 2
+    errs = capsys.readouterr().err.strip().splitlines()
+    assert len(errs) == 3
+    assert errs[2].endswith(
+        f"{other} and {dst} have one name (syn_dst_25C): their outputs would share one folder; "
+        "rename one"
+    )
+    d = dst.parent
+    assert errs[0].endswith(f"{d}: is a directory: give its files (e.g. {d}/*.csv)")
+    assert errs[1].endswith(f"{dst}: given twice: give each dataset once")
+
+
+# ----------------------------------------------------------------------------- held values (S1)
+def test_held_share_over_the_scored_ticks() -> None:
+    """spread == error in every baseline row: one held last good value on 94 % of the ticks
+    (tau1 on its bound) is the median over time. The share is measured on the scored ticks."""
+    trace = _trace(np.linspace(1.0, 0.0, 10)[:, None])
+    trace.quality[2:, 0] = Quality.OUT_OF_BOUNDS  # 8 of 10 held
+    tau1 = 1 << WATCHED.index("tau1_s")
+    trace["on_bound"][2:9, 0] = tau1
+    trace["on_bound"][9, 0] = tau1 | (1 << WATCHED.index("R2_ohm"))
+    h = held_share(trace, EvalWindow(), 0)
+    assert (h.held, h.bound_param, h.bound) == (0.8, "tau1_s", 0.8) and h.flagged
+    top = held_share(trace, EvalWindow(soc_lo=0.75), 0)  # SOC 1.0, 0.89, 0.78: one held
+    assert top.held == pytest.approx(1 / 3) and not top.flagged
+    assert held_share(_trace(np.ones((4, 1))), EvalWindow(), 0) == HeldShare(0.0)
+
+
+def test_consistency_table_flags_held_rows() -> None:
+    level = {p: 1.0 for p in CONSISTENCY_PARAMS}
+    held = {"a": HeldShare(0.94, "tau1_s", 0.937), "b": HeldShare(0.1)}
+    c = consistency("g", "non-hy-affrls", {"a": level, "b": level}, None, held)
+    md = consistency_markdown([c])
+    assert "| error / % | spread / % | held / % | on a bound |" in md
+    assert "| 94 **!** | tau1 94 % |" in md and "| 10 | - |" in md
+    assert "**!** held on 50 % or more of the scored ticks" in md
+    lines = consistency_csv([c]).splitlines()
+    assert lines[0].endswith(",held_pct,most_on_bound,most_on_bound_pct")
+    assert lines[1].endswith(",94.0,tau1_s,93.7") and lines[2].endswith(",10.0,,0.0")
+    assert "**!**" not in consistency_markdown([consistency("g", "x", {"a": level, "b": level})])
+
+
+# ----------------------------------------------------------------------------- cell fit (S2)
+def test_compare_warns_when_a_record_does_not_fit_its_cell(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An LFP record run with an NMC config (a mixture of cells) ran without a word (61.7 %
+    consistency error, 129 mV); the record checks now say it does not fit, in compare and
+    identify alike; the LFP config's own run does not."""
+    from test_pseudo_ocv import LFP, Q_AH, lfp_record
+
+    from bmsid.offline.csvio import TesterData, write_tester_csv
+
+    t, i, v = lfp_record()
+    src = tmp_path / "lfp_dst_25C.csv"
+    write_tester_csv(TesterData(t, i, v[:, None], ["voltage_V"]), src)
+    nmc, lfp = tmp_path / "nmc.toml", tmp_path / "lfp.toml"
+    save_cell_config(paper_cell().model_copy(update={"capacity_Ah": Q_AH}), nmc)
+    save_cell_config(LFP.model_copy(update={"capacity_Ah": Q_AH}), lfp)
+    assert main(_one_variant(src, nmc, tmp_path / "a")) == 0
+    assert main(["identify", str(src), "--cell-config", str(nmc), "--out", str(tmp_path / "i"),
+                 "--algorithm", "non-hy-affrls"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    line = "WARNING: the record does not fit the cell config 'paper-70Ah-NMC' (NMC): a full-to"
+    assert f"{src}: {line}" in out and out.count(line) == 2
+    assert "LFP-like) moves 1.98 Ah; an NMC OCV cannot follow it: give this cell's config" in out
+    assert main(_one_variant(src, lfp, tmp_path / "b")) == 0
+    assert "does not fit" not in capsys.readouterr().out
+
+
+def test_group_names_say_config_and_data_temperature() -> None:
+    """``dfn-nmc-lgm50-25C_15C`` read as a contradiction; the 25 C data of a 25C-named config
+    were ``dfn-nmc-lgm50-25C`` alone."""
+    from bmsid.cli.compare import _file_stem, _group_name
+
+    cell = paper_cell().model_copy(update={"name": "dfn-nmc-lgm50-25C"})
+    names = [_group_name(label_dataset(f"dfn_nmc_dst_{t}C.csv"), cell) for t in (15, 25)]
+    assert names == ["config dfn-nmc-lgm50-25C, data 15 C", "config dfn-nmc-lgm50-25C, data 25 C"]
+    assert _group_name(label_dataset("run.csv"), cell) == "config dfn-nmc-lgm50-25C"
+    assert _file_stem(names[0]) == "config_dfn-nmc-lgm50-25C_data_15_C"

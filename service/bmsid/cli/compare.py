@@ -1,7 +1,8 @@
 """``bmsid compare DATASETS... --out DIR``: the paper's comparison on your data.
 
 Runs the three variants (non-hy-affrls, hy-affrls, hy-affrls-lpso) on every dataset (tester
-CSVs) and writes:
+CSVs or candump logs, read as ``bmsid identify`` reads them, ``--columns`` and ``--mapping``
+included) and writes:
 
 - ``table2.md`` / ``table2.csv``: per dataset (profile and temperature, read from names such as
   ``..._dst_25C...``) and variant, the RMSE over the whole record, over its first 10 % of the
@@ -10,10 +11,14 @@ CSVs) and writes:
 - ``soc_bands.md`` / ``soc_bands.csv``: RMSE, max error and MAPE per 10 % SOC band of every
   dataset and variant;
 - ``consistency.md`` / ``consistency.csv`` and ``consistency_<group>.png``: the parameters'
-  agreement across the profiles of one cell at one temperature (Fig. 14, method in
-  ``bmsid.offline.report``);
+  agreement across the profiles of one cell at one temperature (group ``config NAME, data T C``;
+  Fig. 14, method in ``bmsid.offline.report``);
 - ``rmse.png`` and, per dataset and variant, ``<dataset>/<variant>/`` with ``metrics.json`` and
   the Fig. 10/11 plots (``--params-csv`` also writes each ``params.csv``).
+
+Every dataset first gets identify's record checks for its cell config (time unit, current
+sign, capacity, ...): their notes and warnings are printed, an error refuses the run (exit 2)
+before any identification. A directory or a file given twice is refused too.
 
 Cell configs: one ``--cell-config`` for every dataset, or one per dataset in the same order.
 For several cells per file, Table 2 pools all cells and the consistency analysis uses the first.
@@ -29,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -40,11 +46,11 @@ from bmsid.config.cell import CellConfig
 from bmsid.errors import UserError
 from bmsid.estimate.tuning import Variant
 from bmsid.estimate.types import VARIANTS
-from bmsid.offline.csvio import read_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_source
 from bmsid.offline.inputs import (
     LoadedInput,
     load_config,
+    parse_columns,
     parse_tuning,
     parse_window,
     tuning_overrides,
@@ -54,6 +60,7 @@ from bmsid.offline.plots import plot_consistency, plot_rmse_bars
 from bmsid.offline.report import (
     Consistency,
     DatasetLabel,
+    HeldShare,
     SocBandRow,
     Table2Row,
     consistency,
@@ -71,12 +78,14 @@ from bmsid.offline.scoring import (
     EvalWindow,
     IdentifyResult,
     SocReference,
+    held_share,
     metrics_document,
     parameter_medians,
     parameter_trajectories,
 )
 
-from .identify import add_model_options, progress_bar
+from .compare_inputs import check_paths, load_dataset
+from .identify import add_input_options, add_model_options, progress_bar
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -86,7 +95,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("datasets", nargs="+", metavar="DATASET", help="tester CSV files")
+    p.add_argument(
+        "datasets", nargs="+", metavar="DATASET",
+        help="tester CSVs (.csv/.csv.gz) or candump logs (.log/.log.gz), as identify reads them",
+    )  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument(
         "--cell-config",
@@ -118,6 +130,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help=SCORE_SOC0_HELP + "; once for all datasets, or once per dataset",
     )
     p.add_argument("--params-csv", action="store_true", help="also write each run's params.csv")
+    add_input_options(p)
     add_model_options(p)
     p.set_defaults(func=run)
 
@@ -170,10 +183,16 @@ def _variants(text: str) -> list[Variant]:
 
 
 def _group_name(label: DatasetLabel, cell: CellConfig) -> str:
-    """Cell name plus temperature (unless the name already says it): one consistency group."""
-    if label.temperature_C is None or f"{label.temperature_C:g}C" in cell.name:
-        return cell.name
-    return f"{cell.name}_{label.temperature_C:g}C"
+    """One consistency group: the cell config and the data's temperature, each named as such
+    (``dfn-nmc-lgm50-25C_15C`` read as a contradiction: a 25 C config's name, 15 C data)."""
+    if label.temperature_C is None:
+        return f"config {cell.name}"
+    return f"config {cell.name}, data {label.temperature_C:g} C"
+
+
+def _file_stem(group: str) -> str:
+    """A group name as a file name part: ``config_x-25C_data_15_C``."""
+    return re.sub(r"[^A-Za-z0-9.-]+", "_", group).strip("_")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -185,13 +204,13 @@ def run(args: argparse.Namespace) -> int:
     configs = _configs(args.cell_config, len(args.datasets))
     soc0s = _soc0s(args.soc0, len(args.datasets))
     score_soc0s = _soc0s(args.score_soc0, len(args.datasets), "--score-soc0")
+    columns = parse_columns(args.columns)
+    check_paths(args.datasets)
     out = output_dir(Path(args.out))  # before hours of identification, not after
-    # Read everything first: a bad file fails before hours of identification.
+    # Read and check everything first: a bad file fails before hours of identification.
     data: list[LoadedInput] = [
-        LoadedInput.from_tester(
-            read_tester_csv(p, charge_positive=args.charge_positive, missing_ok=True)
-        )
-        for p in args.datasets
+        load_dataset(p, args, columns, cell, z, tuning)
+        for p, (cell, _), z in zip(args.datasets, configs, soc0s, strict=True)
     ]
     labels = [
         label_dataset(p, float(np.median(d.temperature_C)) if d.temperature_C is not None else None)
@@ -207,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
     ]
     medians: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
     trajectories: dict[str, dict[str, dict[str, dict[str, list[float]]]]] = {}
+    helds: dict[str, dict[str, dict[str, HeldShare]]] = {}
     runs: list[dict[str, Any]] = []
     for d, lb, shown, (cell, cfg_path), soc0, win in zip(
         data, labels, displays, configs, soc0s, windows, strict=True
@@ -259,6 +279,8 @@ def run(args: argparse.Namespace) -> int:
             trajectories.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: v.tolist() for k, v in traj.items()
             }
+            held = held_share(res.kept_trace(), win, 0)
+            helds.setdefault(group, {}).setdefault(variant, {})[shown] = held
             runs.append(
                 {"dataset": shown, "algorithm": variant, "soc_init": res.soc_init_method,
                  "soc0": z0, "scoring_soc": doc["scoring_soc"]}
@@ -277,6 +299,8 @@ def run(args: argparse.Namespace) -> int:
                 f"max {1e3 * r.max_abs_error_V:7.1f} mV  {res.runtime_s:6.1f} s",
                 flush=True,
             )
+            if held.flagged:
+                print(f"{shown}: {variant}: {_held_text(held)}", flush=True)
 
     window_text = _distinct([w.describe() for w in windows])
     soc_text = _distinct(
@@ -300,13 +324,14 @@ def run(args: argparse.Namespace) -> int:
         if len(next(iter(by_variant.values()))) < 2:
             continue  # one profile only: nothing to be consistent with
         group_results = [
-            consistency(group, v, m, trajectories[group][v]) for v, m in by_variant.items()
+            consistency(group, v, m, trajectories[group][v], helds[group][v])
+            for v, m in by_variant.items()
         ]
         cons += group_results
         plot_consistency(
             {c.algorithm: c.normalised for c in group_results},
             {c.algorithm: c.error_pct for c in group_results},
-            out / f"consistency_{group}.png",
+            out / f"consistency_{_file_stem(group)}.png",
             f"parameter consistency - {group}",
         )
     (out / "consistency.md").write_text(consistency_markdown(cons), encoding="utf-8")
@@ -331,3 +356,11 @@ def _err(x: float | None) -> float:
     """An error figure of metrics_document for Table 2: null (no scored tick) as the 0 of
     ``VoltageMetrics`` with ``n_samples`` 0, which the table shows beside it."""
     return 0.0 if x is None else float(x)
+
+
+def _held_text(h: HeldShare) -> str:
+    bound = f"; {h.bound_param} on a bound on {100 * h.bound:.0f} %" if h.bound_param else ""
+    return (
+        f"parameters held (last good values) on {100 * h.held:.0f} % of the scored ticks{bound}: "
+        "its consistency row shows where the estimate stopped"
+    )

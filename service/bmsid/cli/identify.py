@@ -107,6 +107,30 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_input_options(p: argparse.ArgumentParser) -> None:
+    """How ``identify`` and ``compare`` read an input: a candump log's mapping, cells and
+    channel; a CSV's foreign column names."""
+    p.add_argument("--mapping", default=None, help="bus mapping TOML for .log input")
+    p.add_argument(
+        "--n-cells",
+        type=int,
+        default=None,
+        help="cells in a .log input (default: as many as the log carries)",
+    )
+    p.add_argument(
+        "--channel",
+        default=None,
+        metavar="NAME",
+        help="CAN channel of a .log input to read (required when several carry the mapping)",
+    )
+    p.add_argument(
+        "--columns",
+        default=None,
+        metavar="NAME=COLUMN,...",
+        help=COLUMNS_HELP,
+    )
+
+
 @contextmanager
 def progress_bar(total: int | None, desc: str) -> Iterator[Progress]:
     """A tqdm bar on stderr when it is a terminal, silent when piped (``disable=None``)."""
@@ -145,27 +169,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="a0,a1,a2,a3,a4,a5",
         help="override the mean OCV curve (Eq. 4 coefficients, V)",
     )
-    p.add_argument("--mapping", default=None, help="bus mapping TOML for .log input")
-    p.add_argument(
-        "--n-cells",
-        type=int,
-        default=None,
-        help="cells in a .log input (default: as many as the log carries)",
-    )
     p.add_argument("--score-soc0", type=float, default=None, metavar="FRACTION",
                    help=SCORE_SOC0_HELP)  # fmt: skip
-    p.add_argument(
-        "--channel",
-        default=None,
-        metavar="NAME",
-        help="CAN channel of a .log input to read (required when several carry the mapping)",
-    )
-    p.add_argument(
-        "--columns",
-        default=None,
-        metavar="NAME=COLUMN,...",
-        help=COLUMNS_HELP,
-    )
     p.add_argument(
         "--every",
         type=float,
@@ -186,6 +191,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default="csv",
         help="params.csv (default) or params.parquet: the same columns and units",
     )
+    add_input_options(p)
     add_model_options(p)
     add_fleet_options(p)
     p.set_defaults(func=run)

@@ -76,6 +76,8 @@ def check_record(
         if given and not plausibility.first_error(findings):
             source = "--capacity-ah" if opts.capacity_given else "the cell config"
             findings += plausibility.check_capacity_given(est, cell.capacity_Ah, source)
+            if opts.cell_config_given:
+                findings += plausibility.check_cell_fit(est, cell.chemistry, cell.name)
     if opts.capacity_given:
         capacity_from = "option"
     elif not opts.cell_config_given and not plausibility.first_error(findings):

@@ -10,6 +10,13 @@ the five parameters of |normalised - 1|, in percent; its spread is the same with
 values in place of the median (median over time of |p(t) / group mean - 1|), which also counts
 how much the estimate wanders within the run. With two datasets the error is the same for both
 (each sits as far from the mean as the other); the spread differs.
+
+Held values: while a parameter sits on its bound (or after a divergence) the estimator publishes
+its last good values (``Quality.OUT_OF_BOUNDS``). When one held value covers more than half of
+the scored ticks, the median over time is that value, so the spread equals the error exactly: a
+property of the median, not of the data (the AFFRLS baselines on CALCE 25 C DST hold one value
+on 94 % of the ticks, tau1 on its bound). Each row therefore says on what share of the scored
+ticks the values were held, and which parameter sat on a bound most (``HeldShare``).
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ import io
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -273,6 +280,30 @@ def soc_bands_markdown(rows: Sequence[SocBandRow], soc_text: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: A held share from which a consistency row is flagged: its median is then one held value.
+HELD_FLAG_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class HeldShare:
+    """Over a run's scored ticks (first cell): the share whose published parameters were held
+    (the last good values: quality out_of_bounds or diverged), and the parameter most often on
+    a bound with its share (None: none on a bound)."""
+
+    held: float
+    bound_param: str | None = None
+    bound: float = 0.0
+
+    @property
+    def flagged(self) -> bool:
+        return self.held >= HELD_FLAG_SHARE
+
+    def bound_text(self) -> str:
+        if self.bound_param is None:
+            return "-"
+        return f"{self.bound_param.split('_')[0]} {100 * self.bound:.0f} %"
+
+
 @dataclass(frozen=True)
 class Consistency:
     """Fig. 14 for one group (cell and temperature) and one variant.
@@ -281,7 +312,8 @@ class Consistency:
     the dataset's median / the group mean of the medians; ``error_pct[dataset]`` = mean over the
     parameters of |normalised - 1| x 100 (agreement of the levels); ``spread_pct[dataset]`` =
     mean over the parameters of the median over time of |p(t) / group mean - 1| x 100 (also
-    counts how much each estimate wanders within the run; NaN without trajectories).
+    counts how much each estimate wanders within the run; NaN without trajectories);
+    ``held[dataset]`` where the values were held (none when not given).
     """
 
     group: str
@@ -290,6 +322,7 @@ class Consistency:
     normalised: dict[str, dict[str, float]]
     error_pct: dict[str, float]
     spread_pct: dict[str, float]
+    held: dict[str, HeldShare] = field(default_factory=dict)
 
     @property
     def mean_error_pct(self) -> float:
@@ -310,9 +343,11 @@ def consistency(
     algorithm: str,
     medians: Mapping[str, Mapping[str, float]],
     trajectories: Mapping[str, Mapping[str, Sequence[float]]] | None = None,
+    held: Mapping[str, HeldShare] | None = None,
 ) -> Consistency:
     """Consistency of several datasets' parameters (module docstring); ``trajectories``
-    [dataset][parameter] are the scored per-tick values, for ``spread_pct``."""
+    [dataset][parameter] are the scored per-tick values, for ``spread_pct``; ``held`` [dataset]
+    where they were held, shown beside them."""
     datasets = list(medians)
     norm: dict[str, dict[str, float]] = {d: {} for d in datasets}
     ref: dict[str, float] = {}
@@ -342,6 +377,7 @@ def consistency(
         normalised=norm,
         error_pct=err,
         spread_pct=spread,
+        held=dict(held or {}),
     )
 
 
@@ -350,7 +386,8 @@ def consistency_csv(results: Sequence[Consistency]) -> str:
     head = ["group", "algorithm", "dataset"]
     head += [f"{p}_median" for p in CONSISTENCY_PARAMS]
     head += [f"{p}_normalised" for p in CONSISTENCY_PARAMS]
-    head += ["consistency_error_pct", "trajectory_spread_pct"]
+    head += ["consistency_error_pct", "trajectory_spread_pct", "held_pct", "most_on_bound",
+             "most_on_bound_pct"]  # fmt: skip
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(head)
     for c in results:
@@ -360,8 +397,21 @@ def consistency_csv(results: Sequence[Consistency]) -> str:
                 + [f"{c.medians[d][p]:.6g}" for p in CONSISTENCY_PARAMS]
                 + [f"{c.normalised[d][p]:.4f}" for p in CONSISTENCY_PARAMS]
                 + [f"{c.error_pct[d]:.2f}", f"{c.spread_pct[d]:.2f}"]
+                + _held_csv(c.held.get(d))
             )
     return buf.getvalue()
+
+
+def _held_csv(h: HeldShare | None) -> list[str]:
+    if h is None:
+        return ["", "", ""]
+    return [f"{100 * h.held:.1f}", h.bound_param or "", f"{100 * h.bound:.1f}"]
+
+
+def _held_md(h: HeldShare | None) -> str:
+    if h is None:
+        return "- | -"
+    return f"{100 * h.held:.0f}{' **!**' if h.flagged else ''} | {h.bound_text()}"
 
 
 def consistency_markdown(results: Sequence[Consistency]) -> str:
@@ -371,7 +421,10 @@ def consistency_markdown(results: Sequence[Consistency]) -> str:
         "Normalised = a parameter's median over the evaluation window / its mean over the "
         "datasets of the group. Error = mean |normalised - 1| over R0, R1, C1, R2, C2 (do the "
         "profiles agree?); spread = mean over the parameters of the median over time of "
-        "|p(t) / group mean - 1| (also counts how much the estimate wanders within the run).",
+        "|p(t) / group mean - 1| (also counts how much the estimate wanders within the run). "
+        "Held = share of the scored ticks whose published parameters were the last good "
+        "values (quality out_of_bounds or diverged); on a bound = the parameter most often on "
+        "its bound and its share of the scored ticks.",
         "",
     ]
     if not results:
@@ -379,16 +432,26 @@ def consistency_markdown(results: Sequence[Consistency]) -> str:
         return "\n".join(lines) + "\n"
     short = [p.split("_")[0] for p in CONSISTENCY_PARAMS]
     lines.append(
-        "| group | algorithm | dataset | " + " | ".join(short) + " | error / % | spread / % |"
+        "| group | algorithm | dataset | "
+        + " | ".join(short)
+        + " | error / % | spread / % | held / % | on a bound |"
     )
-    lines.append("|---|---|---|" + "---:|" * (len(short) + 2))
+    lines.append("|---|---|---|" + "---:|" * (len(short) + 3) + "---|")
     for c in results:
         for d in c.medians:
             vals = " | ".join(f"{c.normalised[d][p]:.3f}" for p in CONSISTENCY_PARAMS)
             lines.append(
                 f"| {c.group} | {c.algorithm} | {d} | {vals} | {c.error_pct[d]:.1f} "
-                f"| {c.spread_pct[d]:.1f} |"
+                f"| {c.spread_pct[d]:.1f} | {_held_md(c.held.get(d))} |"
             )
+    if any(h.flagged for c in results for h in c.held.values()):
+        lines += [
+            "",
+            f"**!** held on {100 * HELD_FLAG_SHARE:.0f} % or more of the scored ticks: the "
+            "medians are held last good values (the estimate stopped where a parameter hit "
+            "its bound; one held value on over half of them makes spread = error by "
+            "construction): the row does not measure a run-long estimate.",
+        ]
     lines += [
         "",
         "Paper (15 C, DST / BBDST, its definition unstated): AFFRLS 26.4 % / 12.3 %, "
