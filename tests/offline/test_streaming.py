@@ -20,14 +20,22 @@ from test_identify_cli import synthetic_columns, write_csv
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell
 from bmsid.estimate.fields import CELL_FIELDS, FIELD_NAMES
-from bmsid.estimate.types import EstimateBlock
+from bmsid.estimate.guard import WATCHED
+from bmsid.estimate.types import EstimateBlock, Quality
 from bmsid.offline import outputs
 from bmsid.offline.accumulate import MinMaxDecimator, StreamedMedian
 from bmsid.offline.csvio import iter_tester_csv, read_tester_csv
 from bmsid.offline.identify import IdentifySpec, RecordScan, identify_source, params_interval
 from bmsid.offline.inputs import open_input
 from bmsid.offline.outputs import OutputSpec, auto_every_s
-from bmsid.offline.scoring import EvalWindow, SocReference
+from bmsid.offline.scoring import (
+    EvalWindow,
+    IdentifyResult,
+    RunScorer,
+    SocReference,
+    held_share,
+    held_warnings,
+)
 from bmsid.offline.writers import TickDecimator
 
 
@@ -168,6 +176,40 @@ def test_the_streamed_median_is_the_median_to_its_bin_width(
             continue
         exact = np.sort(masked[keep, c])[(keep.sum() + 1) // 2 - 1]  # the lower median
         assert median.median()[c] == pytest.approx(exact, rel=1.01e-3)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(1, 199), max_size=3))
+def test_the_streamed_held_share_is_the_traces(seed: int, cuts: list[int]) -> None:
+    """Where the published values were held, counted block by block (identify's warning,
+    metrics.json), equals ``held_share`` over the whole trace (compare's table)."""
+    rng = np.random.default_rng(seed)
+    full = _block(np.arange(200.0), n_cells=3)
+    full.quality[:] = rng.integers(0, 5, full.quality.shape)
+    full.cells["on_bound"][:] = rng.integers(0, 32, full.quality.shape)
+    window = EvalWindow(skip_fraction=0.1)
+    streamed = RunScorer(full.n_ticks, 3, window)
+    for a, b in itertools.pairwise(sorted({0, *cuts, full.n_ticks})):
+        streamed.add(full.select(slice(a, b)))
+    for c in range(3):
+        held, name, share = streamed.acc.held(c)
+        whole = held_share(full, window, c)
+        assert (held, name) == (pytest.approx(whole.held), whole.bound_param)
+        assert share == pytest.approx(whole.bound)
+
+
+def test_a_cell_held_on_most_ticks_is_warned_about() -> None:
+    full = _block(np.arange(100.0), n_cells=2)
+    full.quality[40:, 0] = int(Quality.OUT_OF_BOUNDS)  # cell a: held on 60 % of the ticks
+    full.cells["on_bound"][40:, 0] = 1 << WATCHED.index("tau2_s")
+    full.quality[:40, 1] = int(Quality.OUT_OF_BOUNDS)  # cell b: 40 %, under the flag
+    result = IdentifyResult("hy-affrls-lpso", full, "given", {}, 0.0, 100, ["a", "b"])
+    lines = held_warnings(result, EvalWindow())
+    assert lines == [
+        "WARNING: a: parameters held (last good values) on 60 % of the scored ticks; tau2_s on "
+        "a bound on 60 %: the model does not follow this cell within its bounds there (an OCV "
+        "curve that misfits it, or dynamics outside them); params.csv's quality column says where"
+    ]
 
 
 def test_min_max_decimation_keeps_spikes_and_short_records_whole() -> None:

@@ -359,8 +359,4 @@ def _err(x: float | None) -> float:
 
 
 def _held_text(h: HeldShare) -> str:
-    bound = f"; {h.bound_param} on a bound on {100 * h.bound:.0f} %" if h.bound_param else ""
-    return (
-        f"parameters held (last good values) on {100 * h.held:.0f} % of the scored ticks{bound}: "
-        "its consistency row shows where the estimate stopped"
-    )
+    return f"{h.text()}: its consistency row shows where the estimate stopped"

@@ -77,7 +77,7 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.record_checks import check_record
-from bmsid.offline.scoring import metrics_document
+from bmsid.offline.scoring import held_warnings, metrics_document
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -290,6 +290,8 @@ def run(args: argparse.Namespace) -> int:
         for f in soc_findings:
             print(f.line())
     print(summary_line({**metrics_document(result, window), **meta}))
+    for line in held_warnings(result, window):
+        print(line)
     if (obs := observer_text(result)) is not None:
         print(obs)
     print(f"wrote {out}/params.{args.format}, metrics.json and plots")

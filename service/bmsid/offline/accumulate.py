@@ -268,6 +268,11 @@ class RunAccumulator:
         self.score_soc_last = math.nan
         self.est_soc = np.array([np.inf, -np.inf])
         self.r0_median = StreamedMedian(n_cells)
+        #: per cell: window ticks, those whose published values were held (not ``IDENTIFIED``),
+        #: and per ``WATCHED`` parameter those on a bound
+        self.window_ticks = np.zeros(n_cells, np.int64)
+        self.window_held = np.zeros(n_cells, np.int64)
+        self.window_on_bound = np.zeros((len(WATCHED), n_cells), np.int64)
 
     def add(self, block: EstimateBlock, parts: PartMasks, score_soc: FloatArray) -> None:
         """The next block of estimates, where its parts lie and its scoring SOC (ticks, cells)."""
@@ -297,8 +302,13 @@ class RunAccumulator:
         self.r0_median.add(np.asarray(block["R0_ohm"], np.float64), parts.window & identified)
         _extend(self.est_soc, np.asarray(block["soc"], dtype=np.float64))
         bits = _bits(block["on_bound"])
+        self.window_ticks += np.count_nonzero(parts.window, axis=0)
+        self.window_held += np.count_nonzero(parts.window & ~identified, axis=0)
         for j, name in enumerate(WATCHED):
             self.on_bound[j] += int(np.count_nonzero((bits >> j) & 1))
+            self.window_on_bound[j] += np.count_nonzero(
+                parts.window & ((bits >> j) & 1 > 0), axis=0
+            )
             if self.bounds is None:
                 continue
             lo, hi = self.bounds[name]
@@ -328,6 +338,17 @@ class RunAccumulator:
             "ends_on_a_bound": at_end,
             "published_on_a_bound": published,
         }
+
+    def held(self, cell: int) -> tuple[float, str | None, float]:
+        """Over one cell's window ticks: the share whose published values were held (on a bound
+        or after a divergence), the parameter most often on a bound (None: none) and its share."""
+        n = int(self.window_ticks[cell])
+        if n == 0:
+            return 0.0, None, 0.0
+        shares = self.window_on_bound[:, cell] / n
+        j = int(np.argmax(shares))
+        name = WATCHED[j] if shares[j] > 0 else None
+        return int(self.window_held[cell]) / n, name, float(shares[j]) if name else 0.0
 
     def soc_range(self) -> dict[str, float | None]:
         """First and last scoring SOC (mean over the cells) and its extremes (fractions)."""

@@ -298,6 +298,18 @@ class HeldShare:
     def flagged(self) -> bool:
         return self.held >= HELD_FLAG_SHARE
 
+    def text(self) -> str:
+        """What was held, in words: the share and the parameter most on a bound."""
+        bound = (
+            f"; {self.bound_param} on a bound on {100 * self.bound:.0f} %"
+            if self.bound_param
+            else ""
+        )
+        return (
+            f"parameters held (last good values) on {100 * self.held:.0f} % of the scored "
+            f"ticks{bound}"
+        )
+
     def bound_text(self) -> str:
         if self.bound_param is None:
             return "-"

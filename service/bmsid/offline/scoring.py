@@ -498,6 +498,24 @@ def scoring_soc_document(scorer: RunScorer) -> dict[str, Any]:
     return {**head, **scorer.acc.soc_range()}
 
 
+def held_warnings(result: IdentifyResult, window: EvalWindow) -> list[str]:
+    """A line per cell whose published parameters were held on ``report.HELD_FLAG_SHARE`` or more of
+    the window's ticks: its params.csv then shows where the estimate stopped, not the cell (a
+    sweep of unseen cells held 36-92 % with fit-ocv configs, and nothing on the console said
+    so)."""
+    acc = result.scorer(window).acc
+    lines = []
+    for c, name in enumerate(result.cell_names):
+        held = HeldShare(*acc.held(c))
+        if held.flagged:
+            lines.append(
+                f"WARNING: {name}: {held.text()}: the model does not follow this cell within its "
+                "bounds there (an OCV curve that misfits it, or dynamics outside them); "
+                "params.csv's quality column says where"
+            )
+    return lines
+
+
 def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, Any]:
     """The content of metrics.json.
 
@@ -512,12 +530,16 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     n, n0 = scorer.acc.seen, s.n_startup_ticks
     cells: dict[str, Any] = {}
     for c, name in enumerate(result.cell_names):
+        held = HeldShare(*scorer.acc.held(c))
         cells[name] = {
             "algorithm": result.variant,
             **_no_data(s.cells[c].overall),
             **s.cells[c].window.as_dict(),
             "runtime_s": result.runtime_s,
             **_parts(s.cells[c], n, n0),
+            "held_share": held.held,
+            "most_on_bound": held.bound_param,
+            "most_on_bound_share": held.bound,
         }
     return {
         "algorithm": result.variant,
