@@ -18,6 +18,7 @@ import numpy as np
 
 from bmsid.config.cell import CellConfig, InitialParameters, ParameterBounds, load_cell_config
 from bmsid.errors import UserError
+from bmsid.offline import plausibility
 from bmsid.offline.csvio import ColumnMap, TesterData, read_ocv_points, read_tester_csv
 from bmsid.offline.ocv_fit import (
     EQ32_KNOTS,
@@ -121,10 +122,10 @@ OCV_CAPACITY_MISMATCH = 1.1
 
 def capacity_warning(given_Ah: float | None, measured_Ah: float) -> list[str]:
     """A report line when ``given_Ah`` is ``OCV_CAPACITY_MISMATCH`` off ``measured_Ah``."""
-    if given_Ah is None or not (given_Ah > 0 and measured_Ah > 0):
+    if given_Ah is None:
         return []
-    ratio = given_Ah / measured_Ah
-    if 1.0 / OCV_CAPACITY_MISMATCH <= ratio <= OCV_CAPACITY_MISMATCH:
+    ratio = plausibility.mismatch_ratio(given_Ah, measured_Ah, OCV_CAPACITY_MISMATCH)
+    if ratio is None:
         return []
     return [
         f"warning: capacity_mismatch: --capacity-ah {given_Ah:g} Ah is {ratio:.3g}x the "

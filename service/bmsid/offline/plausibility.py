@@ -333,15 +333,24 @@ SLOW_UNIT_FACTORS = ((60.0, "minutes"), (3600.0, "hours"))
 CAPACITY_MISMATCH = 3.0
 
 
+def mismatch_ratio(given: float, measured: float, factor: float) -> float | None:
+    """``given / measured`` where it lies more than ``factor`` times off 1 either way; None
+    where it does not, or where either is not positive (nothing to compare)."""
+    if not (given > 0 and measured > 0):
+        return None
+    ratio = given / measured
+    return None if 1.0 / factor <= ratio <= factor else ratio
+
+
 def check_capacity_given(
     est: CapacityEstimate | None, capacity_Ah: float, source: str
 ) -> list[Finding]:
     """A warning when ``capacity_Ah`` (from ``source``: the cell config, --capacity-ah) is
     :data:`CAPACITY_MISMATCH` times off the capacity the record implies (``est``)."""
-    if est is None or not (est.capacity_Ah > 0 and capacity_Ah > 0):
+    if est is None:
         return []
-    ratio = capacity_Ah / est.capacity_Ah
-    if 1.0 / CAPACITY_MISMATCH <= ratio <= CAPACITY_MISMATCH:
+    ratio = mismatch_ratio(capacity_Ah, est.capacity_Ah, CAPACITY_MISMATCH)
+    if ratio is None:
         return []
     how = (
         f"it moves {est.capacity_Ah * est.start_soc:.3g} Ah from {100 * est.start_soc:.0f} % "
