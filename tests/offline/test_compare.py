@@ -17,7 +17,7 @@ from test_identify_cli import _trace, synthetic_columns, write_csv
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell, save_cell_config
 from bmsid.estimate.guard import WATCHED
-from bmsid.estimate.types import VARIANTS, Quality
+from bmsid.estimate.types import VARIANTS, EstimateBlock, Quality
 from bmsid.offline.report import (
     CONSISTENCY_PARAMS,
     HeldShare,
@@ -33,7 +33,7 @@ from bmsid.offline.report import (
     table2_markdown,
     unique_displays,
 )
-from bmsid.offline.scoring import EvalWindow, held_share
+from bmsid.offline.scoring import EvalWindow, RunScorer
 
 
 @pytest.fixture(scope="module")
@@ -349,6 +349,10 @@ def test_compare_refuses_a_directory_and_a_file_twice(
 
 
 # ----------------------------------------------------------------------------- held values (S1)
+def held_share(trace: EstimateBlock, window: EvalWindow, cell: int) -> HeldShare:
+    return HeldShare(*RunScorer.of_trace(trace, window).acc.held(cell))
+
+
 def test_held_share_over_the_scored_ticks() -> None:
     """spread == error in every baseline row: one held last good value on 94 % of the ticks
     (tau1 on its bound) is the median over time. The share is measured on the scored ticks."""

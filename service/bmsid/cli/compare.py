@@ -78,7 +78,6 @@ from bmsid.offline.scoring import (
     EvalWindow,
     IdentifyResult,
     SocReference,
-    held_share,
     metrics_document,
     parameter_medians,
     parameter_trajectories,
@@ -279,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
             trajectories.setdefault(group, {}).setdefault(variant, {})[shown] = {
                 k: v.tolist() for k, v in traj.items()
             }
-            held = held_share(res.kept_trace(), win, 0)
+            held = HeldShare.of_cell(doc["cells"][res.cell_names[0]])
             helds.setdefault(group, {}).setdefault(variant, {})[shown] = held
             runs.append(
                 {"dataset": shown, "algorithm": variant, "soc_init": res.soc_init_method,

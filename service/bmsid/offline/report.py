@@ -294,6 +294,11 @@ class HeldShare:
     bound_param: str | None = None
     bound: float = 0.0
 
+    @classmethod
+    def of_cell(cls, cell: Mapping[str, Any]) -> HeldShare:
+        """From a cell's entry of metrics.json (``scoring.metrics_document``)."""
+        return cls(cell["held_share"], cell["most_on_bound"], cell["most_on_bound_share"])
+
     @property
     def flagged(self) -> bool:
         return self.held >= HELD_FLAG_SHARE

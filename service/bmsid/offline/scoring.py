@@ -26,14 +26,12 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
-from bmsid.estimate.guard import WATCHED
 from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.metrics import VoltageMetrics
 from bmsid.model.simulator import coulomb_count
 from bmsid.offline.accumulate import (
-    IDENTIFIED,
     CoulombCarry,
     ErrorSums,
     PartMasks,
@@ -584,19 +582,3 @@ def parameter_medians(trace: EstimateBlock, window: EvalWindow) -> dict[str, Flo
             ]
         )
     return out
-
-
-def held_share(trace: EstimateBlock, window: EvalWindow, cell: int) -> HeldShare:
-    """Where one cell's published parameters were held over the scored ticks (``HeldShare``):
-    the last good values (quality not ``IDENTIFIED``) and the guard's ``on_bound`` bits, one
-    per ``WATCHED`` parameter."""
-    m = window.mask(trace)[:, cell]
-    n = int(np.count_nonzero(m))
-    if n == 0:
-        return HeldShare(0.0)
-    held = ~np.isin(trace.quality[m, cell], IDENTIFIED)
-    bits = np.nan_to_num(np.asarray(trace["on_bound"][m, cell], dtype=np.float64)).astype(np.int64)
-    shares = [float(np.count_nonzero((bits >> j) & 1)) / n for j in range(len(WATCHED))]
-    j = int(np.argmax(shares))
-    name = WATCHED[j] if shares[j] > 0 else None
-    return HeldShare(float(np.count_nonzero(held)) / n, name, shares[j] if name else 0.0)
