@@ -305,10 +305,9 @@ class RunAccumulator:
         self.window_ticks += np.count_nonzero(parts.window, axis=0)
         self.window_held += np.count_nonzero(parts.window & ~identified, axis=0)
         for j, name in enumerate(WATCHED):
-            self.on_bound[j] += int(np.count_nonzero((bits >> j) & 1))
-            self.window_on_bound[j] += np.count_nonzero(
-                parts.window & ((bits >> j) & 1 > 0), axis=0
-            )
+            on = (bits >> j) & 1 > 0
+            self.on_bound[j] += int(np.count_nonzero(on))
+            self.window_on_bound[j] += np.count_nonzero(parts.window & on, axis=0)
             if self.bounds is None:
                 continue
             lo, hi = self.bounds[name]
