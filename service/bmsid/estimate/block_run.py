@@ -65,8 +65,15 @@ def update_block(bank: EstimatorBank, block: SampleBlock) -> EstimateBlock:
     if not fusable(bank):
         for k in range(n_t):
             _python_tick(bank, ta, k, done)
-    else:
-        _run_fused(bank, ta, o, oq, done)
+    else:  # a fusion's swarms run ahead at their start: the loop runs the ticks they take
+        fusion = bank.params if isinstance(bank.params, FusionStage) else None
+        try:
+            if fusion is not None:
+                fusion.ahead = True
+            _run_fused(bank, ta, o, oq, done)
+        finally:
+            if fusion is not None:
+                fusion.ahead = False
     if done:  # per field, one array of the rows (a list of dicts would take a copy per row)
         rows = [k for k, _, _ in done]
         for j, name in enumerate(FIELD_NAMES):
@@ -119,8 +126,10 @@ def _python_needed(bank: EstimatorBank) -> bool:
     st, pa = bank.state, bank.params
     if nnz(st._pending) or not st._all_seen:
         return True
-    if isinstance(pa, FusionStage) and pa.schedule.n_running():
-        return True
+    if isinstance(pa, FusionStage):  # a swarm stepped tick by tick (not run ahead)
+        rs = pa.swarms
+        if nnz(rs.active) and nnz(rs.active & (rs.left == 0)):
+            return True
     if isinstance(st, ObserverState):
         return bool(st._relax.active or st._widen or st._reanchor)
     return False
@@ -266,7 +275,7 @@ def _param_args(pa: ArxRlsStage | FusionStage, n: int) -> tuple[tuple[Any, ...],
         fusion = (
             False, np.zeros((5, n, 5)), False, False, np.zeros(1), np.zeros((n, 1)),
             np.zeros((n, 1)), np.zeros((n, 1), dtype=bool), np.zeros(2, dtype=np.int64), 0.0,
-            f, f,
+            f, f, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64),
         )  # fmt: skip
         return arx, fusion
     buf = pa.buffer
@@ -278,6 +287,6 @@ def _param_args(pa: ArxRlsStage | FusionStage, n: int) -> tuple[tuple[Any, ...],
     fusion = (
         True, pa._lin, bool(pa._fit_scale), bool(pa.tuning.identify_ocv_offset), buf.current_A,
         buf.y_V, buf.hm_V, buf.valid, np.array([buf.head, buf.count], dtype=np.int64),
-        float(pa.schedule._first_due_s), pa.Ms, pa.off,
+        float(pa.schedule._first_due_s), pa.Ms, pa.off, pa.swarms.active, pa.swarms.left,
     )  # fmt: skip
     return arx, fusion

@@ -112,6 +112,7 @@ def _fused_source(
     restart: Any, tau1_multiple: float, o: Any, oq: Any, o_lam: Any, counts: Any,
     fusion: bool, lin: Any, fit_scale: bool, fit_offset: bool, buf_i: Any, buf_y: Any,
     buf_hm: Any, buf_valid: Any, buf_hc: Any, first_due: float, ms: Any, off_v: Any,
+    sw_active: Any, sw_left: Any,
 ) -> Any:  # fmt: skip
     """The ticks ``k0 ..`` (module docstring); per-cell state arrays that the Python code
     updates in place are updated in place, those it rebinds are returned."""
@@ -129,8 +130,11 @@ def _fused_source(
             break
         t, i_meas, dt = tf[k, _TF_T], tf[k, _TF_I], tf[k, _TF_DT]
         cur, ip = i_meas, tf[k, _TF_IP]
-        if fusion:  # a swarm due or a temperature to carry: the stage's own code
-            if t >= first_due or not math.isnan(tf[k, _TF_TEMP]):
+        if fusion:  # a swarm due or ending (run ahead), a temperature: the stage's own code
+            ends = False
+            for c in range(n):
+                ends = ends or (sw_active[c] and sw_left[c] == 1)
+            if t >= first_due or not math.isnan(tf[k, _TF_TEMP]) or ends:
                 stop = STOP_TICK
                 break
         elif T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
@@ -210,6 +214,9 @@ def _fused_source(
                 buf_y[c, j], buf_hm[c, j], buf_valid[c, j] = fo[2, c], out[5, c], learn[c]
             buf_hc[0] = (j + 1) % size
             buf_hc[1] = min(buf_hc[1] + 1, size)
+            for c in range(n):  # FusionStage._step_swarms: a swarm run ahead counts its ticks
+                if sw_active[c] and sw_left[c] > 0:
+                    sw_left[c] -= 1
             R0, R1, R2 = np.empty(n), np.empty(n), np.empty(n)  # _publish_linear
             ms, off_v, m_out = np.empty(n), np.empty(n), np.empty(n)
             for c in range(n):
@@ -341,7 +348,7 @@ def warm_args(n: int) -> tuple[Any, ...]:
         1.0, np.zeros((len(FIELD_NAMES), 0, n)), np.zeros((0, n), dtype=np.int64),
         np.zeros((0, n)), np.zeros(N_C, dtype=np.int64), True, np.zeros((5, n, 5)), True, False,
         np.zeros(3), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3), dtype=np.bool_),
-        np.zeros(2, dtype=np.int64), 0.0, f, f,
+        np.zeros(2, dtype=np.int64), 0.0, f, f, b_, i_,
     )  # fmt: skip
 
 

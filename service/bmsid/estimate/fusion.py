@@ -119,6 +119,9 @@ class FusionStage:
         )
         self._fit_s = np.ascontiguousarray(fit_s)
         self._swarm_consts = swarm_kernel.consts(self._swarm_params, tuning.tau_ratio_min)
+        #: run a swarm to its end at its start (``block_run``: the fused loop then runs the ticks
+        #: it takes); only without the offset, whose ridge follows sig_e tick by tick
+        self.ahead = False
         self._start_values()
 
     def _start_values(self) -> None:
@@ -209,26 +212,50 @@ class FusionStage:
 
     def _step_swarms(self) -> None:
         """The running swarms' fits of this tick and their moves (one kernel call); a swarm
-        that has run all its iterations is applied and ends."""
+        that has run all its iterations is applied and ends (one run ahead: at the tick its
+        last move would have come)."""
         rs, tun = self.swarms, self.tuning
-        prior = np.zeros(self.n)
-        if tun.identify_ocv_offset:  # the ridge of the offset, with sig_e as it is now
-            for c in np.flatnonzero(rs.active).tolist():
-                prior[c] = self._offset_prior(c)
-        moved = swarm_kernel.STEP.impl(
-            rs.active, rs.x, rs.v, rs.pbest, rs.pbest_f, rs.gbest, rs.gbest_f, rs.iteration,
+        ahead = rs.active & (rs.left > 0)
+        done: list[int] = []
+        if ahead.any():
+            rs.left[ahead] -= 1
+            done = np.flatnonzero(ahead & (rs.left == 0)).tolist()
+        stepped = rs.active & ~ahead
+        if stepped.any():
+            prior = np.zeros(self.n)
+            if tun.identify_ocv_offset:  # the ridge of the offset, with sig_e as it is now
+                for c in np.flatnonzero(stepped).tolist():
+                    prior[c] = self._offset_prior(c)
+            cells = np.flatnonzero(self._kernel_step(stepped, prior, tun.fits_per_update))
+            if cells.size:
+                rs.refresh_poles(cells)
+                done += cells[rs.iteration[cells] >= rs.n_iter[cells]].tolist()
+        for c in sorted(done):
+            self._apply_swarm(c)
+            rs.active[c] = False
+
+    def _kernel_step(self, active: BoolArray, prior: FloatArray, budget: int) -> BoolArray:
+        """One call of the swarm kernel over the ``active`` cells; the cells that moved."""
+        rs, tun = self.swarms, self.tuning
+        return swarm_kernel.STEP.impl(
+            active, rs.x, rs.v, rs.pbest, rs.pbest_f, rs.gbest, rs.gbest_f, rs.iteration,
             rs.lo, rs.hi, rs.fitness, rs.done_fits, rs.rand, rs.inertia, rs.a1, rs.a2, rs.t_lo,
             rs.t_hi, rs.win, rs.win_len, self._fit_s, self._fit_idx, bool(self._fit_scale),
             tun.identify_ocv_offset, prior, self._fit_j_off, self._lin_lo, self._lin_hi,
-            self._abs_scale, tun.fits_per_update, self._swarm_consts,
+            self._abs_scale, budget, self._swarm_consts,
         )  # fmt: skip
-        if not moved.any():
-            return
-        cells = np.flatnonzero(moved)
-        rs.refresh_poles(cells)
-        for c in cells[rs.iteration[cells] >= rs.n_iter[cells]].tolist():
-            self._apply_swarm(c)
-            rs.active[c] = False
+
+    def _run_ahead(self, c: int) -> None:
+        """Cell ``c``'s new swarm to its end now: every particle of an iteration in one call,
+        each the same fit as tick by tick (no ridge: the same prior 0); ``left`` counts the
+        ticks its fits would have taken."""
+        rs, tun, only = self.swarms, self.tuning, np.zeros(self.n, dtype=bool)
+        only[c] = True
+        cell = np.array([c])
+        while rs.iteration[c] < rs.n_iter[c]:
+            self._kernel_step(only, np.zeros(self.n), tun.n_particles)
+            rs.refresh_poles(cell)
+        rs.left[c] = rs.n_iter[c] * -(-tun.n_particles // tun.fits_per_update)
 
     def _window_has_steps(self) -> bool:
         """The window holds ``swarm_min_steps`` current steps: one (a charge starting) ties the
@@ -264,6 +291,8 @@ class FusionStage:
         )  # fmt: skip
         window, weights = self._window(c)
         self.swarms.start(c, sw, rng, self._swarm_params, window, weights)
+        if self.ahead and not tun.identify_ocv_offset:
+            self._run_ahead(c)
         sched.swarm_count[c] += 1
         self.counters["swarms"] += 1
 

@@ -61,6 +61,9 @@ class RunningSwarms:
         self.t_lo, self.t_hi = np.ones((n, p)), np.ones((n, p))
         self.win = np.zeros((n, 4, self.window_size))
         self.win_len = np.zeros(n, dtype=np.int64)
+        # a swarm run to its end at its start (FusionStage.ahead): the ticks it still takes
+        # (its result is applied at the tick its last move would have come); 0 where stepped
+        self.left = np.zeros(n, dtype=np.int64)
 
     def start(
         self, c: int, sw: lpso.Swarm, rng: np.random.Generator, p: lpso.SwarmParams,
@@ -77,7 +80,7 @@ class RunningSwarms:
         n_w = window.current_A.shape[0]
         self.win[c, :, :n_w] = window.current_A, window.y_V, window.hm_V, weights
         self.win_len[c], self.dt_s[c] = n_w, window.dt_s
-        self.active[c] = True
+        self.active[c], self.left[c] = True, 0
         self.refresh_poles(np.array([c]))
 
     def refresh_poles(self, cells: npt.NDArray[np.intp]) -> None:
