@@ -86,6 +86,15 @@ class RunningSwarms:
     def refresh_poles(self, cells: npt.NDArray[np.intp]) -> None:
         """The poles of the cells' current positions (numpy's exp: the compiled one differs
         from it in the last bit for a few percent of arguments)."""
+        if cells.shape[0] == 1:  # one cell (a swarm run ahead): its rows, no fancy indexing
+            c = int(cells[0])
+            taus1 = np.exp(self.x[c])
+            lo, hi = self.t_lo[c], self.t_hi[c]
+            np.minimum(taus1[:, 0], taus1[:, 1], out=lo)
+            np.maximum(taus1[:, 0], taus1[:, 1], out=hi)
+            np.exp(-self.dt_s[c] / lo, out=self.a1[c])  # rc_decay's operations
+            np.exp(-self.dt_s[c] / hi, out=self.a2[c])
+            return
         taus = np.exp(self.x[cells])
         t_lo = np.minimum(taus[:, :, 0], taus[:, :, 1])
         t_hi = np.maximum(taus[:, :, 0], taus[:, :, 1])
