@@ -113,14 +113,23 @@ def _kernel_source(
             d1 *= p1
             d2 *= p2
         for r in range(n_a):
-            acc_b = 0.0
-            for k in range(n_w):
-                acc_b += rows[r, k] * wy[k]
-            b[j, r] = acc_b
-            for q in range(r, n_a):
-                acc = 0.0
+            # the columns the candidates share (current, h M, offset: not 1, 2 or the decays):
+            # their sums are the first candidate's, by the same loops
+            shared_r = j > 0 and (r == 0 or 3 <= r < j_dec)
+            if shared_r:
+                b[j, r] = b[0, r]
+            else:
+                acc_b = 0.0
                 for k in range(n_w):
-                    acc += rows[r, k] * weights[k] * rows[q, k]
+                    acc_b += rows[r, k] * wy[k]
+                b[j, r] = acc_b
+            for q in range(r, n_a):
+                if shared_r and (q == 0 or 3 <= q < j_dec):
+                    acc = G[0, r, q]
+                else:
+                    acc = 0.0
+                    for k in range(n_w):
+                        acc += rows[r, k] * weights[k] * rows[q, k]
                 G[j, r, q] = acc
                 G[j, q, r] = acc
     return G, b, last
