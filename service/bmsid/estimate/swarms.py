@@ -153,15 +153,16 @@ class WindowBuffer:
     ) -> tuple[Window, FloatArray]:
         """Cell ``c``'s last ``window_s`` of ticks (period ``dt_s``) and its validity weights."""
         idx = self.order()[-(int(window_s / dt_s) + 1) :]
+        valid = self.valid[c][idx]  # (a row, then a 1-D take: faster than [c, idx])
         w = Window(
-            current_A=self.current_A[idx].copy(),
-            y_V=np.where(self.valid[c, idx], self.y_V[c, idx], 0.0),
-            hm_V=self.hm_V[c, idx].copy(),
+            current_A=self.current_A[idx],  # (fancy indexing copies)
+            y_V=np.where(valid, self.y_V[c][idx], 0.0),
+            hm_V=self.hm_V[c][idx],
             dt_s=dt_s,
             use_hysteresis=use_hysteresis,
             use_offset=use_offset,
         )
-        return w, self.valid[c, idx].astype(np.float64)
+        return w, valid.astype(np.float64)
 
     def state_dict(self) -> dict[str, Any]:
         return {
