@@ -1,10 +1,15 @@
 """``EstimatorBank.update_block`` in compiled mode (issue 12): a block's ticks assembled at once
 (``tick_block.py``), runs of ordinary ticks in one compiled loop (``fused_kernel.py``: the ARX
-variants, and the fusion between its swarms), every other tick by the bank's own ``_run_tick``.
+variants, and the fusion while its swarms run ahead), every other tick by the bank's own
+``_run_tick``.
 
 The loop returns here for a tick that needs the stages' Python code; this module checks, before
 each call, what the loop cannot see (a cell to start, the start's relaxation watch, a re-anchor
-or a widening due, a swarm running), runs such a tick by ``_run_tick`` and hands the rest back.
+or a widening due, a swarm stepped tick by tick), runs such a tick by ``_run_tick`` and hands
+the rest back. A fusion's swarm runs to its end at its start (``FusionStage.ahead``: the same
+fits and moves, so the same bits); the loop counts the ticks it would have taken and stops at its
+last, where ``_run_tick`` applies it.
+
 After calls that ran no tick (a long rest, where any tick may anchor) it leaves the next ticks
 to ``_run_tick`` for a while (1, 2, 4 .. 64 ticks), so each call's packing is paid rarely. The
 loop writes every output into preallocated (n_ticks, n_cells) arrays; ``_run_tick``'s outputs

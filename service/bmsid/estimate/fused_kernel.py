@@ -6,7 +6,7 @@ the learn gate, the parameter stage, the observer's periodic update, the tail of
 and average) over ticks ``k0 ..`` of a block's tick arrays (``tick_block.py``), writing every
 published field into preallocated arrays. The parameter stage is the AFFRLS on the ARX model
 (``non-hy-affrls``, ``hy-affrls``) or the fusion's per-tick AFFRLS and window buffer
-(``hy-affrls-lpso``, between swarms). It calls the stages' own compiled kernels
+(``hy-affrls-lpso``, while swarms run ahead). It calls the stages' own compiled kernels
 (``observer_kernel.STEP`` and ``UPDATE``, ``rls_kernel.ARX_TICK`` or ``FUSION_TICK``,
 ``publish_kernel.TAIL``: the same compiled code, the same bits) and does between them, in loops,
 what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'s rest clock,
@@ -14,8 +14,9 @@ what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'
 
 It stops before a tick that needs the stages' Python code (``STOP_TICK``): a new segment (the
 first sample, a gap, a time jump), the first tick with a step (the ARX period is seeded), a
-rest long enough for an anchor, a swarm due or a temperature to carry (the fusion); the caller
-checks the rest (a cell to start, the start's relaxation watch, a re-anchor, a swarm running)
+rest long enough for an anchor, a swarm due or ending, a temperature to carry (the fusion); the
+caller checks the rest (a cell to start, the start's relaxation watch, a re-anchor, a swarm
+stepped tick by tick). A swarm run ahead (``FusionStage._run_ahead``) only counts its ticks.
 before each call. It stops after a tick whose guard asks for a re-initialisation
 (``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the caller (``lam``
 per tick: numpy's power, as the stages' ``outputs``).
@@ -200,7 +201,7 @@ def _fused_source(
                 learn2[c] = learn[c] and (may[c] or not arx_ok[c])
             learn = learn2
         m_table = out[4]
-        if fusion:  # FusionStage.step (no swarm due or running: the caller checks)
+        if fusion:  # FusionStage.step (no swarm due, ending or stepped: see above)
             fo, n_moved = _FUSION(
                 x1, x2, tau1, tau2, theta, P_arx, sig_e, lam, lin, rest_A, v_safe, out[3],
                 out[5], ok, learn, clamped, cur, ip, dt, per_tick[k, LAM_LO],
