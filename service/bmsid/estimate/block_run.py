@@ -21,12 +21,20 @@ from the stages' own cached functions, once per distinct step (numpy's ``exp`` a
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bmsid.estimate import fused_kernel as fk
-from bmsid.estimate import observer_kernel, publish_kernel, rls_kernel, state_jit, tick_block
+from bmsid.estimate import (
+    observer_kernel,
+    publish_kernel,
+    rls_kernel,
+    state_jit,
+    swarms,
+    tick_block,
+)
 from bmsid.estimate.arx_rls import ArxRlsStage
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.fusion import FusionStage
@@ -75,10 +83,12 @@ def update_block(bank: EstimatorBank, block: SampleBlock) -> EstimateBlock:
         try:
             if fusion is not None:
                 fusion.ahead = True
+                swarms.LOOP_EVENTS[id(fusion)] = partial(_swarm_events, fusion)
             _run_fused(bank, ta, o, oq, done)
         finally:
             if fusion is not None:
                 fusion.ahead = False
+                swarms.LOOP_EVENTS.pop(id(fusion), None)
     if done:  # per field, one array of the rows (a list of dicts would take a copy per row)
         rows = [k for k, _, _ in done]
         for j, name in enumerate(FIELD_NAMES):
@@ -90,6 +100,18 @@ def update_block(bank: EstimatorBank, block: SampleBlock) -> EstimateBlock:
         cells={name: o[j] for j, name in enumerate(FIELD_NAMES)},
         quality=oq,
     )
+
+
+def _swarm_events(
+    pa: FusionStage, t_s: float, period_s: float, std_A: float, head_count: Any
+) -> float:  # fmt: skip
+    """``FusionStage._run_swarms`` in a tick of the loop (a swarm due or ending), with what it
+    reads of the tick and the buffer set first; when the next swarm is due."""
+    pa.buffer.head, pa.buffer.count = int(head_count[0]), int(head_count[1])
+    pa._period_s = period_s
+    pa._excited = is_excited(_Std(std_A), pa._excitation_limit_A)  # type: ignore[arg-type]
+    pa._run_swarms(t_s)
+    return float(pa.schedule._first_due_s)
 
 
 def _python_tick(
@@ -280,7 +302,7 @@ def _param_args(pa: ArxRlsStage | FusionStage, n: int) -> tuple[tuple[Any, ...],
         fusion = (
             False, np.zeros((5, n, 5)), False, False, np.zeros(1), np.zeros((n, 1)),
             np.zeros((n, 1)), np.zeros((n, 1), dtype=bool), np.zeros(2, dtype=np.int64), 0.0,
-            f, f, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64),
+            f, f, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), -1,
         )  # fmt: skip
         return arx, fusion
     buf = pa.buffer
@@ -293,5 +315,6 @@ def _param_args(pa: ArxRlsStage | FusionStage, n: int) -> tuple[tuple[Any, ...],
         True, pa._lin, bool(pa._fit_scale), bool(pa.tuning.identify_ocv_offset), buf.current_A,
         buf.y_V, buf.hm_V, buf.valid, np.array([buf.head, buf.count], dtype=np.int64),
         float(pa.schedule._first_due_s), pa.Ms, pa.off, pa.swarms.active, pa.swarms.left,
+        id(pa) if id(pa) in swarms.LOOP_EVENTS else -1,
     )  # fmt: skip
     return arx, fusion

@@ -27,7 +27,9 @@ Its cache entry is named after the files whose compiled code it embeds (``jit.Ke
 
 from __future__ import annotations
 
+import contextlib
 import math
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -47,6 +49,7 @@ from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.jit_helpers import helper, register
 from bmsid.estimate.observer_kernel import REST_LIMIT
 from bmsid.estimate.publish_kernel import AVG_ROW, BITS_ROW, SOC_ROW
+from bmsid.estimate.swarms import loop_events
 
 #: Field rows of the output ``o`` (``fields.FIELD_NAMES`` order), literals checked below.
 R0F, R1F, C1F, R2F, C2F, TAU1F, TAU2F, LAMF, HF, SOCF, SOCSTDF = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
@@ -91,10 +94,15 @@ _UPDATE: Any = None
 _ARX: Any = None
 _TAIL: Any = None
 _FUSION: Any = None
-_TF_T, _TF_I, _TF_IP, _TF_DT, _TF_STD, _TF_NEWSEG, _TF_TEMP = (
+_TF_T, _TF_I, _TF_IP, _TF_DT, _TF_STD, _TF_NEWSEG, _TF_TEMP, _TF_PERIOD = (
     tick_block.T, tick_block.CUR, tick_block.IP, tick_block.DT, tick_block.STD, tick_block.NEWSEG,
-    tick_block.TEMP,
+    tick_block.TEMP, tick_block.PERIOD,
 )  # fmt: skip
+objmode: Any = None  # the swarm events call back into Python (numba's, where it imports)
+with contextlib.suppress(ImportError):
+    from numba import objmode
+# numba compiles the callback at its first call, and says that it takes the GIL (as it must)
+warnings.filterwarnings("ignore", "Code running in object mode won't allow parallel execution")
 
 
 def _fused_source(
@@ -113,7 +121,7 @@ def _fused_source(
     restart: Any, tau1_multiple: float, o: Any, oq: Any, o_lam: Any, counts: Any,
     fusion: bool, lin: Any, fit_scale: bool, fit_offset: bool, buf_i: Any, buf_y: Any,
     buf_hm: Any, buf_valid: Any, buf_hc: Any, first_due: float, ms: Any, off_v: Any,
-    sw_active: Any, sw_left: Any,
+    sw_active: Any, sw_left: Any, sw_key: int,
 ) -> Any:  # fmt: skip
     """The ticks ``k0 ..`` (module docstring); per-cell state arrays that the Python code
     updates in place are updated in place, those it rebinds are returned."""
@@ -131,11 +139,14 @@ def _fused_source(
             break
         t, i_meas, dt = tf[k, _TF_T], tf[k, _TF_I], tf[k, _TF_DT]
         cur, ip = i_meas, tf[k, _TF_IP]
-        if fusion:  # a swarm due or ending (run ahead), a temperature: the stage's own code
-            ends = False
+        events = False  # the fusion: a swarm due or ending (run ahead); a temperature, a swarm
+        if fusion:  # stepped tick by tick: the stage's own code
+            stepped = False
             for c in range(n):
-                ends = ends or (sw_active[c] and sw_left[c] == 1)
-            if t >= first_due or not math.isnan(tf[k, _TF_TEMP]) or ends:
+                events = events or (sw_active[c] and sw_left[c] == 1)
+                stepped = stepped or (sw_active[c] and sw_left[c] == 0)
+            events = events or t >= first_due
+            if stepped or not math.isnan(tf[k, _TF_TEMP]) or (events and sw_key < 0):
                 stop = STOP_TICK
                 break
         elif T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
@@ -215,8 +226,12 @@ def _fused_source(
                 buf_y[c, j], buf_hm[c, j], buf_valid[c, j] = fo[2, c], out[5, c], learn[c]
             buf_hc[0] = (j + 1) % size
             buf_hc[1] = min(buf_hc[1] + 1, size)
-            for c in range(n):  # FusionStage._step_swarms: a swarm run ahead counts its ticks
-                if sw_active[c] and sw_left[c] > 0:
+            if events:  # FusionStage._run_swarms, in Python (swarms.loop_events)
+                period, std = tf[k, _TF_PERIOD], tf[k, _TF_STD]
+                with objmode(first_due="float64"):
+                    first_due = loop_events(sw_key, t, period, std, buf_hc)
+            for c in range(n):  # else FusionStage._step_swarms: a swarm run ahead counts a tick
+                if sw_active[c] and sw_left[c] > 0 and not events:
                     sw_left[c] -= 1
             R0, R1, R2 = np.empty(n), np.empty(n), np.empty(n)  # _publish_linear
             ms, off_v, m_out = np.empty(n), np.empty(n), np.empty(n)
@@ -349,7 +364,7 @@ def warm_args(n: int) -> tuple[Any, ...]:
         1.0, np.zeros((len(FIELD_NAMES), 0, n)), np.zeros((0, n), dtype=np.int64),
         np.zeros((0, n)), np.zeros(N_C, dtype=np.int64), True, np.zeros((5, n, 5)), True, False,
         np.zeros(3), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3), dtype=np.bool_),
-        np.zeros(2, dtype=np.int64), 0.0, f, f, b_, i_,
+        np.zeros(2, dtype=np.int64), 0.0, f, f, b_, i_, -1,
     )  # fmt: skip
 
 

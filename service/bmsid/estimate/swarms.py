@@ -11,6 +11,7 @@ running swarms (as arrays: ``swarm_kernel.py`` evaluates and moves them all in o
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +24,16 @@ from bmsid.model.ecm import rc_decay
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+#: The swarm events (a swarm due or ending) of the fused loop's ticks, by the key the loop is
+#: given (``block_run`` registers the stage's around each call): (t s, period s, current std A,
+#: the window buffer's head and count) -> when the next swarm is due, s.
+LOOP_EVENTS: dict[int, Callable[[float, float, float, npt.NDArray[np.int64]], float]] = {}
+
+
+def loop_events(key: int, t_s: float, period_s: float, std_A: float, head_count: Any) -> float:
+    """A tick's swarm events, called by the fused loop (compiled) in object mode."""
+    return LOOP_EVENTS[key](t_s, period_s, std_A, head_count)
 
 
 @dataclass
