@@ -7,8 +7,8 @@ The loop returns here for a tick that needs the stages' Python code; this module
 each call, what the loop cannot see (a cell to start, the start's relaxation watch, a re-anchor
 or a widening due, a swarm stepped tick by tick), runs such a tick by ``_run_tick`` and hands
 the rest back. A fusion's swarm runs to its end at its start (``FusionStage.ahead``: the same
-fits and moves, so the same bits); the loop counts the ticks it would have taken and stops at its
-last, where ``_run_tick`` applies it.
+fits and moves, so the same bits); the loop counts the ticks it would have taken, and a swarm due
+or ending calls back into ``FusionStage._run_swarms`` from the loop (``_swarm_events``).
 
 After calls that ran no tick (a long rest, where any tick may anchor) it leaves the next ticks
 to ``_run_tick`` for a while (1, 2, 4 .. 64 ticks), so each call's packing is paid rarely. The

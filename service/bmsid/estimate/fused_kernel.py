@@ -14,9 +14,11 @@ what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'
 
 It stops before a tick that needs the stages' Python code (``STOP_TICK``): a new segment (the
 first sample, a gap, a time jump), the first tick with a step (the ARX period is seeded), a
-rest long enough for an anchor, a swarm due or ending, a temperature to carry (the fusion); the
-caller checks the rest (a cell to start, the start's relaxation watch, a re-anchor, a swarm
-stepped tick by tick). A swarm run ahead (``FusionStage._run_ahead``) only counts its ticks.
+rest long enough for an anchor, a temperature to carry or a swarm stepped tick by tick (the
+fusion); the caller checks the rest (a cell to start, the start's relaxation watch, a re-anchor).
+A fusion's swarm events (one due, or one run ahead ending: ``FusionStage._run_ahead``) call back
+into its Python at their place in the tick (``swarms.loop_events``, numba's object mode); in
+between, a swarm run ahead only counts its ticks.
 before each call. It stops after a tick whose guard asks for a re-initialisation
 (``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the caller (``lam``
 per tick: numpy's power, as the stages' ``outputs``).
