@@ -87,14 +87,15 @@ def end_segment(
         v_join, d_join = float(join[0]), float(join[1])
     secant = (v_end_V - v_join) / (z_end - z_join)
     where = "empty" if z_end < z_join else "full"
+    curve = "Eq. 4" if join is None else "the corrected curve"
     if not secant > 0:
         raise ValueError(
-            f"the {where} voltage {v_end_V:.4f} V does not continue Eq. 4's {v_join:.4f} V at "
+            f"the {where} voltage {v_end_V:.4f} V does not continue {curve}'s {v_join:.4f} V at "
             f"SOC {z_join:g} monotonically"
         )
     if not 0 <= d_join <= MAX_JOIN_SLOPE_RATIO * secant:
         raise ValueError(
-            f"Eq. 4's slope {d_join:.3g} V at SOC {z_join:g} allows no monotone segment to the "
+            f"{curve}'s slope {d_join:.3g} V at SOC {z_join:g} allows no monotone segment to the "
             f"{where} voltage {v_end_V:.4f} V (secant {secant:.3g} V): move the join inwards"
         )
     d_end = max(2.0 * secant - d_join, 0.0)  # the quadratic's end slope, else a flat end
@@ -247,10 +248,11 @@ class OcvModel:
             cd = pchip_slopes(cx, cy)
             fall = correction_fall(coeffs, cx, cy, soc_min, soc_max)
             if fall is not None:
+                eq4 = float(eval_docv_dz(coeffs, fall[0]))
                 raise ValueError(
                     f"the OCV correction table leaves the mean curve falling at SOC "
-                    f"{100 * fall[0]:.2f} % (slope {fall[1]:.3g} V per unit SOC): it must "
-                    f"increase over SOC {100 * soc_min:g}-{100 * soc_max:g} %"
+                    f"{100 * fall[0]:.2f} % (slope {fall[1]:.3g} V per unit SOC, Eq. 4 alone "
+                    f"{eq4:.3g}): it must increase over SOC {100 * soc_min:g}-{100 * soc_max:g} %"
                 )
 
         def curve(z: FloatArray, deriv: bool) -> FloatArray:
