@@ -43,15 +43,15 @@ def test_the_compiled_kernels_are_available() -> None:
 # ----------------------------------------------------------------------------- random stages
 def _ocv(ends: bool, table: bool = False, seed: int = 0) -> OcvModel:
     """The paper's curve on [0.03, 0.97], with end segments and/or a random correction table
-    (3-30 knots anywhere in [0, 1], some beyond the curve's range; values of a few mV, halved
-    until the corrected curve increases)."""
+    (3-30 knots covering the curve's range, the end ones at or beyond it; values of a few mV,
+    halved until the corrected curve increases)."""
     lo, hi = 0.03, 0.97
     kw: dict[str, Any] = {}
     if table:
         rng = np.random.default_rng(seed)
-        x = np.unique(np.round(rng.uniform(0.0, 1.0, int(rng.integers(3, 31))), 6))
-        if x.shape[0] < 2:
-            x = np.array([0.2, 0.6])
+        inner = np.round(rng.uniform(0.04, 0.96, int(rng.integers(1, 29))), 6)
+        x = np.unique(np.concatenate([rng.choice([[0.0], [0.03], [0.01]]), inner,
+                                      rng.choice([[1.0], [0.97], [0.99]])]))  # fmt: skip
         kw = {"corr_soc": x, "corr_V": rng.uniform(-0.008, 0.008, x.shape[0])}
     while True:
         try:

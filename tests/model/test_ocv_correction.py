@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from bmsid.config.cell import PAPER_OCV_MEAN, OcvCurve, paper_cell
 from bmsid.config.engine import ocv_model
-from bmsid.model.ocv import OcvModel, eval_docv_dz, eval_ocv, pchip_slopes
+from bmsid.model.ocv import OcvModel, eval_ocv, hermite_table, pchip_slopes
 
 PAPER = np.asarray(PAPER_OCV_MEAN)
 LO, HI = 0.03, 0.97
@@ -21,13 +21,13 @@ LO, HI = 0.03, 0.97
 
 @st.composite
 def tables(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray]:
-    """3-25 knots on a 0.5 % grid inside or beyond [LO, HI] (fit-ocv's are >= 2 % apart), values
+    """3-25 knots on a 0.5 % grid covering [LO, HI] (fit-ocv's are >= 2 % apart), values
     within +-3 mV (the paper's curve rises by >= 0.5 V per unit SOC on [LO, HI], so the
     corrected curve mostly still increases)."""
-    n = draw(st.integers(3, 25))
-    x = np.unique(draw(st.lists(st.integers(0, 200), min_size=n, max_size=n))) * 0.005
-    if x.shape[0] < 3:
-        x = np.array([0.1, 0.5, 0.9])
+    n = draw(st.integers(1, 23))
+    inner = draw(st.lists(st.integers(7, 193), min_size=n, max_size=n))
+    ends = [draw(st.integers(0, 6)), draw(st.integers(194, 200))]
+    x = np.unique(inner + ends) * 0.005
     y = np.asarray(draw(st.lists(st.floats(-0.003, 0.003), min_size=x.shape[0],
                                  max_size=x.shape[0])))  # fmt: skip
     return x, y
@@ -81,22 +81,33 @@ def test_the_corrected_curve_is_c1_and_its_slope_is_its_derivative(
         assert np.all(np.diff(v) >= -1e-12)
 
 
-def test_the_table_holds_its_end_values_beyond_its_knots() -> None:
+def test_the_slopes_are_scipys_pchip_and_the_table_holds_beyond_its_knots() -> None:
+    from scipy.interpolate import PchipInterpolator
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        x = np.sort(rng.choice(np.linspace(0.0, 1.0, 201), int(rng.integers(2, 12)), False))
+        y = rng.normal(0.0, 0.01, x.shape[0]) * (rng.random(x.shape[0]) < 0.8)
+        ref = PchipInterpolator(x, y)
+        d = pchip_slopes(x, y)
+        np.testing.assert_allclose(d, ref.derivative()(x), rtol=1e-12, atol=1e-12)
+        z = np.linspace(x[0], x[-1], 57)
+        np.testing.assert_allclose(hermite_table(x, y, d, z, False), ref(z), atol=1e-12)
+        np.testing.assert_allclose(hermite_table(x, y, d, z, True), ref.derivative()(z),
+                                   rtol=1e-9, atol=1e-9)  # fmt: skip
+        out = np.array([x[0] - 0.1, x[-1] + 0.1, np.nan])
+        np.testing.assert_array_equal(hermite_table(x, y, d, out, False), [y[0], y[-1], np.nan])
+        np.testing.assert_array_equal(hermite_table(x, y, d, out, True), [0.0, 0.0, np.nan])
+
+
+def test_a_table_must_cover_the_curves_range() -> None:
     x, y = np.array([0.2, 0.4, 0.6]), np.array([0.004, -0.002, 0.003])
-    m = OcvModel.from_coeffs(PAPER, LO, HI, [0.0, 1.0], [0.0, 0.0], corr_soc=x, corr_V=y)
-    for z, dv in ((0.1, 0.004), (0.2, 0.004), (0.6, 0.003), (0.9, 0.003)):
-        assert float(m.ocv(np.array([z]))[0]) == pytest.approx(eval_ocv(PAPER, z) + dv, abs=1e-12)
-        assert float(m.docv_dz(np.array([z]))[0]) == pytest.approx(
-            float(eval_docv_dz(PAPER, z)), abs=1e-12
-        )
-    # Fritsch-Carlson: 0 at a local extremum of the knots, and at both end knots.
-    np.testing.assert_array_equal(pchip_slopes(x, y), [0.0, 0.0, 0.0])
-    d = pchip_slopes(np.array([0.0, 0.1, 0.3, 0.4]), np.array([0.0, 1.0, 2.0, 2.5]))
-    assert d[0] == d[-1] == 0.0 and 0 < d[1] <= 3 * 5.0 and 0 < d[2] <= 3 * 5.0
+    with pytest.raises(ValueError, match=r"knots \(SOC 20-60 %\) must cover .* SOC 3-97 %"):
+        OcvModel.from_coeffs(PAPER, LO, HI, [0.0, 1.0], [0.0, 0.0], corr_soc=x, corr_V=y)
 
 
 def test_the_inverse_and_the_secant_follow_the_table() -> None:
-    x = np.linspace(0.1, 0.9, 17)
+    x = np.linspace(LO, HI, 48)
     y = 0.01 * np.exp(-(((x - 0.5) / 0.05) ** 2))  # a 10 mV bump at 50 %
     m = OcvModel.from_coeffs(PAPER, LO, HI, [0.0, 1.0], [0.0, 0.0], corr_soc=x, corr_V=y)
     for z in (0.2, 0.48, 0.5, 0.55, 0.8):
@@ -107,7 +118,7 @@ def test_the_inverse_and_the_secant_follow_the_table() -> None:
 
 
 def test_a_table_that_makes_the_curve_fall_is_refused() -> None:
-    x, y = np.array([0.3, 0.4, 0.5]), np.array([0.0, 0.1, 0.0])  # 100 mV down over 10 % SOC
+    x, y = np.array([0.0, 0.4, 0.5, 1.0]), np.array([0.0, 0.1, 0.0, 0.0])  # 100 mV down
     with pytest.raises(ValueError, match=r"falling at SOC 4\d\.\d+ %"):
         OcvModel.from_coeffs(PAPER, LO, HI, [0.0, 1.0], [0.0, 0.0], corr_soc=x, corr_V=y)
     with pytest.raises(ValueError, match="both its knots and its values"):
@@ -118,7 +129,7 @@ def test_the_end_segments_join_the_corrected_curve() -> None:
     """The join takes the corrected value and slope: with a table of +20 mV at the join, the
     segment starts 20 mV above Eq. 4 there; one the corrected slope makes impossible is refused
     with the segment's own message."""
-    x, y = np.array([0.02, 0.1, 0.5]), np.array([0.02, 0.0, 0.0])
+    x, y = np.array([0.02, 0.1, 0.5, 0.98]), np.array([0.02, 0.0, 0.0, 0.0])
     m = OcvModel.from_coeffs(PAPER, 0.02, 0.98, [0.0, 1.0], [0.0, 0.0], v_empty_V=3.0,
                              corr_soc=x, corr_V=y)  # fmt: skip
     assert float(m.ocv(np.array([0.02 - 1e-12]))[0]) == pytest.approx(
@@ -144,7 +155,7 @@ def test_a_config_without_a_table_is_the_curve_as_before() -> None:
 
 
 def test_a_config_table_reaches_the_model() -> None:
-    x, y = [0.1, 0.5, 0.9], [0.002, -0.003, 0.001]
+    x, y = [0.0, 0.5, 1.0], [0.002, -0.003, 0.001]
     curve = OcvCurve(
         mean=PAPER_OCV_MEAN, soc_min=0.02, soc_max=0.98, correction_soc=x, correction_V=y
     )
@@ -165,7 +176,8 @@ def test_a_config_table_reaches_the_model() -> None:
         ([10, 50, 90], [0.0, 0.0, 0.0], r"within \[0, 1\] \(fractions\)"),
         ([0.1, 0.5, 0.9], [0.0, 5.0, 0.0], r"correction_V must lie within \+-0.2 V"),
         ([0.1, 0.5, 0.9], [0.0, float("nan"), 0.0], r"correction_V must lie within"),
-        ([0.3, 0.4, 0.5], [0.0, 0.1, 0.0], "correction_V: the OCV correction table leaves"),
+        ([0.0, 0.4, 0.5, 1.0], [0.0, 0.1, 0.0, 0.0], "correction_V: the OCV correction table le"),
+        ([0.1, 0.5, 1.0], [0.0, 0.0, 0.0], "correction_V: the OCV correction table's knots"),
     ],
 )
 def test_config_tables_are_validated_with_the_field_named(

@@ -17,13 +17,16 @@ Correction table (optional): Eq. 4's six terms cannot follow every cell (graphit
 steps leave 6-18 mV of systematic residual on a C/20 test), so the mean curve may carry a table
 dU(z) on top: ``U(z) = Eq. 4(z) + dU(z)`` on [eq4_min, eq4_max], Eq. 4 itself unchanged. dU is a
 C1 piecewise cubic (Hermite) through the knots ``corr_soc``/``corr_V`` with Fritsch-Carlson
-slopes (the weighted harmonic mean of the neighbouring secants, 0 where they differ in sign, as
-scipy's PCHIP; ``pchip_slopes``): it never overshoots its knot values, so a table of mV stays
-mV between knots, and the EKF's slope dU/dz is continuous. Its slope is 0 at the first and last
-knot, beyond which dU holds its end value (C1 there too). The end segments then join the
-corrected curve's value and slope. A table must leave the corrected curve increasing over
-[eq4_min, eq4_max] (``OcvModel.from_coeffs`` refuses it otherwise): the SOC observer divides by
-that slope.
+slopes (scipy's PCHIP, ``pchip_slopes``): it never overshoots its knot values, so a table of mV
+stays mV between knots, and the EKF's slope dU/dz is continuous; where the corrected curve is
+flat the slopes are limited so that it keeps increasing (``table_slopes``). The knots must cover
+[eq4_min, eq4_max], where the table is used (z is clamped to it, or the end segments take
+over), so the curve is C1 wherever it is evaluated; the end knots keep their one-sided slopes
+(held at 0 instead, the corrected slope at a join would be Eq. 4's, exactly where Eq. 4 is
+worst: the LFP test's Eq. 4 falls beyond 96 %). Beyond its knots dU would hold its end value.
+The end segments join the corrected curve's value and slope. A table must leave the corrected
+curve increasing over [eq4_min, eq4_max] (``OcvModel.from_coeffs`` refuses it otherwise): the
+SOC observer divides by that slope.
 """
 
 from __future__ import annotations
@@ -114,29 +117,60 @@ def end_segment(
 
 def pchip_slopes(x: FloatArray, y: FloatArray) -> FloatArray:
     """Fritsch-Carlson slopes of a correction table (knots ``x`` strictly increasing, values
-    ``y``): at an interior knot the weighted harmonic mean of the two secants (Fritsch & Butland
-    1984, scipy's PCHIP), 0 where they differ in sign or one is 0; 0 at both end knots (dU holds
-    its end value beyond them, so the curve stays C1 there)."""
+    ``y``), as scipy's PCHIP: at an interior knot the weighted harmonic mean of the two secants
+    (Fritsch & Butland 1984), 0 where they differ in sign or one is 0; at an end knot the
+    one-sided three-point estimate, 0 where its sign is not the end secant's and at most three
+    times that secant where the secants change sign (shape-preserving, no overshoot)."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     h = np.diff(x)
     delta = np.diff(y) / h
+    if x.shape[0] == 2:
+        return np.array([delta[0], delta[0]])
     d = np.zeros_like(x)
-    if x.shape[0] > 2:
-        w1 = 2.0 * h[1:] + h[:-1]
-        w2 = h[1:] + 2.0 * h[:-1]
-        same = delta[:-1] * delta[1:] > 0
-        dl = np.where(same, delta[:-1], 1.0)
-        dr = np.where(same, delta[1:], 1.0)
-        d[1:-1] = np.where(same, (w1 + w2) / (w1 / dl + w2 / dr), 0.0)
+    w1 = 2.0 * h[1:] + h[:-1]
+    w2 = h[1:] + 2.0 * h[:-1]
+    same = delta[:-1] * delta[1:] > 0
+    dl = np.where(same, delta[:-1], 1.0)
+    dr = np.where(same, delta[1:], 1.0)
+    d[1:-1] = np.where(same, (w1 + w2) / (w1 / dl + w2 / dr), 0.0)
+    for at, h0, h1, m0, m1 in ((0, h[0], h[1], delta[0], delta[1]),
+                               (-1, h[-1], h[-2], delta[-1], delta[-2])):  # fmt: skip
+        e = ((2.0 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+        if np.sign(e) != np.sign(m0):
+            e = 0.0
+        elif np.sign(m0) != np.sign(m1) and abs(e) > abs(3.0 * m0):
+            e = 3.0 * m0
+        d[at] = e
     return d
+
+
+def table_slopes(coeffs: FloatArray | list[float], x: FloatArray, y: FloatArray) -> FloatArray:
+    """The correction table's slopes at its knots: ``pchip_slopes`` of dU, limited where the
+    corrected curve rises on both sides of a knot (one side at an end knot) so that its slope
+    there, Eq. 4's + dU's, lies in [0, 3 x the smaller secant of the corrected knot values]:
+    Fritsch & Carlson's monotone region. Where the curve is flat (an LFP plateau, dU nearly
+    -Eq. 4) PCHIP of dU alone leaves the sum falling between knots; elsewhere the limit does
+    not bind and dU's own slopes stand."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    d = pchip_slopes(x, y)
+    base = eval_docv_dz(coeffs, x)
+    sec = np.diff(eval_ocv(coeffs, x) + y) / np.diff(x)
+    left = np.concatenate([sec[:1], sec])  # an end knot: its one secant on both sides
+    right = np.concatenate([sec, sec[-1:]])
+    lim = np.minimum(left, right)
+    rising = lim >= 0
+    total = np.where(rising, np.clip(base + d, 0.0, 3.0 * np.maximum(lim, 0.0)), base + d)
+    return np.asarray(np.where(rising, total - base, d), dtype=np.float64)
 
 
 def hermite_table(
     x: FloatArray, y: FloatArray, d: FloatArray, z: FloatArray, deriv: bool
 ) -> FloatArray:
     """The correction table's value (or slope) at ``z``: the cubic Hermite through (x, y) with
-    slopes ``d`` on [x0, x_last], the end values (slope 0) beyond, NaN at NaN.
+    slopes ``d`` on [x0, x_last], the end values (slope 0) beyond (``OcvModel`` never asks
+    there: its table covers the curve's range), NaN at NaN.
     ``observer_kernel``'s ``corr_at`` computes the same operations in the same order."""
     zz = np.asarray(z, dtype=np.float64)
     k = x.shape[0]
@@ -176,7 +210,7 @@ def correction_fall(
     ``CHECK_POINTS_PER_INTERVAL`` points per knot interval and 2001 across [lo, hi]."""
     x = np.asarray(soc, dtype=np.float64)
     y = np.asarray(dU_V, dtype=np.float64)
-    d = pchip_slopes(x, y)
+    d = table_slopes(coeffs, x, y)
     u = np.linspace(0.0, 1.0, CHECK_POINTS_PER_INTERVAL + 1)
     pts = (x[:-1, None] + np.diff(x)[:, None] * u[None, :]).ravel()
     grid = np.unique(np.concatenate([np.linspace(lo, hi, 2001), pts[(pts >= lo) & (pts <= hi)]]))
@@ -245,7 +279,12 @@ class OcvModel:
             check_table(corr_soc, corr_V)
             cx = np.asarray(corr_soc, dtype=np.float64)
             cy = np.asarray(corr_V, dtype=np.float64)
-            cd = pchip_slopes(cx, cy)
+            if cx[0] > soc_min or cx[-1] < soc_max:
+                raise ValueError(
+                    f"the OCV correction table's knots (SOC {100 * cx[0]:g}-{100 * cx[-1]:g} %) "
+                    f"must cover the curve's range SOC {100 * soc_min:g}-{100 * soc_max:g} %"
+                )
+            cd = table_slopes(coeffs, cx, cy)
             fall = correction_fall(coeffs, cx, cy, soc_min, soc_max)
             if fall is not None:
                 eq4 = float(eval_docv_dz(coeffs, fall[0]))
