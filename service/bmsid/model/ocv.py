@@ -41,6 +41,9 @@ FloatArray = npt.NDArray[np.float64]
 #: Largest ratio (Eq. 4 slope at the join) / (segment secant slope) a monotone cubic allows
 #: with a zero end slope (Fritsch & Carlson 1980, the 2 alpha + beta <= 3 region).
 MAX_JOIN_SLOPE_RATIO = 3.0
+#: A corrected curve's slope down to -this (V per unit SOC) counts as flat, not falling: the
+#: rounding of a slope ``table_slopes`` limited to 0 (Eq. 4's slope plus the table's).
+FLAT_SLOPE = 1e-9
 #: Sub-intervals per knot interval on which ``correction_fall`` checks a table's curve (the
 #: slope of a cubic between knots is a quadratic: its minimum is found to well under 1 %).
 CHECK_POINTS_PER_INTERVAL = 32
@@ -205,8 +208,8 @@ def check_table(soc: FloatArray | list[float], dU_V: FloatArray | list[float]) -
 def correction_fall(
     coeffs: FloatArray | list[float], soc: FloatArray, dU_V: FloatArray, lo: float, hi: float
 ) -> tuple[float, float] | None:
-    """Where Eq. 4 plus the table (``soc``, ``dU_V``) is not increasing on [lo, hi]: (SOC,
-    slope V per unit SOC) of its lowest slope when that is <= 0, else None. Checked on
+    """Where Eq. 4 plus the table (``soc``, ``dU_V``) falls on [lo, hi]: (SOC, slope V per unit
+    SOC) of its lowest slope when that is below ``-FLAT_SLOPE``, else None. Checked on
     ``CHECK_POINTS_PER_INTERVAL`` points per knot interval and 2001 across [lo, hi]."""
     x = np.asarray(soc, dtype=np.float64)
     y = np.asarray(dU_V, dtype=np.float64)
@@ -216,7 +219,7 @@ def correction_fall(
     grid = np.unique(np.concatenate([np.linspace(lo, hi, 2001), pts[(pts >= lo) & (pts <= hi)]]))
     slope = eval_docv_dz(coeffs, grid) + hermite_table(x, y, d, grid, True)
     at = int(np.argmin(slope))
-    return (float(grid[at]), float(slope[at])) if not slope[at] > 0 else None
+    return (float(grid[at]), float(slope[at])) if not slope[at] >= -FLAT_SLOPE else None
 
 
 def _horner(p: FloatArray, s: FloatArray) -> FloatArray:
