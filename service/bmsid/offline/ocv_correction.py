@@ -88,7 +88,7 @@ class OcvCorrection:
 def correction_knots(zs: Sequence[FloatArray], lo: float, hi: float) -> FloatArray:
     """Knots from ``lo`` to ``hi``: ``KNOT_SPACING`` apart, wider until every branch in ``zs``
     has ``MIN_SAMPLES_PER_KNOT`` samples in each interval; a last interval shorter than half a
-    spacing is merged into the one before."""
+    spacing is merged into the one before. Interior knots rounded to 1e-6."""
     sorted_z = [np.sort(z[(z >= lo) & (z <= hi)]) for z in zs]
     edges, cur = [lo], lo
     while True:
@@ -101,8 +101,8 @@ def correction_knots(zs: Sequence[FloatArray], lo: float, hi: float) -> FloatArr
             break
         edges.append(nxt)
         cur = nxt
-    edges.append(hi)
-    return np.asarray(edges, dtype=np.float64)
+    inner = np.round(np.asarray(edges[1:], dtype=np.float64), 6)  # 0.17, not 0.16999999999999998
+    return np.concatenate([[lo], inner, [hi]])  # the ends exact: they bound the curve's range
 
 
 def _hats(z: FloatArray, knots: FloatArray) -> FloatArray:
