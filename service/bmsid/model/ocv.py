@@ -148,24 +148,33 @@ def pchip_slopes(x: FloatArray, y: FloatArray) -> FloatArray:
     return d
 
 
-def table_slopes(coeffs: FloatArray | list[float], x: FloatArray, y: FloatArray) -> FloatArray:
-    """The correction table's slopes at its knots: ``pchip_slopes`` of dU, limited where the
-    corrected curve rises on both sides of a knot (one side at an end knot) so that its slope
-    there, Eq. 4's + dU's, lies in [0, 3 x the smaller secant of the corrected knot values]:
-    Fritsch & Carlson's monotone region. Where the curve is flat (an LFP plateau, dU nearly
-    -Eq. 4) PCHIP of dU alone leaves the sum falling between knots; elsewhere the limit does
-    not bind and dU's own slopes stand."""
+def table_slopes(
+    coeffs: FloatArray | list[float], x: FloatArray, y: FloatArray, lo: float, hi: float
+) -> FloatArray:
+    """The correction table's slopes at its knots: ``pchip_slopes`` of dU, limited at each knot
+    in the curve's range [lo, hi] where the corrected curve rises to its neighbours in that
+    range (one at the range's edge), so that its slope there, Eq. 4's + dU's, lies in
+    [0, 3 x the smaller secant of the corrected knot values]: Fritsch & Carlson's monotone
+    region. Where the curve is flat (an LFP plateau, dU nearly -Eq. 4) PCHIP of dU alone
+    leaves the sum falling between knots; elsewhere the limit does not bind and dU's own slopes
+    stand. Knots beyond [lo, hi] (where Eq. 4 may be singular) keep their PCHIP slopes."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     d = pchip_slopes(x, y)
-    base = eval_docv_dz(coeffs, x)
-    sec = np.diff(eval_ocv(coeffs, x) + y) / np.diff(x)
-    left = np.concatenate([sec[:1], sec])  # an end knot: its one secant on both sides
+    inside = np.flatnonzero((x >= lo) & (x <= hi))
+    if inside.shape[0] < 2:
+        return d
+    xi = x[inside]
+    base = eval_docv_dz(coeffs, xi)
+    sec = np.diff(eval_ocv(coeffs, xi) + y[inside]) / np.diff(xi)
+    left = np.concatenate([sec[:1], sec])  # an edge knot: its one secant on both sides
     right = np.concatenate([sec, sec[-1:]])
     lim = np.minimum(left, right)
     rising = lim >= 0
-    total = np.where(rising, np.clip(base + d, 0.0, 3.0 * np.maximum(lim, 0.0)), base + d)
-    return np.asarray(np.where(rising, total - base, d), dtype=np.float64)
+    di = d[inside]
+    total = np.where(rising, np.clip(base + di, 0.0, 3.0 * np.maximum(lim, 0.0)), base + di)
+    d[inside] = np.where(rising, total - base, di)
+    return d
 
 
 def hermite_table(
@@ -213,7 +222,7 @@ def correction_fall(
     ``CHECK_POINTS_PER_INTERVAL`` points per knot interval and 2001 across [lo, hi]."""
     x = np.asarray(soc, dtype=np.float64)
     y = np.asarray(dU_V, dtype=np.float64)
-    d = table_slopes(coeffs, x, y)
+    d = table_slopes(coeffs, x, y, lo, hi)
     u = np.linspace(0.0, 1.0, CHECK_POINTS_PER_INTERVAL + 1)
     pts = (x[:-1, None] + np.diff(x)[:, None] * u[None, :]).ravel()
     grid = np.unique(np.concatenate([np.linspace(lo, hi, 2001), pts[(pts >= lo) & (pts <= hi)]]))
@@ -287,7 +296,7 @@ class OcvModel:
                     f"the OCV correction table's knots (SOC {100 * cx[0]:g}-{100 * cx[-1]:g} %) "
                     f"must cover the curve's range SOC {100 * soc_min:g}-{100 * soc_max:g} %"
                 )
-            cd = table_slopes(coeffs, cx, cy)
+            cd = table_slopes(coeffs, cx, cy, soc_min, soc_max)
             fall = correction_fall(coeffs, cx, cy, soc_min, soc_max)
             if fall is not None:
                 eq4 = float(eval_docv_dz(coeffs, fall[0]))

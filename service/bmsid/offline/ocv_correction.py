@@ -169,7 +169,7 @@ def fit_correction(
     # left of a branch's own offset (M(z) h, the polarisation) is no part of the mean curve.
     grid = np.linspace(lo, hi, 1001)
     r_mean = np.mean([np.interp(grid, z[np.argsort(z)], r[np.argsort(z)]) for z, r in parts], 0)
-    table = hermite_table(knots, du, table_slopes(coeffs, knots, du), grid, False)
+    table = hermite_table(knots, du, table_slopes(coeffs, knots, du, lo, hi), grid, False)
     eq4_rmse = float(np.sqrt(np.mean(r_mean**2)))
     rmse = float(np.sqrt(np.mean((r_mean - table) ** 2)))
     table_rms = float(np.sqrt(np.mean(table**2)))

@@ -1305,13 +1305,14 @@ def band_residuals(
 
 
 def _curve_at(
-    coeffs: FloatArray, table: tuple[FloatArray, FloatArray] | None, z: float
+    coeffs: FloatArray, table: tuple[FloatArray, FloatArray] | None, z: float, lo: float, hi: float
 ) -> tuple[float, float] | None:
-    """Value (V) and slope of Eq. 4 + the correction table at ``z`` (None without a table)."""
+    """Value (V) and slope of Eq. 4 + the correction table at ``z`` for a curve on [lo, hi] (None
+    without a table)."""
     if table is None:
         return None
     x, y = table
-    d, zz = table_slopes(coeffs, x, y), np.array([z])
+    d, zz = table_slopes(coeffs, x, y, lo, hi), np.array([z])
     return (
         float(eval_ocv(coeffs, z) + hermite_table(x, y, d, zz, False)[0]),
         float(eval_docv_dz(coeffs, z) + hermite_table(x, y, d, zz, True)[0]),
@@ -1339,7 +1340,8 @@ def _join_ends(
         for _ in range(40):
             try:
                 end_segment(coeffs, join, 0.0 if which == "empty" else 1.0, v_end,
-                            join=_curve_at(coeffs, table, join))  # fmt: skip
+                            join=_curve_at(coeffs, table, join, join if which == "empty" else lo,
+                                           hi if which == "empty" else join))  # fmt: skip
                 break
             except ValueError as exc:
                 last = str(exc)
@@ -1506,7 +1508,13 @@ def fit_ocv_test(
         v_empty_V=v_empty, v_full_V=v_full, test=branches, m_fit_ci95_V=m_ci,
         hysteresis=replace(evidence, status=tuple(status)), correction=corr,
     )  # fmt: skip
-    model = result.ocv_model()
+    try:
+        model = result.ocv_model()
+    except ValueError as exc:  # the table with the ends as joined: refused, Eq. 4 alone
+        assert corr is not None and corr.written
+        corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
+        result = replace(result, correction=corr)
+        model = result.ocv_model()
     bands: list[BandResidual] = []
     for name, b in (("discharge", dis), ("charge", chg)):
         v_model = model.ocv(b.z) + model.hysteresis_M(b.z) * b.h
