@@ -1470,6 +1470,8 @@ def fit_ocv_test(
     check_physical(mean, np.concatenate([dis.v_raw_V, chg.v_raw_V]), branches.polarisation)
     corr = None
     if correction:  # what Eq. 4 misses of the same (hysteresis-free) mean data
+        # The noise from each branch's own first differences: at C/20 the OCV moves far less
+        # per sample than the noise, and the MAD ignores the branch's few steps.
         noise = float(
             np.median([voltage_noise_V(b.v_V, [(0, b.v_V.shape[0])]) for b in (dis, chg)])
         )
@@ -1511,7 +1513,8 @@ def fit_ocv_test(
     try:
         model = result.ocv_model()
     except ValueError as exc:  # the table with the ends as joined: refused, Eq. 4 alone
-        assert corr is not None and corr.written
+        if corr is None or not corr.written:
+            raise
         corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
         result = replace(result, correction=corr)
         model = result.ocv_model()
