@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 from typing import Any
 
@@ -74,8 +75,6 @@ def test_the_kernels_ocv_helpers_agree_with_the_model_with_a_table(seed: int, en
     """``ocv_kernel.ocv_at`` / ``docv_dz_at`` (plain and compiled) over the packed vector equal
     ``OcvModel.ocv`` / ``docv_dz`` of a curve with a random correction table, at its knots, on
     both sides of them, beyond the curve and at NaN."""
-    import numba  # here: numba only for the tests that compile
-
     m = _ocv(ends, table=True, seed=seed)
     assert m.corr_soc is not None
     p = ocv_params(m)
@@ -83,12 +82,19 @@ def test_the_kernels_ocv_helpers_agree_with_the_model_with_a_table(seed: int, en
     rng = np.random.default_rng(seed)
     z = np.concatenate([m.corr_soc, m.corr_soc + 1e-9, m.corr_soc - 1e-9,
                         rng.uniform(-0.1, 1.1, 200), [0.0, 1.0, 0.03, 0.97, np.nan]])  # fmt: skip
-    register()
-    probe = numba.njit(cache=False)(_probe)
-    for fn in (_probe, probe):
+    for fn in (_probe, _compiled_probe()):
         v, d = fn(p, z)
         np.testing.assert_allclose(v, m.ocv(z), rtol=1e-12, atol=1e-13, equal_nan=True)
         np.testing.assert_allclose(d, m.docv_dz(z), rtol=1e-11, atol=1e-11, equal_nan=True)
+
+
+@functools.cache
+def _compiled_probe() -> Any:
+    """``_probe`` compiled once per process (numba only for the tests that compile)."""
+    import numba
+
+    register()
+    return numba.njit(cache=False)(_probe)
 
 
 def _probe(p: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
