@@ -6,11 +6,16 @@ set -euo pipefail
 DATA=${BMSID_REAL_DATA:-../shared/data/real}
 OUT=configs/cells
 BMSID=${BMSID:-bmsid}
+# --no-ocv-correction on the two low-rate tests: with the correction table beyond Eq. 4 that
+# fit-ocv now writes for them (A123: Eq. 4 RMSE 6.17 -> 1.51 mV on the branches' mean; DFN:
+# 12.86 -> 2.02 mV), bench/accuracy_real.py --physics lost on some README figures (A123
+# DYN50 whole record 5.32 -> 5.90 mV, first 10 % 5.50 -> 6.47; physics BBDST 35C
+# hy-affrls-lpso 2.71 -> 2.94 mV after 10 %), so the shipped configs stay Eq. 4 alone.
 
 A=$DATA/a123_lfp_25C
 $BMSID fit-ocv "$A"/a123_25C_OCV_S1.csv.gz "$A"/a123_25C_OCV_S2.csv.gz \
     "$A"/a123_25C_OCV_S3.csv.gz "$A"/a123_25C_OCV_S4.csv.gz \
-    --name a123-lfp-25C --chemistry LFP --out $OUT/a123_lfp_25C.toml
+    --name a123-lfp-25C --chemistry LFP --no-ocv-correction --out $OUT/a123_lfp_25C.toml
 
 P=$DATA/calce_inr18650-20r/ocv_points
 CALCE_OPTS=(--chemistry NMC --capacity-ah 2.0 --points --soc-anchor full)
@@ -27,4 +32,4 @@ done
 # The physics reference data's cell (PyBaMM DFN, LG M50), from its shipped C/20 test.
 # No [initial] and no [bounds] anywhere: identify and the daemon measure them on the record.
 $BMSID fit-ocv data/physics/dfn_nmc_ocv_c20_25C.csv.gz --chemistry NMC --name dfn-nmc-lgm50-25C \
-    --out $OUT/dfn_nmc_lgm50_25C.toml
+    --no-ocv-correction --out $OUT/dfn_nmc_lgm50_25C.toml

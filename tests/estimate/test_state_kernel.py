@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 from typing import Any
 
@@ -16,14 +17,16 @@ from hypothesis import strategies as st
 
 from bmsid.config.cell import PAPER_OCV_MEAN, paper_cell
 from bmsid.config.engine import build_bank, cell_model
-from bmsid.estimate import jit, observer_kernel
+from bmsid.estimate import jit, observer_kernel, ocv_kernel
+from bmsid.estimate.jit_helpers import register
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import TickContext
 from bmsid.estimate.state import CoulombState
+from bmsid.estimate.state_jit import ocv_params
 from bmsid.estimate.ticks import Tick
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.model.ocv import OcvModel, eval_docv_dz, eval_ocv
+from bmsid.model.ocv import OcvModel
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import paper_dst_case
 from bmsid.synthetic.multiday import MultidayOptions, generate
@@ -39,21 +42,73 @@ def test_the_compiled_kernels_are_available() -> None:
 
 
 # ----------------------------------------------------------------------------- random stages
-def _ocv(ends: bool) -> OcvModel:
+def _ocv(ends: bool, table: bool = False, seed: int = 0) -> OcvModel:
+    """The paper's curve on [0.03, 0.97], with end segments and/or a random correction table
+    (3-30 knots covering the curve's range, the end ones at or beyond it; values of a few mV,
+    halved until the corrected curve increases)."""
     lo, hi = 0.03, 0.97
-    if not ends:
-        return OcvModel.from_coeffs(PAPER, lo, hi, M_SOC, M_V)
-    v_lo, v_hi = float(eval_ocv(PAPER, lo)), float(eval_ocv(PAPER, hi))
-    d_lo, d_hi = float(eval_docv_dz(PAPER, lo)), float(eval_docv_dz(PAPER, hi))
-    return OcvModel.from_coeffs(
-        PAPER, lo, hi, M_SOC, M_V, v_empty_V=v_lo - d_lo * lo, v_full_V=v_hi + d_hi * (1 - hi)
-    )
+    kw: dict[str, Any] = {}
+    if table:
+        rng = np.random.default_rng(seed)
+        inner = np.round(rng.uniform(0.04, 0.96, int(rng.integers(1, 29))), 6)
+        x = np.unique(np.concatenate([rng.choice([[0.0], [0.03], [0.01]]), inner,
+                                      rng.choice([[1.0], [0.97], [0.99]])]))  # fmt: skip
+        kw = {"corr_soc": x, "corr_V": rng.uniform(-0.008, 0.008, x.shape[0])}
+    while True:
+        try:
+            if not ends:
+                return OcvModel.from_coeffs(PAPER, lo, hi, M_SOC, M_V, **kw)
+            ref = OcvModel.from_coeffs(PAPER, lo, hi, M_SOC, M_V, **kw)
+            v_lo, v_hi = (float(ref.ocv(np.array([z]))[0]) for z in (lo, hi))
+            d_lo, d_hi = (float(ref.docv_dz(np.array([z]))[0]) for z in (lo, hi))
+            return OcvModel.from_coeffs(
+                PAPER, lo, hi, M_SOC, M_V, v_empty_V=v_lo - d_lo * lo,
+                v_full_V=v_hi + d_hi * (1 - hi), **kw,
+            )  # fmt: skip
+        except ValueError:  # the table leaves the curve falling: a smaller one
+            kw["corr_V"] = 0.5 * kw["corr_V"]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), ends=st.booleans())
+def test_the_kernels_ocv_helpers_agree_with_the_model_with_a_table(seed: int, ends: bool) -> None:
+    """``ocv_kernel.ocv_at`` / ``docv_dz_at`` (plain and compiled) over the packed vector equal
+    ``OcvModel.ocv`` / ``docv_dz`` of a curve with a random correction table, at its knots, on
+    both sides of them, beyond the curve and at NaN."""
+    m = _ocv(ends, table=True, seed=seed)
+    assert m.corr_soc is not None
+    p = ocv_params(m)
+    assert p.shape[0] == ocv_kernel.N_OCV + 3 * m.corr_soc.shape[0]
+    rng = np.random.default_rng(seed)
+    z = np.concatenate([m.corr_soc, m.corr_soc + 1e-9, m.corr_soc - 1e-9,
+                        rng.uniform(-0.1, 1.1, 200), [0.0, 1.0, 0.03, 0.97, np.nan]])  # fmt: skip
+    for fn in (_probe, _compiled_probe()):
+        v, d = fn(p, z)
+        np.testing.assert_allclose(v, m.ocv(z), rtol=1e-12, atol=1e-13, equal_nan=True)
+        np.testing.assert_allclose(d, m.docv_dz(z), rtol=1e-11, atol=1e-11, equal_nan=True)
+
+
+@functools.cache
+def _compiled_probe() -> Any:
+    """``_probe`` compiled once per process (numba only for the tests that compile)."""
+    import numba
+
+    register()
+    return numba.njit(cache=False)(_probe)
+
+
+def _probe(p: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    v, d = np.empty_like(z), np.empty_like(z)
+    for i in range(z.shape[0]):
+        v[i] = observer_kernel.ocv_at(p, z[i])
+        d[i] = observer_kernel.docv_dz_at(p, z[i])
+    return v, d
 
 
 def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombState:
     """A stage of ``n`` cells in a random state (every cell started)."""
     model = cell_model(paper_cell(), n)
-    model = dataclasses.replace(model, ocv=_ocv(cfg["ends"]))
+    model = dataclasses.replace(model, ocv=_ocv(cfg["ends"], cfg["table"], int(rng.integers(1e9))))
     if not cfg["uniform"]:
         model = dataclasses.replace(
             model, capacity_Ah=rng.uniform(1.5, 3.0, n), efficiency=rng.uniform(0.95, 1.0, n),
@@ -159,23 +214,25 @@ def _same(ref: CoulombState, new: CoulombState, cref: TickContext, cnew: TickCon
     seed=st.integers(0, 2**32 - 1),
     observer=st.booleans(),
     ends=st.booleans(),
+    table=st.booleans(),
     learn_map=st.booleans(),
     uniform=st.booleans(),
     pending=st.booleans(),
     knee=st.sampled_from([math.inf, 3.0]),
 )
 def test_compiled_and_numpy_ticks_agree(
-    n: int, seed: int, observer: bool, ends: bool, learn_map: bool, uniform: bool, pending: bool,
-    knee: float,
+    n: int, seed: int, observer: bool, ends: bool, table: bool, learn_map: bool, uniform: bool,
+    pending: bool, knee: float,
 ) -> None:  # fmt: skip
     """Random states and ticks (currents at rest and under load, several or no coulomb steps,
-    zero dt, gaps, cells without a voltage, SOC beyond the curve, an offset, a learnt map, due
+    zero dt, gaps, cells without a voltage, SOC beyond the curve, a correction table on the OCV
+    curve, an offset, a learnt map, due
     updates with anchors, re-anchors and gated innovations): the compiled step and update (and
     their sources run as plain Python, the registry's reference) leave every state, context
     field and counter equal to the stages' own numpy code."""
     rng = np.random.default_rng(seed)
-    cfg = {"observer": observer, "ends": ends, "map": learn_map, "uniform": uniform,
-           "pending": pending, "knee": knee}  # fmt: skip
+    cfg = {"observer": observer, "ends": ends, "table": table, "map": learn_map,
+           "uniform": uniform, "pending": pending, "knee": knee}  # fmt: skip
     ref = _stage(rng, n, cfg)
     new, src = copy.deepcopy(ref), copy.deepcopy(ref)
     before = jit.MODE

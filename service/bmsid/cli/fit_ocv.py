@@ -6,9 +6,11 @@ Two inputs:
   in time order, e.g. the discharge and the charge files, or all four parts of Plett's test);
 - ``--points``: rest-point tables (SOC, OCV) with one or both branches (``read_ocv_points``).
 
-The report gives M(z) per knot with its 95 % CI, the polarisation taken out of the branch gap
-(R0 + R1 + R2 from the test's rests and current steps) and the pooled mid-SOC evidence for
-hysteresis; a knot is never written as 0 silently (a note says why). The method and its
+Where Eq. 4's six terms miss the test's mean OCV by more than its voltage noise, a correction
+table dU(z) (knots ~2.5 % SOC apart) is written beside it (``--no-ocv-correction``: Eq. 4
+alone). The report gives M(z) per knot with its 95 % CI, the polarisation taken out of the
+branch gap (R0 + R1 + R2 from the test's rests and current steps) and the pooled mid-SOC
+evidence for hysteresis; a knot is never written as 0 silently (a note says why). The method and its
 conventions are documented in ``bmsid.offline.ocv_fit``; the command is
 :func:`bmsid.offline.ocv_config.fit_ocv_files` with its options as an ``OcvFitSpec``.
 """
@@ -48,6 +50,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--no-ends",
         action="store_true",
         help="do not extend the OCV to the rested voltages at empty/full (clamp as before)",
+    )
+    p.add_argument(
+        "--no-ocv-correction",
+        action="store_true",
+        help="write Eq. 4 alone: no correction table beyond it, even where the test resolves "
+        "one (see the report's 'OCV correction table' line)",
     )
     p.add_argument("--name", default=None, help="cell name (default: the output file's stem)")
     p.add_argument("--chemistry", default="unknown", help="chemistry label, e.g. LFP, NMC")
@@ -187,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
         soc_anchor=args.soc_anchor,
         hysteresis_from=args.hysteresis_from,
         ends=not args.no_ends,
+        correction=not args.no_ocv_correction,
     )
     fit = fit_ocv_files(args.inputs, spec)
     print(fit.report())

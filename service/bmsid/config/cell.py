@@ -6,6 +6,7 @@ One pydantic model, stored as TOML or JSON (``load_cell_config`` / ``save_cell_c
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import tomllib
@@ -15,9 +16,14 @@ from typing import Annotated, Literal, Self
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bmsid.model.ocv import end_segment
+from bmsid.model.ocv import OcvModel, end_segment
 
 Coeffs = Annotated[list[float], Field(min_length=6, max_length=6)]
+#: Largest |dU| (V) of an OCV correction table: a table corrects what Eq. 4's six terms miss of
+#: the same cell's curve (6-18 mV on the C/20 tests measured, tens of mV at a staging step);
+#: 0.2 V is a tenth of a Li-ion cell's whole OCV span and catches a table in mV or from another
+#: cell.
+MAX_CORRECTION_V = 0.2
 
 
 class _Strict(BaseModel):
@@ -36,6 +42,14 @@ class OcvCurve(_Strict):
     monotone cubic that is C1 with Eq. 4 at the join and reaches that voltage at the end
     (``bmsid.model.ocv.end_segment``), and SOC may run to 0 / 1. When absent, z is clamped to
     [soc_min, soc_max] as before. ``discharge``/``charge`` are never extended (reporting only).
+
+    ``correction_soc`` / ``correction_V`` (optional, written by ``fit-ocv`` when Eq. 4 misses
+    the test's mean OCV by more than its noise): a table dU(z) added to ``mean`` on
+    [soc_min, soc_max], knots as SOC fractions (strictly increasing in [0, 1], at least 3) and
+    values in V (|dU| <= 0.2 V). The mean curve is then Eq. 4 + dU, a C1 piecewise cubic through
+    the knots (Fritsch-Carlson slopes, ``bmsid.model.ocv``), held at its end values beyond them;
+    the end segments join it, and it must increase over [soc_min, soc_max]. Without the table
+    the curve is Eq. 4 exactly as before.
     """
 
     mean: Coeffs
@@ -45,9 +59,14 @@ class OcvCurve(_Strict):
     soc_max: float = Field(0.99, gt=0.5, lt=1.0)
     v_empty_V: float | None = Field(None, gt=0.0, lt=10.0)
     v_full_V: float | None = Field(None, gt=0.0, lt=10.0)
+    correction_soc: list[float] | None = None
+    correction_V: list[float] | None = None
 
     @model_validator(mode="after")
     def _ends(self) -> Self:
+        if self.correction_soc is not None or self.correction_V is not None:
+            self._check_correction()
+            return self
         for v_end, join, end in (
             (self.v_empty_V, self.soc_min, 0.0),
             (self.v_full_V, self.soc_max, 1.0),
@@ -55,6 +74,32 @@ class OcvCurve(_Strict):
             if v_end is not None:
                 end_segment(self.mean, join, end, v_end)  # ValueError: no monotone C1 segment
         return self
+
+    def _check_correction(self) -> None:
+        zs, dus = self.correction_soc, self.correction_V
+        if zs is None or dus is None:
+            raise ValueError("ocv.correction_soc and ocv.correction_V must be given together")
+        if len(zs) != len(dus) or len(zs) < 3:
+            raise ValueError(
+                "ocv.correction_soc and ocv.correction_V need the same length, at least 3 "
+                f"(got {len(zs)} and {len(dus)})"
+            )
+        if not all(math.isfinite(z) and 0.0 <= z <= 1.0 for z in zs) or any(
+            b <= a for a, b in itertools.pairwise(zs)
+        ):
+            raise ValueError("ocv.correction_soc must increase strictly within [0, 1] (fractions)")
+        if not all(math.isfinite(d) and abs(d) <= MAX_CORRECTION_V for d in dus):
+            raise ValueError(
+                f"ocv.correction_V must lie within +-{MAX_CORRECTION_V} V (volts, not mV)"
+            )
+        try:  # the corrected curve must increase and join its ends monotonically
+            OcvModel.from_coeffs(
+                self.mean, self.soc_min, self.soc_max, [0.0, 1.0], [0.0, 0.0],
+                v_empty_V=self.v_empty_V, v_full_V=self.v_full_V,
+                corr_soc=zs, corr_V=dus,
+            )  # fmt: skip
+        except ValueError as exc:
+            raise ValueError(f"ocv.correction_V: {exc}") from None
 
 
 class HysteresisTable(_Strict):

@@ -20,8 +20,9 @@ FloatArray = npt.NDArray[np.float64]
 
 
 def ocv_model(cell: CellConfig) -> OcvModel:
-    """The cell's mean OCV curve (Eq. 4, with its end segments to the rested voltages at empty
-    and full when the config has them) and hysteresis table M(z) (Eq. 32)."""
+    """The cell's mean OCV curve (Eq. 4, plus its correction table and its end segments to the
+    rested voltages at empty and full when the config has them) and hysteresis table M(z)
+    (Eq. 32)."""
     o = cell.ocv
     return OcvModel.from_coeffs(
         o.mean,
@@ -31,6 +32,8 @@ def ocv_model(cell: CellConfig) -> OcvModel:
         cell.hysteresis.M_V,
         v_empty_V=o.v_empty_V,
         v_full_V=o.v_full_V,
+        corr_soc=o.correction_soc,
+        corr_V=o.correction_V,
     )
 
 

@@ -41,6 +41,7 @@ from bmsid.estimate import (
     guard_kernel,
     jit,
     observer_kernel,
+    ocv_kernel,
     publish_average,
     publish_kernel,
     rls_kernel,
@@ -357,7 +358,7 @@ def warm_args(n: int) -> tuple[Any, ...]:
         np.zeros(1, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, N_PT)), f, True, f, f, f,
         f, f, f, f, b_, np.zeros((n + 1, n + 1)), np.zeros(0), np.zeros(N_SO), b_,
         np.zeros((observer_kernel.N_CELL_ROWS, n)), np.zeros(observer_kernel.N_TUN),
-        np.zeros(observer_kernel.N_OCV), np.zeros(2), np.zeros(2), np.zeros(0), np.zeros(0),
+        np.zeros(ocv_kernel.N_OCV), np.zeros(2), np.zeros(2), np.zeros(0), np.zeros(0),
         np.zeros(2), np.zeros(2), np.zeros(0), np.zeros(observer_kernel.N_UTUN), True, f, f,
         f, f, f, f, f, f, f, f, f, np.zeros((n, 5)), np.zeros((n, 5, 5)), np.zeros((n, 2)),
         np.zeros((n, 5)), np.zeros(2), np.zeros((2, 5, n)), f, b_, b_, 1.0, 0, 1e5,
@@ -389,7 +390,7 @@ def _reference(*args: Any) -> Any:
 
 
 #: The files whose compiled code the loop embeds (its cache entry is named after them).
-_EMBEDS = (observer_kernel, rls_kernel, rls_reference, publish_kernel, guard_kernel,
+_EMBEDS = (observer_kernel, ocv_kernel, rls_kernel, rls_reference, publish_kernel, guard_kernel,
            publish_average, tick_block)  # fmt: skip
 FUSED_TICKS = jit.Kernel(
     "fused ticks", _reference, _fused_source, _warm,

@@ -7,9 +7,10 @@ with a cell to start). The kernels here loop over cells with the reference's ope
 order, so they agree to rounding (libm's exp/log against numpy's SIMD ones, LAPACK's gesv and
 BLAS's sums against numba's): ``tests/estimate/test_state_kernel.py``.
 
-The kernels call a few scalar helpers (the OCV curve and its slope, numpy's interp, the
-hysteresis map's hat weights), plain Python marked ``@helper`` (``jit_helpers.py``), kept in this
-file so that numba's cache sees a change to them.
+The kernels call a few scalar helpers (numpy's interp, the hysteresis map's hat weights), plain
+Python marked ``@helper`` (``jit_helpers.py``), kept in this file so that numba's cache sees a
+change to them; the OCV curve and its slope are ``ocv_kernel.py``'s, which both kernels name in
+``depends`` for the same reason.
 """
 
 from __future__ import annotations
@@ -20,73 +21,26 @@ from typing import Any
 
 import numpy as np
 
-from bmsid.estimate import jit
+from bmsid.estimate import jit, ocv_kernel
 from bmsid.estimate.jit_helpers import helper, register
+from bmsid.estimate.ocv_kernel import (  # the OCV vector's layout and helpers, re-exported
+    EQ4_MAX,
+    EQ4_MIN,
+    N_OCV,
+    SOC_MAX,
+    SOC_MIN,
+    _max,
+    _min,
+    docv_dz_at,
+    ocv_at,
+)
 from bmsid.estimate.stage import BoolArray, FloatArray
-
-# ------------------------------------------------------------------ the OCV curve (Eq. 4, ends)
-#: Layout of the OCV vector (``state_jit.ocv_params``): Eq. 4's six coefficients (0-5), its
-#: range, the SOC range, the end flags, the end cubics (4 coefficients each, highest power
-#: first, padded with leading zeros) and their derivatives (3 each).
-EQ4_MIN, EQ4_MAX, SOC_MIN, SOC_MAX, HAS_LOW, HAS_HIGH = 6, 7, 8, 9, 10, 11
-LOW, HIGH, DLOW, DHIGH, N_OCV = 12, 16, 20, 23, 26
-
-
-@helper
-def _max(a: float, b: float) -> float:
-    """np.maximum of two floats (NaN propagates)."""
-    return a if a >= b or math.isnan(a) else b
-
-
-@helper
-def _min(a: float, b: float) -> float:
-    """np.minimum of two floats (NaN propagates)."""
-    return a if a <= b or math.isnan(a) else b
 
 
 @helper
 def _sign(x: float) -> float:
     """np.sign of a float (0 at 0, NaN at NaN)."""
     return 1.0 if x > 0 else (-1.0 if x < 0 else (0.0 if x == 0 else x))
-
-
-@helper
-def _horner(p: FloatArray, i0: int, k: int, s: float) -> float:
-    out = 0.0
-    for j in range(i0, i0 + k):
-        out = out * s + p[j]
-    return out
-
-
-@helper
-def _end(p: FloatArray, z: float, v: float, deriv: bool) -> float:
-    """``OcvModel._ends`` at one SOC: the end segment (or its slope) beyond Eq. 4."""
-    if p[HAS_LOW] != 0.0 and z < p[EQ4_MIN]:
-        zc = _min(_max(z, p[SOC_MIN]), p[SOC_MAX])
-        return _horner(p, DLOW, 3, zc - p[EQ4_MIN]) if deriv else _horner(
-            p, LOW, 4, zc - p[EQ4_MIN])  # fmt: skip
-    if p[HAS_HIGH] != 0.0 and z > p[EQ4_MAX]:
-        zc = _min(_max(z, p[SOC_MIN]), p[SOC_MAX])
-        return _horner(p, DHIGH, 3, zc - p[EQ4_MAX]) if deriv else _horner(
-            p, HIGH, 4, zc - p[EQ4_MAX])  # fmt: skip
-    return v
-
-
-@helper
-def ocv_at(p: FloatArray, z: float) -> float:
-    """``OcvModel.ocv`` at one SOC (V)."""
-    zc = _min(_max(z, p[EQ4_MIN]), p[EQ4_MAX])
-    v = (p[0] + zc * (p[1] + p[2] * zc) + p[3] / zc + p[4] * math.log(zc)
-         + p[5] * math.log1p(-zc))  # fmt: skip
-    return _end(p, z, v, False)
-
-
-@helper
-def docv_dz_at(p: FloatArray, z: float) -> float:
-    """``OcvModel.docv_dz`` at one SOC (V per unit SOC)."""
-    zc = _min(_max(z, p[EQ4_MIN]), p[EQ4_MAX])
-    d = p[1] + 2 * p[2] * zc - p[3] / (zc * zc) + p[4] / zc - p[5] / (1 - zc)
-    return _end(p, z, d, True)
 
 
 @helper
@@ -390,5 +344,8 @@ def _warm_update(kernel: Callable[..., Any]) -> object:
 
 #: The reference in the registry is the kernel source run as plain Python (the stages' numpy
 #: mode runs their own code: the reference the tests compare against).
-STEP = jit.Kernel("state step", _step_source, _step_source, _warm_step)
-UPDATE = jit.Kernel("observer update", _update_source, _update_source, _warm_update)
+_DEPENDS = (str(ocv_kernel.__file__),)
+STEP = jit.Kernel("state step", _step_source, _step_source, _warm_step, depends=_DEPENDS)
+UPDATE = jit.Kernel(
+    "observer update", _update_source, _update_source, _warm_update, depends=_DEPENDS
+)

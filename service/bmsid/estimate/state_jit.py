@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bmsid.estimate import observer_kernel as ok_
+from bmsid.estimate import ocv_kernel as oc_
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext, nnz
 from bmsid.model.ocv import OcvModel
 
@@ -30,20 +31,24 @@ _NO_STEPS = np.zeros((0, 2))
 
 
 def ocv_params(ocv: OcvModel) -> FloatArray:
-    """The curve's numbers in the kernels' layout (``observer_kernel.EQ4_MIN`` ..)."""
-    p = np.zeros(ok_.N_OCV)
+    """The curve's numbers in the kernels' layout (``ocv_kernel.EQ4_MIN`` ..), the correction
+    table (when the curve has one) appended."""
+    p = np.zeros(oc_.N_OCV)
     p[:6] = ocv.coeffs
-    p[[ok_.EQ4_MIN, ok_.EQ4_MAX]] = ocv.eq4_min, ocv.eq4_max
-    p[[ok_.SOC_MIN, ok_.SOC_MAX]] = ocv.soc_min, ocv.soc_max
-    for flag, at, dat, poly in ((ok_.HAS_LOW, ok_.LOW, ok_.DLOW, ocv._low),
-                                (ok_.HAS_HIGH, ok_.HIGH, ok_.DHIGH, ocv._high)):  # fmt: skip
+    p[[oc_.EQ4_MIN, oc_.EQ4_MAX]] = ocv.eq4_min, ocv.eq4_max
+    p[[oc_.SOC_MIN, oc_.SOC_MAX]] = ocv.soc_min, ocv.soc_max
+    for flag, at, dat, poly in ((oc_.HAS_LOW, oc_.LOW, oc_.DLOW, ocv._low),
+                                (oc_.HAS_HIGH, oc_.HIGH, oc_.DHIGH, ocv._high)):  # fmt: skip
         if poly is not None:
             p[flag] = 1.0
             c = np.asarray(poly, dtype=np.float64)
             p[at + 4 - c.shape[0] : at + 4] = c
             dc = np.asarray(np.polyder(c), dtype=np.float64)  # what OcvModel._ends evaluates
             p[dat + 3 - dc.shape[0] : dat + 3] = dc
-    return p
+    if ocv.corr_soc is None or ocv.corr_V is None or ocv._corr_d is None:
+        return p
+    p[oc_.CORR_N] = ocv.corr_soc.shape[0]
+    return np.concatenate([p, ocv.corr_soc, ocv.corr_V, ocv._corr_d])
 
 
 class Packed:

@@ -12,6 +12,21 @@ monotone by the Fritsch-Carlson condition as long as Eq. 4's slope at the join i
 times the segment's secant slope (``end_segment`` refuses anything else). Without ends, z is
 clamped to [eq4_min, eq4_max] = [soc_min, soc_max], exactly as before ends existed; with them
 ``soc_min``/``soc_max`` widen to 0/1 and SOC runs over the whole range.
+
+Correction table (optional): Eq. 4's six terms cannot follow every cell (graphite's staging
+steps leave 6-18 mV of systematic residual on a C/20 test), so the mean curve may carry a table
+dU(z) on top: ``U(z) = Eq. 4(z) + dU(z)`` on [eq4_min, eq4_max], Eq. 4 itself unchanged. dU is a
+C1 piecewise cubic (Hermite) through the knots ``corr_soc``/``corr_V`` with Fritsch-Carlson
+slopes (scipy's PCHIP, ``pchip_slopes``): it never overshoots its knot values, so a table of mV
+stays mV between knots, and the EKF's slope dU/dz is continuous; where the corrected curve is
+flat the slopes are limited so that it keeps increasing (``table_slopes``). The knots must cover
+[eq4_min, eq4_max], where the table is used (z is clamped to it, or the end segments take
+over), so the curve is C1 wherever it is evaluated; the end knots keep their one-sided slopes
+(held at 0 instead, the corrected slope at a join would be Eq. 4's, exactly where Eq. 4 is
+worst: the LFP test's Eq. 4 falls beyond 96 %). Beyond its knots dU would hold its end value.
+The end segments join the corrected curve's value and slope. A table must leave the corrected
+curve increasing over [eq4_min, eq4_max] (``OcvModel.from_coeffs`` refuses it otherwise): the
+SOC observer divides by that slope.
 """
 
 from __future__ import annotations
@@ -26,6 +41,12 @@ FloatArray = npt.NDArray[np.float64]
 #: Largest ratio (Eq. 4 slope at the join) / (segment secant slope) a monotone cubic allows
 #: with a zero end slope (Fritsch & Carlson 1980, the 2 alpha + beta <= 3 region).
 MAX_JOIN_SLOPE_RATIO = 3.0
+#: A corrected curve's slope down to -this (V per unit SOC) counts as flat, not falling: the
+#: rounding of a slope ``table_slopes`` limited to 0 (Eq. 4's slope plus the table's).
+FLAT_SLOPE = 1e-9
+#: Sub-intervals per knot interval on which ``correction_fall`` checks a table's curve (the
+#: slope of a cubic between knots is a quadratic: its minimum is found to well under 1 %).
+CHECK_POINTS_PER_INTERVAL = 32
 
 
 def ocv_basis(z: FloatArray | float) -> FloatArray:
@@ -49,28 +70,38 @@ def eval_docv_dz(coeffs: FloatArray | list[float], z: FloatArray | float) -> Flo
 
 
 def end_segment(
-    coeffs: FloatArray | list[float], z_join: float, z_end: float, v_end_V: float
+    coeffs: FloatArray | list[float],
+    z_join: float,
+    z_end: float,
+    v_end_V: float,
+    *,
+    join: tuple[float, float] | None = None,
 ) -> FloatArray:
     """Cubic Hermite from Eq. 4 at ``z_join`` (value and slope) to ``v_end_V`` at ``z_end``.
 
-    Returns the polynomial coefficients in ``s = z - z_join`` (highest power first, V per unit
-    SOC^k). ``z_end`` is 0 (empty) or 1 (full). Raises ValueError when no monotone C1 segment of
-    this form exists: the end voltage on the wrong side of the join's, or Eq. 4 at the join
-    more than ``MAX_JOIN_SLOPE_RATIO`` times steeper than the segment's secant (move the join
-    inwards).
+    ``join``: the value (V) and slope (V per unit SOC) to join instead of Eq. 4's (the curve
+    with its correction table). Returns the polynomial coefficients in ``s = z - z_join``
+    (highest power first, V per unit SOC^k). ``z_end`` is 0 (empty) or 1 (full). Raises
+    ValueError when no monotone C1 segment of this form exists: the end voltage on the wrong
+    side of the join's, or the curve at the join more than ``MAX_JOIN_SLOPE_RATIO`` times
+    steeper than the segment's secant (move the join inwards).
     """
-    v_join = float(eval_ocv(coeffs, z_join))
-    d_join = float(eval_docv_dz(coeffs, z_join))
+    if join is None:
+        v_join = float(eval_ocv(coeffs, z_join))
+        d_join = float(eval_docv_dz(coeffs, z_join))
+    else:
+        v_join, d_join = float(join[0]), float(join[1])
     secant = (v_end_V - v_join) / (z_end - z_join)
     where = "empty" if z_end < z_join else "full"
+    curve = "Eq. 4" if join is None else "the corrected curve"
     if not secant > 0:
         raise ValueError(
-            f"the {where} voltage {v_end_V:.4f} V does not continue Eq. 4's {v_join:.4f} V at "
+            f"the {where} voltage {v_end_V:.4f} V does not continue {curve}'s {v_join:.4f} V at "
             f"SOC {z_join:g} monotonically"
         )
     if not 0 <= d_join <= MAX_JOIN_SLOPE_RATIO * secant:
         raise ValueError(
-            f"Eq. 4's slope {d_join:.3g} V at SOC {z_join:g} allows no monotone segment to the "
+            f"{curve}'s slope {d_join:.3g} V at SOC {z_join:g} allows no monotone segment to the "
             f"{where} voltage {v_end_V:.4f} V (secant {secant:.3g} V): move the join inwards"
         )
     d_end = max(2.0 * secant - d_join, 0.0)  # the quadratic's end slope, else a flat end
@@ -87,6 +118,119 @@ def end_segment(
     return np.asarray(poly.coeffs, dtype=np.float64)
 
 
+def pchip_slopes(x: FloatArray, y: FloatArray) -> FloatArray:
+    """Fritsch-Carlson slopes of a correction table (knots ``x`` strictly increasing, values
+    ``y``), as scipy's PCHIP: at an interior knot the weighted harmonic mean of the two secants
+    (Fritsch & Butland 1984), 0 where they differ in sign or one is 0; at an end knot the
+    one-sided three-point estimate, 0 where its sign is not the end secant's and at most three
+    times that secant where the secants change sign (shape-preserving, no overshoot)."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    h = np.diff(x)
+    delta = np.diff(y) / h
+    if x.shape[0] == 2:
+        return np.array([delta[0], delta[0]])
+    d = np.zeros_like(x)
+    w1 = 2.0 * h[1:] + h[:-1]
+    w2 = h[1:] + 2.0 * h[:-1]
+    same = delta[:-1] * delta[1:] > 0
+    dl = np.where(same, delta[:-1], 1.0)
+    dr = np.where(same, delta[1:], 1.0)
+    d[1:-1] = np.where(same, (w1 + w2) / (w1 / dl + w2 / dr), 0.0)
+    for at, h0, h1, m0, m1 in ((0, h[0], h[1], delta[0], delta[1]),
+                               (-1, h[-1], h[-2], delta[-1], delta[-2])):  # fmt: skip
+        e = ((2.0 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+        if np.sign(e) != np.sign(m0):
+            e = 0.0
+        elif np.sign(m0) != np.sign(m1) and abs(e) > abs(3.0 * m0):
+            e = 3.0 * m0
+        d[at] = e
+    return d
+
+
+def table_slopes(
+    coeffs: FloatArray | list[float], x: FloatArray, y: FloatArray, lo: float, hi: float
+) -> FloatArray:
+    """The correction table's slopes at its knots: ``pchip_slopes`` of dU, limited at each knot
+    in the curve's range [lo, hi] where the corrected curve rises to its neighbours in that
+    range (one at the range's edge), so that its slope there, Eq. 4's + dU's, lies in
+    [0, 3 x the smaller secant of the corrected knot values]: Fritsch & Carlson's monotone
+    region. Where the curve is flat (an LFP plateau, dU nearly -Eq. 4) PCHIP of dU alone
+    leaves the sum falling between knots; elsewhere the limit does not bind and dU's own slopes
+    stand. Knots beyond [lo, hi] (where Eq. 4 may be singular) keep their PCHIP slopes."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    d = pchip_slopes(x, y)
+    inside = np.flatnonzero((x >= lo) & (x <= hi))
+    if inside.shape[0] < 2:
+        return d
+    xi = x[inside]
+    base = eval_docv_dz(coeffs, xi)
+    sec = np.diff(eval_ocv(coeffs, xi) + y[inside]) / np.diff(xi)
+    left = np.concatenate([sec[:1], sec])  # an edge knot: its one secant on both sides
+    right = np.concatenate([sec, sec[-1:]])
+    lim = np.minimum(left, right)
+    rising = lim >= 0
+    di = d[inside]
+    total = np.where(rising, np.clip(base + di, 0.0, 3.0 * np.maximum(lim, 0.0)), base + di)
+    d[inside] = np.where(rising, total - base, di)
+    return d
+
+
+def hermite_table(
+    x: FloatArray, y: FloatArray, d: FloatArray, z: FloatArray, deriv: bool
+) -> FloatArray:
+    """The correction table's value (or slope) at ``z``: the cubic Hermite through (x, y) with
+    slopes ``d`` on [x0, x_last], the end values (slope 0) beyond (``OcvModel`` never asks
+    there: its table covers the curve's range), NaN at NaN.
+    ``observer_kernel``'s ``corr_at`` computes the same operations in the same order."""
+    zz = np.asarray(z, dtype=np.float64)
+    k = x.shape[0]
+    j = np.clip(np.searchsorted(x, zz, side="right") - 1, 0, k - 2)
+    h = x[j + 1] - x[j]
+    t = (zz - x[j]) / h
+    dy = y[j + 1] - y[j]
+    c1 = h * d[j]
+    c2 = 3.0 * dy - h * (2.0 * d[j] + d[j + 1])
+    c3 = h * (d[j] + d[j + 1]) - 2.0 * dy
+    if deriv:
+        inner = (c1 + t * (2.0 * c2 + t * (3.0 * c3))) / h
+        return np.asarray(np.where((zz < x[0]) | (zz > x[-1]), 0.0, inner), dtype=np.float64)
+    inner = y[j] + t * (c1 + t * (c2 + t * c3))
+    out = np.where(zz < x[0], y[0], np.where(zz > x[-1], y[-1], inner))
+    return np.asarray(out, dtype=np.float64)
+
+
+def check_table(soc: FloatArray | list[float], dU_V: FloatArray | list[float]) -> None:
+    """ValueError unless a correction table has >= 2 finite knots, strictly increasing in
+    [0, 1], and as many finite values."""
+    x = np.asarray(soc, dtype=np.float64)
+    y = np.asarray(dU_V, dtype=np.float64)
+    if x.ndim != 1 or x.shape != y.shape or x.shape[0] < 2:
+        raise ValueError("a correction table needs as many values as knots, at least 2")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError("a correction table's knots and values must be finite")
+    if np.any(np.diff(x) <= 0) or x[0] < 0 or x[-1] > 1:
+        raise ValueError("a correction table's knots must increase strictly within [0, 1]")
+
+
+def correction_fall(
+    coeffs: FloatArray | list[float], soc: FloatArray, dU_V: FloatArray, lo: float, hi: float
+) -> tuple[float, float] | None:
+    """Where Eq. 4 plus the table (``soc``, ``dU_V``) falls on [lo, hi]: (SOC, slope V per unit
+    SOC) of its lowest slope when that is below ``-FLAT_SLOPE``, else None. Checked on
+    ``CHECK_POINTS_PER_INTERVAL`` points per knot interval and 2001 across [lo, hi]."""
+    x = np.asarray(soc, dtype=np.float64)
+    y = np.asarray(dU_V, dtype=np.float64)
+    d = table_slopes(coeffs, x, y, lo, hi)
+    u = np.linspace(0.0, 1.0, CHECK_POINTS_PER_INTERVAL + 1)
+    pts = (x[:-1, None] + np.diff(x)[:, None] * u[None, :]).ravel()
+    grid = np.unique(np.concatenate([np.linspace(lo, hi, 2001), pts[(pts >= lo) & (pts <= hi)]]))
+    slope = eval_docv_dz(coeffs, grid) + hermite_table(x, y, d, grid, True)
+    at = int(np.argmin(slope))
+    return (float(grid[at]), float(slope[at])) if not slope[at] >= -FLAT_SLOPE else None
+
+
 def _horner(p: FloatArray, s: FloatArray) -> FloatArray:
     out = np.zeros_like(s)
     for c in p:
@@ -96,12 +240,13 @@ def _horner(p: FloatArray, s: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True)
 class OcvModel:
-    """A cell's mean OCV curve (Eq. 4, optionally with end segments), its hysteresis table
-    M(z) (Eq. 32) and their derivatives.
+    """A cell's mean OCV curve (Eq. 4, optionally with a correction table and end segments),
+    its hysteresis table M(z) (Eq. 32) and their derivatives.
 
     ``soc_min``/``soc_max``: the range SOC is clamped to (0/1 at an end that has a segment);
-    ``eq4_min``/``eq4_max``: where Eq. 4 itself is used. Precomputes an inverse table for
-    SOC-from-voltage (used to initialise SOC at rest).
+    ``eq4_min``/``eq4_max``: where Eq. 4 (plus the table) is used; ``corr_soc``/``corr_V``: the
+    correction table's knots (fractions) and values (V), None without one. Precomputes an
+    inverse table for SOC-from-voltage (used to initialise SOC at rest).
     """
 
     coeffs: FloatArray
@@ -115,6 +260,9 @@ class OcvModel:
     eq4_max: float = 1.0
     _low: FloatArray | None = None
     _high: FloatArray | None = None
+    corr_soc: FloatArray | None = None
+    corr_V: FloatArray | None = None
+    _corr_d: FloatArray | None = None
 
     @classmethod
     def from_coeffs(
@@ -127,15 +275,61 @@ class OcvModel:
         *,
         v_empty_V: float | None = None,
         v_full_V: float | None = None,
+        corr_soc: FloatArray | list[float] | None = None,
+        corr_V: FloatArray | list[float] | None = None,
     ) -> OcvModel:
         """From the Eq. 4 coefficients (V) valid on [soc_min, soc_max], the M(z) table (SOC
-        fractions, half-gap V; Eq. 32) and the optional rested voltages at empty and full (V)
-        that the end segments reach (see the module doc; ValueError when they cannot)."""
+        fractions, half-gap V; Eq. 32), the optional rested voltages at empty and full (V)
+        that the end segments reach and the optional correction table (SOC fractions, V; see
+        the module doc). ValueError when the ends cannot be joined monotonically or the table
+        leaves the curve falling."""
         coeffs = np.asarray(mean, dtype=np.float64)
-        low = None if v_empty_V is None else end_segment(coeffs, soc_min, 0.0, v_empty_V)
-        high = None if v_full_V is None else end_segment(coeffs, soc_max, 1.0, v_full_V)
+        cx = cy = cd = None
+        if (corr_soc is None) != (corr_V is None):
+            raise ValueError("a correction table needs both its knots and its values")
+        if corr_soc is not None and corr_V is not None:
+            check_table(corr_soc, corr_V)
+            cx = np.asarray(corr_soc, dtype=np.float64)
+            cy = np.asarray(corr_V, dtype=np.float64)
+            if cx[0] > soc_min or cx[-1] < soc_max:
+                raise ValueError(
+                    f"the OCV correction table's knots (SOC {100 * cx[0]:g}-{100 * cx[-1]:g} %) "
+                    f"must cover the curve's range SOC {100 * soc_min:g}-{100 * soc_max:g} %"
+                )
+            cd = table_slopes(coeffs, cx, cy, soc_min, soc_max)
+            fall = correction_fall(coeffs, cx, cy, soc_min, soc_max)
+            if fall is not None:
+                eq4 = float(eval_docv_dz(coeffs, fall[0]))
+                raise ValueError(
+                    f"the OCV correction table leaves the mean curve falling at SOC "
+                    f"{100 * fall[0]:.2f} % (slope {fall[1]:.3g} V per unit SOC, Eq. 4 alone "
+                    f"{eq4:.3g}): it must increase over SOC {100 * soc_min:g}-{100 * soc_max:g} %"
+                )
+
+        def curve(z: FloatArray, deriv: bool) -> FloatArray:
+            base = eval_docv_dz(coeffs, z) if deriv else eval_ocv(coeffs, z)
+            if cx is None or cy is None or cd is None:
+                return base
+            return np.asarray(base + hermite_table(cx, cy, cd, z, deriv), dtype=np.float64)
+
+        def join(z: float) -> tuple[float, float] | None:
+            if cx is None:
+                return None  # Eq. 4's own value and slope, computed as before tables existed
+            zz = np.array([z])
+            return float(curve(zz, False)[0]), float(curve(zz, True)[0])
+
+        low = (
+            None
+            if v_empty_V is None
+            else end_segment(coeffs, soc_min, 0.0, v_empty_V, join=join(soc_min))
+        )
+        high = (
+            None
+            if v_full_V is None
+            else end_segment(coeffs, soc_max, 1.0, v_full_V, join=join(soc_max))
+        )
         grid = np.linspace(soc_min, soc_max, 2001)
-        v = eval_ocv(coeffs, grid)
+        v = curve(grid, False)
         if low is not None:
             g = np.linspace(0.0, soc_min, 201)[:-1]
             grid, v = np.concatenate([g, grid]), np.concatenate([_horner(low, g - soc_min), v])
@@ -156,7 +350,23 @@ class OcvModel:
             eq4_max=soc_max,
             _low=low,
             _high=high,
+            corr_soc=cx,
+            corr_V=cy,
+            _corr_d=cd,
         )
+
+    @property
+    def has_table(self) -> bool:
+        """True when a correction table adds to Eq. 4."""
+        return self.corr_soc is not None
+
+    def correction(self, z: FloatArray, deriv: bool = False) -> FloatArray:
+        """The correction table dU (V) or its slope (V per unit SOC) at ``z`` (0 without one);
+        like Eq. 4 it is evaluated at z clamped to [eq4_min, eq4_max] by ``ocv``."""
+        x, y, d = self.corr_soc, self.corr_V, self._corr_d
+        if x is None or y is None or d is None:
+            return np.zeros_like(np.asarray(z, dtype=np.float64))
+        return hermite_table(x, y, d, z, deriv)
 
     @property
     def has_ends(self) -> bool:
@@ -181,7 +391,8 @@ class OcvModel:
         return v
 
     def ocv(self, z: FloatArray) -> FloatArray:
-        """Mean-branch OCV in volts (Eq. 4, end segments beyond it) at SOC ``z`` (clamped)."""
+        """Mean-branch OCV in volts (Eq. 4 plus the correction table, end segments beyond) at
+        SOC ``z`` (clamped)."""
         zz = np.asarray(z, dtype=np.float64)
         zc = np.minimum(np.maximum(zz, self.eq4_min), self.eq4_max)
         c = self.coeffs
@@ -189,6 +400,8 @@ class OcvModel:
             c[0] + zc * (c[1] + c[2] * zc) + c[3] / zc + c[4] * np.log(zc) + c[5] * np.log1p(-zc),
             dtype=np.float64,
         )
+        if self.corr_soc is not None:
+            v = v + self.correction(zc)
         return self._ends(zz, v, deriv=False) if self.has_ends else v
 
     def docv_dz(self, z: FloatArray) -> FloatArray:
@@ -199,6 +412,8 @@ class OcvModel:
         d = np.asarray(
             c[1] + 2 * c[2] * zc - c[3] / zc**2 + c[4] / zc - c[5] / (1 - zc), dtype=np.float64
         )
+        if self.corr_soc is not None:
+            d = d + self.correction(zc, deriv=True)
         return self._ends(zz, d, deriv=True) if self.has_ends else d
 
     def hysteresis_M(self, z: FloatArray) -> FloatArray:

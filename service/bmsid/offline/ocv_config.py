@@ -78,6 +78,9 @@ class OcvFitSpec:
     ends : bool
         Extend the mean OCV to the rested voltages measured at empty/full (when the test has
         them); False keeps it clamped to [soc_min, soc_max].
+    correction : bool
+        Fit the correction table beyond Eq. 4 (``ocv_correction``; low-rate tests only) and
+        write it when the test resolves it; False: Eq. 4 alone.
     """
 
     name: str
@@ -97,6 +100,7 @@ class OcvFitSpec:
     soc_anchor: Literal["none", "full"] = "none"
     hysteresis_from: str | None = None
     ends: bool = True
+    correction: bool = True
 
 
 @dataclass(frozen=True)
@@ -227,7 +231,7 @@ def fit_test_files(
     )
     if not spec.ends:
         br = replace(br, v_empty_V=None, v_full_V=None)
-    result = fit_ocv_test(br, trim_soc=spec.trim_soc, knots=spec.knots)
+    result = fit_ocv_test(br, trim_soc=spec.trim_soc, knots=spec.knots, correction=spec.correction)
     tp, pol = br.throughput, br.polarisation
     steps = ", ".join(f"{1e3 * st.r_ohm:.1f} +- {1e3 * st.se_ohm:.1f}" for st in pol.steps)
     info = [
@@ -325,7 +329,9 @@ def fit_ocv_files(paths: Sequence[str | Path], spec: OcvFitSpec) -> OcvFit:
     """
     fit = fit_point_files if spec.points else fit_test_files
     result, capacity, eta, info = fit(paths, spec)
-    dip = monotonicity_violation_V(result.mean.coeffs, result.soc_min, result.soc_max)
+    # A correction table keeps the curve increasing (checked when it is fitted): Eq. 4 alone here.
+    dip = 0.0 if result.table is not None else monotonicity_violation_V(
+        result.mean.coeffs, result.soc_min, result.soc_max)  # fmt: skip
     if dip > 0.005:
         info.append(f"warning: the mean OCV falls by {1e3 * dip:.0f} mV somewhere in its range")
     try:
@@ -413,6 +419,15 @@ def format_report(result: OcvFitResult, info: Sequence[str]) -> str:
         f"Eq. 4 range: SOC {result.soc_min:.4f} .. {result.soc_max:.4f}; "
         f"rested end voltages: {ends}"
     )
+    if result.correction is not None:
+        lines.append(result.correction.summary())
+    elif result.test is None:
+        lines.append(
+            "OCV correction table: not fitted (rest-point tables: too few points to resolve a "
+            "residual beyond Eq. 4's six terms)"
+        )
+    else:
+        lines.append("OCV correction table: not fitted (--no-ocv-correction)")
     lines += _hysteresis_lines(result)
     if result.half_gap_raw_V is not None and result.half_gap_V is not None:
         lines.append(
@@ -467,6 +482,11 @@ def report_json(fit: OcvFit) -> dict[str, Any]:
             if (f := getattr(r, name)) is not None
         },
         "residuals": [asdict(b) for b in r.residuals],
+        "ocv_correction": None if (c := r.correction) is None else {
+            "written": c.written, "reason": c.reason, "soc": arr(c.soc), "dU_V": arr(c.dU_V),
+            "eq4_rmse_V": c.eq4_rmse_V, "rmse_V": c.rmse_V, "table_rms_V": c.table_rms_V,
+            "noise_V": c.noise_V, "pooled": c.pooled, "n_knots": int(c.soc.shape[0]),
+        },
     }  # fmt: skip
     if r.test is not None:
         tp, pol = r.test.throughput, r.test.polarisation
@@ -515,7 +535,8 @@ def _plot(r: OcvFitResult, path: Path) -> None:
             a0.plot(100 * b.z[k], b.v_V[k], lw=0.8, color=col, label=f"{name} (corrected)")
             res = b.v_V - (model.ocv(b.z) + model.hysteresis_M(b.z) * b.h)
             a2.plot(100 * b.z[k], 1e3 * res[k], lw=0.6, color=col, label=name)
-    a0.plot(100 * z, model.ocv(z), "k", lw=1.2, label="mean OCV (Eq. 4 + ends)")
+    label = "mean OCV (Eq. 4 + table + ends)" if r.table is not None else "mean OCV (Eq. 4 + ends)"
+    a0.plot(100 * z, model.ocv(z), "k", lw=1.2, label=label)
     for zz in (r.soc_min, r.soc_max):
         a0.axvline(100 * zz, color="0.6", ls=":", lw=0.8)
     a0.set_ylabel("voltage / V")

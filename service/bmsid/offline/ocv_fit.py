@@ -68,6 +68,9 @@ Low-rate OCV test (``extract_branches``, ``fit_ocv_test``), the rules in one pla
   rested voltage there; the mean continues to it by the monotone C1 segment of
   ``model.ocv.end_segment`` (the join moves inwards in 0.5 % steps until one exists), and M is
   0 at that end (one rested voltage: the branches meet).
+- Correction table (``ocv_correction``): what Eq. 4 misses of the mean data (each branch's
+  data less M(z) h, less Eq. 4), binned along SOC and averaged over the branches, written when
+  it exceeds the test's voltage noise; the ends then join Eq. 4 plus it.
 - Residuals: each branch against the whole model (extended mean + M h) per SOC band.
 """
 
@@ -92,7 +95,16 @@ from bmsid.config.cell import (
 )
 from bmsid.errors import UserError
 from bmsid.model.ecm import rc_decay
-from bmsid.model.ocv import OcvModel, end_segment, eval_ocv, ocv_basis
+from bmsid.model.ocv import (
+    OcvModel,
+    end_segment,
+    eval_docv_dz,
+    eval_ocv,
+    hermite_table,
+    ocv_basis,
+    table_slopes,
+)
+from bmsid.offline.ocv_correction import OcvCorrection, fit_correction
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -1189,7 +1201,8 @@ class OcvFitResult:
     ``half_gap_raw_V`` / ``half_gap_V``: the measured and polarisation-corrected half-gaps on
     ``gap_soc``. ``v_empty_V``/``v_full_V``: the rested end voltages the mean curve reaches
     (None: not measured). ``residuals``: per branch and SOC band, against the whole model
-    (extended mean + M h). ``test``: the branches (OCV tests).
+    (extended mean + M h). ``test``: the branches (OCV tests). ``correction``: the correction
+    table beyond Eq. 4 (``ocv_correction``; None: not fitted).
     """
 
     mean: Eq4Fit
@@ -1211,12 +1224,21 @@ class OcvFitResult:
     test: OcvTestBranches | None = None
     m_fit_ci95_V: FloatArray | None = None
     hysteresis: HysteresisEvidence | None = None
+    correction: OcvCorrection | None = None
+
+    @property
+    def table(self) -> tuple[FloatArray, FloatArray] | None:
+        """The correction table written to the config (knots, V), None without one."""
+        return self.correction.table if self.correction is not None else None
 
     def ocv_model(self) -> OcvModel:
-        """The fitted mean curve with its end segments and the M table, as the engine uses it."""
+        """The fitted mean curve with its correction table, its end segments and the M table, as
+        the engine uses it."""
+        t = self.table
         return OcvModel.from_coeffs(
             self.mean.coeffs, self.soc_min, self.soc_max, self.m_soc, self.m_V,
             v_empty_V=self.v_empty_V, v_full_V=self.v_full_V,
+            corr_soc=None if t is None else t[0], corr_V=None if t is None else t[1],
         )  # fmt: skip
 
 
@@ -1282,6 +1304,21 @@ def band_residuals(
     return out
 
 
+def _curve_at(
+    coeffs: FloatArray, table: tuple[FloatArray, FloatArray] | None, z: float, lo: float, hi: float
+) -> tuple[float, float] | None:
+    """Value (V) and slope of Eq. 4 + the correction table at ``z`` for a curve on [lo, hi] (None
+    without a table)."""
+    if table is None:
+        return None
+    x, y = table
+    d, zz = table_slopes(coeffs, x, y, lo, hi), np.array([z])
+    return (
+        float(eval_ocv(coeffs, z) + hermite_table(x, y, d, zz, False)[0]),
+        float(eval_docv_dz(coeffs, z) + hermite_table(x, y, d, zz, True)[0]),
+    )
+
+
 def _join_ends(
     coeffs: FloatArray,
     lo: float,
@@ -1289,9 +1326,11 @@ def _join_ends(
     v_empty: float | None,
     v_full: float | None,
     notes: list[str],
+    table: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[float, float, float | None, float | None]:
-    """Move each join inwards (0.5 % steps, up to 10 %) until a monotone C1 end segment exists;
-    drop that end with a note when none does."""
+    """Move each join inwards (0.5 % steps, up to 10 %) until a monotone C1 end segment exists
+    (joining Eq. 4 plus the correction ``table`` when given); drop that end with a note when
+    none does."""
     for which in ("empty", "full"):
         v_end = v_empty if which == "empty" else v_full
         if v_end is None:
@@ -1300,7 +1339,9 @@ def _join_ends(
         step = 0.005 if which == "empty" else -0.005
         for _ in range(40):
             try:
-                end_segment(coeffs, join, 0.0 if which == "empty" else 1.0, v_end)
+                end_segment(coeffs, join, 0.0 if which == "empty" else 1.0, v_end,
+                            join=_curve_at(coeffs, table, join, join if which == "empty" else lo,
+                                           hi if which == "empty" else join))  # fmt: skip
                 break
             except ValueError as exc:
                 last = str(exc)
@@ -1353,10 +1394,15 @@ def check_physical(mean: Eq4Fit, v_raw_V: FloatArray, pol: Polarisation) -> None
 
 
 def fit_ocv_test(
-    branches: OcvTestBranches, *, trim_soc: float = 0.02, knots: Sequence[float] = EQ32_KNOTS
+    branches: OcvTestBranches,
+    *,
+    trim_soc: float = 0.02,
+    knots: Sequence[float] = EQ32_KNOTS,
+    correction: bool = True,
 ) -> OcvFitResult:
     """Fit an OCV test's polarisation-corrected branches: Eq. 4 per branch, M(z) with its CI
-    from the one-state hysteresis model, the mean and its end segments (module doc)."""
+    from the one-state hysteresis model, the mean, its correction table (``ocv_correction``;
+    not with ``correction`` False) and its end segments (module doc)."""
     notes = list(branches.notes)
     dis, chg = branches.discharge, branches.charge
     lo = max(float(np.min(dis.z)), float(np.min(chg.z)), trim_soc)
@@ -1422,10 +1468,20 @@ def fit_ocv_test(
     (zmd, vmd), (zmc, vmc) = mean_data(dis), mean_data(chg)
     mean = fit_eq4(np.concatenate([zmd, zmc]), np.concatenate([vmd, vmc]))
     check_physical(mean, np.concatenate([dis.v_raw_V, chg.v_raw_V]), branches.polarisation)
+    corr = None
+    if correction:  # what Eq. 4 misses of the same (hysteresis-free) mean data
+        # The noise from each branch's own first differences: at C/20 the OCV moves far less
+        # per sample than the noise, and the MAD ignores the branch's few steps.
+        noise = float(
+            np.median([voltage_noise_V(b.v_V, [(0, b.v_V.shape[0])]) for b in (dis, chg)])
+        )
+        parts = [(zmd, vmd - eval_ocv(mean.coeffs, zmd)), (zmc, vmc - eval_ocv(mean.coeffs, zmc))]
+        corr = fit_correction(mean.coeffs, parts, lo, hi, noise)
 
     lo_j, hi_j, v_empty, v_full = _join_ends(
-        mean.coeffs, lo, hi, branches.v_empty_V, branches.v_full_V, notes
-    )
+        mean.coeffs, lo, hi, branches.v_empty_V, branches.v_full_V, notes,
+        None if corr is None else corr.table,
+    )  # fmt: skip
     status = list(evidence.status)
     pinned = []
     if v_empty is not None:  # one rested voltage at the end: the branches meet there
@@ -1452,9 +1508,16 @@ def fit_ocv_test(
         m_soc=m_soc, m_V=m_vals, gap_soc=grid, half_gap_raw_V=half_raw,
         half_gap_V=0.5 * gap, notes=tuple(notes), m_ci95_V=m_ci_store, m_fit_V=m_fit,
         v_empty_V=v_empty, v_full_V=v_full, test=branches, m_fit_ci95_V=m_ci,
-        hysteresis=replace(evidence, status=tuple(status)),
+        hysteresis=replace(evidence, status=tuple(status)), correction=corr,
     )  # fmt: skip
-    model = result.ocv_model()
+    try:
+        model = result.ocv_model()
+    except ValueError as exc:  # the table with the ends as joined: refused, Eq. 4 alone
+        if corr is None or not corr.written:
+            raise
+        corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
+        result = replace(result, correction=corr)
+        model = result.ocv_model()
     bands: list[BandResidual] = []
     for name, b in (("discharge", dis), ("charge", chg)):
         v_model = model.ocv(b.z) + model.hysteresis_M(b.z) * b.h
@@ -1598,6 +1661,8 @@ def build_cell_config(
             soc_max=result.soc_max,
             v_empty_V=result.v_empty_V,
             v_full_V=result.v_full_V,
+            correction_soc=None if result.table is None else lst(result.table[0]),
+            correction_V=None if result.table is None else lst(result.table[1]),
         ),
         hysteresis=HysteresisTable(
             soc=lst(result.m_soc),

@@ -54,12 +54,27 @@ class OcvTestCell:
         """DC polarisation resistance R0 + R1 + R2 (ohm): the branch offset at a constant rate."""
         return self.R0_ohm + self.R1_ohm + self.R2_ohm
 
-    def ocv(self, m_V: float = 0.0) -> OcvModel:
-        """The true OCV with a constant half-gap ``m_V`` (V)."""
+    def ocv(self, m_V: float = 0.0, bump_V: float = 0.0) -> OcvModel:
+        """The true OCV with a constant half-gap ``m_V`` (V) and, with ``bump_V`` (V), a
+        staging-like bump that Eq. 4 cannot follow: ``bump_V exp(-(z - 0.55)^2 / (2 0.03^2))``
+        (``BUMP_SOC``, ``BUMP_WIDTH``), sampled every 0.2 % of SOC (the dense table is the bump
+        itself to well under 0.1 mV)."""
+        table: dict[str, FloatArray] = {}
+        if bump_V:
+            z = np.linspace(self.soc_min, self.soc_max, round((self.soc_max - self.soc_min) / 2e-3))
+            table = {"corr_soc": z, "corr_V": bump_V * _bump(z)}
         return OcvModel.from_coeffs(
             np.asarray(self.coeffs), self.soc_min, self.soc_max, [0.0, 1.0], [m_V, m_V],
-            v_empty_V=self.v_empty_V, v_full_V=self.v_full_V,
+            v_empty_V=self.v_empty_V, v_full_V=self.v_full_V, **table,
         )  # fmt: skip
+
+
+#: Centre and width (SOC fractions) of the staging-like bump of ``OcvTestCell.ocv``.
+BUMP_SOC, BUMP_WIDTH = 0.55, 0.03
+
+
+def _bump(z: FloatArray) -> FloatArray:
+    return np.asarray(np.exp(-0.5 * ((z - BUMP_SOC) / BUMP_WIDTH) ** 2), dtype=np.float64)
 
 
 #: 2.0 Ah NMC 18650 (CALCE INR18650-20R's mean OCV at 25 C); R0 25 mOhm, R1 10 mOhm / 30 s,
@@ -97,6 +112,7 @@ class SyntheticOcvTest:
     m_V: float
     gamma: float
     eta: float
+    bump_V: float = 0.0
     segments: tuple[tuple[str, int, int], ...] = field(default_factory=tuple)
     """(name, first sample, stop sample) of each step of the schedule, in order."""
 
@@ -118,6 +134,7 @@ def c20_ocv_test(
     v_noise_V: float = 1e-3,
     i_noise_A: float = 1e-3,
     seed: int = 1,
+    bump_V: float = 0.0,
 ) -> SyntheticOcvTest:
     """One low-rate OCV test of ``cell`` (module doc) with a constant true half-gap ``m_V`` (V).
 
@@ -127,6 +144,8 @@ def c20_ocv_test(
     the rest at empty (None: no pulses; they move the SOC by ``pulse_C * pulse_s / 3600`` of the
     capacity, which the branches then cover less). ``eta``: charge coulombic efficiency (the
     charge runs ``1/eta`` as long). Samples every ``dt_s`` s (the current held over each).
+    ``bump_V``: the true mean OCV carries a staging-like bump of that height (V) beyond Eq. 4
+    (``OcvTestCell.ocv``).
     """
     cap = cell.capacity_Ah
     i_ocv = rate_C * cap
@@ -160,7 +179,7 @@ def c20_ocv_test(
     )  # fmt: skip
     t = np.arange(current.shape[0], dtype=np.float64) * dt_s
     sim = simulate(
-        t, current, cell.ocv(m_V), capacity_Ah=cap, R0_ohm=cell.R0_ohm, R1_ohm=cell.R1_ohm,
+        t, current, cell.ocv(m_V, bump_V), capacity_Ah=cap, R0_ohm=cell.R0_ohm, R1_ohm=cell.R1_ohm,
         tau1_s=cell.tau1_s, R2_ohm=cell.R2_ohm, tau2_s=cell.tau2_s, gamma=gamma, eta=eta,
         soc0=1.0, h0=1.0,
     )  # fmt: skip
@@ -169,5 +188,5 @@ def c20_ocv_test(
     i_meas = current + rng.normal(0.0, i_noise_A, t.shape[0])
     return SyntheticOcvTest(
         cell=cell, t_s=t, current_A=i_meas, v_V=v, soc_true=sim.soc, h_true=sim.h[0],
-        m_V=m_V, gamma=gamma, eta=eta, segments=segments,
+        m_V=m_V, gamma=gamma, eta=eta, bump_V=bump_V, segments=segments,
     )  # fmt: skip
