@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.optimize import isotonic_regression
 
 from bmsid.model.ocv import correction_fall, eval_ocv, hermite_table, table_slopes
 
@@ -125,24 +126,13 @@ def _fit_values(
     return np.asarray(np.mean(vals, axis=0), dtype=np.float64), weight
 
 
-def _pava(y: FloatArray, w: FloatArray) -> FloatArray:
-    """Weighted isotonic (non-decreasing) regression by pool-adjacent-violators."""
-    blocks: list[list[float]] = []  # [mean, weight, count]
-    for yi, wi in zip(y, np.maximum(w, 1e-12), strict=True):
-        blocks.append([float(yi), float(wi), 1])
-        while len(blocks) > 1 and blocks[-2][0] > blocks[-1][0]:
-            m2, w2, n2 = blocks.pop()
-            m1, w1, n1 = blocks.pop()
-            blocks.append([(m1 * w1 + m2 * w2) / (w1 + w2), w1 + w2, n1 + n2])
-    return np.concatenate([np.full(int(n), m) for m, _, n in blocks])
-
-
 def _monotone_values(
     coeffs: FloatArray, parts: Sequence[tuple[FloatArray, FloatArray]], knots: FloatArray
 ) -> tuple[FloatArray, int]:
     du, weight = _fit_values(parts, knots)
     base = eval_ocv(coeffs, knots)
-    total = _pava(base + du, weight)
+    # weighted isotonic (non-decreasing) regression: pool-adjacent-violators
+    total = isotonic_regression(base + du, weights=np.maximum(weight, 1e-12)).x
     return total - base, int(np.count_nonzero(np.abs(total - base - du) > 1e-9))  # not rounding
 
 
