@@ -402,6 +402,25 @@ def pytest_configure(config: pytest.Config) -> None:
         config.pluginmanager.register(_XdistPlan(), "bmsid-xdist-plan")
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Under pytest-xdist, before the workers start (xdist's own hook runs last): compile the
+    engine's kernels into numba's cache, once (about a minute after a fresh clone or an edit of
+    a kernel, a second or two to load them otherwise). Serially the first test that needs them
+    compiles them; in parallel every worker would, at once, and inside whatever test came
+    first: a daemon's start then outlasted its tests' wait for the bus (20 s)."""
+    if not session.config.pluginmanager.hasplugin("dsession"):  # not the xdist controller
+        return
+    import importlib
+    import pkgutil
+
+    import bmsid.estimate
+    from bmsid.estimate import jit
+
+    for module in pkgutil.iter_modules(bmsid.estimate.__path__):  # each kernel's module
+        importlib.import_module(f"bmsid.estimate.{module.name}")
+    jit.select(None)
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Inside UML keep only realcan tests (the host runs the rest at host speed)."""
