@@ -376,7 +376,49 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     out = os.environ.get("BMSID_REALCAN_FILES_OUT")
     if out:
         files = sorted(session.config.stash.get(_REALCAN_FILES_KEY, None) or ())
-        Path(out).write_text("".join(f"{file}\n" for file in files), encoding="utf-8")
+        # Under pytest-xdist every worker collects (the same items) and writes: each its own
+        # file, renamed over the list, so no reader ever sees a half-written one.
+        part = Path(f"{out}.{os.getpid()}")
+        part.write_text("".join(f"{file}\n" for file in files), encoding="utf-8")
+        part.replace(out)
+
+
+class _XdistPlan:
+    """The order in which a pytest-xdist worker's tests are handed out. scripts/test runs the
+    host phase with ``-n 2 --dist loadfile --no-loadscope-reorder``: a module's tests run on one
+    worker, so a module-scoped fixture (a CLI run, a Dask cluster) is set up once, and modules
+    go out in collection order, here with the ``slow`` tests' modules first (the 7-day daemon
+    replay takes minutes: handed out late, it would run on one worker long after the other had
+    finished everything else). Every worker collects the same items and sorts them alike.
+    """
+
+    @pytest.hookimpl(tryfirst=True)
+    def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
+        items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if hasattr(config, "workerinput"):  # a pytest-xdist worker
+        config.pluginmanager.register(_XdistPlan(), "bmsid-xdist-plan")
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Under pytest-xdist, before the workers start (xdist's own hook runs last): compile the
+    engine's kernels into numba's cache, once (about a minute after a fresh clone or an edit of
+    a kernel, a second or two to load them otherwise). Serially the first test that needs them
+    compiles them; in parallel every worker would, at once, and inside whatever test came
+    first: a daemon's start then outlasted its tests' wait for the bus (20 s)."""
+    if not session.config.pluginmanager.hasplugin("dsession"):  # not the xdist controller
+        return
+    import importlib
+    import pkgutil
+
+    import bmsid.estimate
+    from bmsid.estimate import jit
+
+    for module in pkgutil.iter_modules(bmsid.estimate.__path__):  # each kernel's module
+        importlib.import_module(f"bmsid.estimate.{module.name}")
+    jit.select(None)
 
 
 @pytest.hookimpl(trylast=True)

@@ -262,8 +262,15 @@ def test_counters_line_follows_log_period_not_status_period(
     )
 
     async def run_for(seconds: float) -> None:
+        """`seconds` of the running daemon. Its periodic tasks start once the bank is up (and
+        the bus with them), after the bank's kernels are loaded: ~1.5 s in a process that has
+        not loaded them yet (the first daemon of a pytest-xdist worker), instant after."""
         daemon = Daemon(settings)
         task = asyncio.create_task(daemon.run())
+        deadline = time.monotonic() + 120
+        while daemon.can_state != "up" and not task.done() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        assert daemon.can_state == "up", daemon.snapshot()
         await asyncio.sleep(seconds)
         daemon.request_stop()
         assert await task == 0
