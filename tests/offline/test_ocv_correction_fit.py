@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_ocv_fit_hysteresis import write_ocv_test_csv
 
 from bmsid.cli.main import main
 from bmsid.config.cell import load_cell_config
 from bmsid.config.engine import ocv_model
-from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.ocv_correction import KNOT_SPACING, correction_knots, fit_correction
 from bmsid.offline.ocv_fit import OcvFitResult, OcvTestPart, extract_branches, fit_ocv_test
 from bmsid.synthetic.ocv_test import NMC_CELL, SyntheticOcvTest, c20_ocv_test
@@ -84,12 +84,7 @@ def test_cli_writes_reports_and_opts_out_of_the_table(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     test = c20_ocv_test(NMC_CELL, m_V=M_TRUE, bump_V=BUMP_V, seed=13)
-    src = tmp_path / "ocv.csv.gz"
-    data = TesterData(
-        t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
-        cell_names=["voltage_V"],
-    )  # fmt: skip
-    write_tester_csv(data, src)
+    src = write_ocv_test_csv(test, tmp_path / "ocv.csv.gz")
     out = tmp_path / "nmc.toml"
     assert main(["fit-ocv", str(src), "--out", str(out)]) == 0
     text = capsys.readouterr().out

@@ -29,6 +29,16 @@ TOL = 0.003
 CELLS = pytest.mark.parametrize("cell", [NMC_CELL, LFP_CELL], ids=["nmc", "lfp"])
 
 
+def write_ocv_test_csv(test: SyntheticOcvTest, path: Path) -> Path:
+    """A synthetic OCV test as a one-cell tester CSV (what a user hands ``fit-ocv``)."""
+    data = TesterData(
+        t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
+        cell_names=["voltage_V"],
+    )  # fmt: skip
+    write_tester_csv(data, path)
+    return path
+
+
 def _fit(test: SyntheticOcvTest, **kw: float) -> OcvFitResult:
     part = OcvTestPart(test.t_s, test.current_A, test.v_V)
     return fit_ocv_test(extract_branches([part], **kw))
@@ -196,12 +206,7 @@ def test_cli_reports_the_half_gap_with_its_ci(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     test = c20_ocv_test(LFP_CELL, m_V=M_TRUE)
-    src = tmp_path / "ocv.csv.gz"
-    data = TesterData(
-        t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
-        cell_names=["voltage_V"],
-    )  # fmt: skip
-    write_tester_csv(data, src)
+    src = write_ocv_test_csv(test, tmp_path / "ocv.csv.gz")
     out = tmp_path / "lfp.toml"
     assert main(["fit-ocv", str(src), "--out", str(out), "--chemistry", "LFP"]) == 0
     text = capsys.readouterr().out
