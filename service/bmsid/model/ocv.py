@@ -237,6 +237,25 @@ def correction_fall(
     return (float(grid[at]), float(dip[at])) if dip[at] > MAX_DIP_V else None
 
 
+def table_join(
+    coeffs: FloatArray | list[float],
+    table: tuple[FloatArray, FloatArray, FloatArray] | None,
+    z: float,
+) -> tuple[float, float] | None:
+    """Value (V) and slope (V per unit SOC) of Eq. 4 plus a correction ``table`` (knots, values,
+    slopes) at ``z``, where an end segment joins the corrected curve (``end_segment``'s
+    ``join``); None without a table: the segment joins Eq. 4's own, computed as before tables
+    existed."""
+    if table is None:
+        return None
+    x, y, d = table
+    zz = np.array([z])
+    return (
+        float((eval_ocv(coeffs, zz) + hermite_table(x, y, d, zz, False))[0]),
+        float((eval_docv_dz(coeffs, zz) + hermite_table(x, y, d, zz, True))[0]),
+    )
+
+
 def _horner(p: FloatArray, s: FloatArray) -> FloatArray:
     out = np.zeros_like(s)
     for c in p:
@@ -319,11 +338,10 @@ class OcvModel:
                 return base
             return np.asarray(base + hermite_table(cx, cy, cd, z, deriv), dtype=np.float64)
 
+        table = None if cx is None or cy is None or cd is None else (cx, cy, cd)
+
         def join(z: float) -> tuple[float, float] | None:
-            if cx is None:
-                return None  # Eq. 4's own value and slope, computed as before tables existed
-            zz = np.array([z])
-            return float(curve(zz, False)[0]), float(curve(zz, True)[0])
+            return table_join(coeffs, table, z)
 
         low = (
             None

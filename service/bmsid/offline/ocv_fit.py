@@ -98,10 +98,9 @@ from bmsid.model.ecm import rc_decay
 from bmsid.model.ocv import (
     OcvModel,
     end_segment,
-    eval_docv_dz,
     eval_ocv,
-    hermite_table,
     ocv_basis,
+    table_join,
     table_slopes,
 )
 from bmsid.offline.ocv_correction import OcvCorrection, fit_correction
@@ -1304,21 +1303,6 @@ def band_residuals(
     return out
 
 
-def _curve_at(
-    coeffs: FloatArray, table: tuple[FloatArray, FloatArray] | None, z: float, lo: float, hi: float
-) -> tuple[float, float] | None:
-    """Value (V) and slope of Eq. 4 + the correction table at ``z`` for a curve on [lo, hi] (None
-    without a table)."""
-    if table is None:
-        return None
-    x, y = table
-    d, zz = table_slopes(coeffs, x, y, lo, hi), np.array([z])
-    return (
-        float(eval_ocv(coeffs, z) + hermite_table(x, y, d, zz, False)[0]),
-        float(eval_docv_dz(coeffs, z) + hermite_table(x, y, d, zz, True)[0]),
-    )
-
-
 def _join_ends(
     coeffs: FloatArray,
     lo: float,
@@ -1339,9 +1323,10 @@ def _join_ends(
         step = 0.005 if which == "empty" else -0.005
         for _ in range(40):
             try:
+                rng = (join, hi) if which == "empty" else (lo, join)  # the curve's range then
+                slopes = None if table is None else (*table, table_slopes(coeffs, *table, *rng))
                 end_segment(coeffs, join, 0.0 if which == "empty" else 1.0, v_end,
-                            join=_curve_at(coeffs, table, join, join if which == "empty" else lo,
-                                           hi if which == "empty" else join))  # fmt: skip
+                            join=table_join(coeffs, slopes, join))  # fmt: skip
                 break
             except ValueError as exc:
                 last = str(exc)
