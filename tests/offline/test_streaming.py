@@ -34,6 +34,7 @@ from bmsid.offline.scoring import (
     RunScorer,
     SocReference,
     held_warnings,
+    past_empty_warnings,
 )
 from bmsid.offline.writers import TickDecimator
 
@@ -212,6 +213,45 @@ def test_a_cell_held_on_most_ticks_is_warned_about() -> None:
         "a bound on 60 %: the model does not follow this cell within its bounds there (an OCV "
         "curve that misfits it, or dynamics outside them); params.csv's quality column says where"
     ]
+
+
+@pytest.mark.parametrize("cuts", [(), (1,), (55, 56, 70)])
+def test_a_discharge_past_the_estimated_empty_is_counted_and_warned_about(
+    cuts: tuple[int, ...],
+) -> None:
+    """Cell a's SOC reaches 0 at t = 50 s and the cell goes on giving 2 A for 30 s (a 10 s gap
+    over 60 s between) and is charged at SOC 0 after; cell b never reaches 0. Counted the same
+    however the run is cut into blocks; the warning names the charge past empty and the RMSE
+    there."""
+    t = np.arange(100.0)
+    t[61:] += 100.0  # a gap: no charge counted over it
+    full = _block(t)
+    full.current_A[:] = np.where(np.arange(100) < 80, 2.0, -1.0)
+    full.cells["soc"][:] = 0.5
+    full.cells["soc"][50:, 0] = 0.0
+    full.cells["capacity_Ah"][:] = 0.01  # 2 A for 29 s = 0.016 Ah: past 0.5 % of it
+    full.cells["v_meas_V"][:] = 3.0
+    full.cells["v_model_V"][:] = 3.0
+    full.cells["v_model_V"][50:80, 0] = 3.1  # 100 mV off while past empty
+    window = EvalWindow()
+    scorer = RunScorer(full.n_ticks, 2, window)
+    for a, b in itertools.pairwise(sorted({0, *cuts, full.n_ticks})):
+        scorer.add(full.select(slice(a, b)))
+    past = scorer.acc.past_empty(0)
+    assert past is not None and scorer.acc.past_empty(1) is None
+    assert past["ticks"] == 30 and past["from_t_s"] == 50.0
+    assert past["charge_Ah"] == pytest.approx(2.0 * 29 / 3600)  # the step over the gap: none
+    assert past["rmse_V"] == pytest.approx(0.1)
+    result = IdentifyResult("hy-affrls-lpso", full, "given", {}, 0.0, 100, ["a", "b"])
+    assert past_empty_warnings(result, window) == [
+        "WARNING: a: SOC at 0 % on 30 ticks of discharge from t = 50 s, over which the cell "
+        "gave 0.0161 Ah more: it holds more than the 0.01 Ah in use (or started fuller than "
+        "estimated), and the model cannot follow it past its empty (RMSE 100.0 mV on those "
+        "ticks); --capacity-ah or the cell config's capacity_Ah at this temperature"
+    ]
+    full.cells["capacity_Ah"][:] = 10.0  # 0.016 Ah is 0.16 % of 10 Ah: no warning
+    assert past_empty_warnings(IdentifyResult("hy-affrls-lpso", full, "given", {}, 0.0, 100,
+                                              ["a", "b"]), window) == []  # fmt: skip
 
 
 def test_min_max_decimation_keeps_spikes_and_short_records_whole() -> None:

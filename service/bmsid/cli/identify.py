@@ -77,7 +77,7 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.record_checks import check_record
-from bmsid.offline.scoring import held_warnings, metrics_document
+from bmsid.offline.scoring import held_warnings, metrics_document, past_empty_warnings
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -290,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
         for f in soc_findings:
             print(f.line())
     print(summary_line({**metrics_document(result, window), **meta}))
-    for line in held_warnings(result, window):
+    for line in [*held_warnings(result, window), *past_empty_warnings(result, window)]:
         print(line)
     if (obs := observer_text(result)) is not None:
         print(obs)

@@ -15,6 +15,9 @@ order, and keeps
   parameter), and the first and last tick;
 - each cell's median R0 over the evaluation window's ticks not held (:class:`StreamedMedian`,
   a histogram in 0.2 % wide bins: what the fleet summary ranks cells on);
+- per cell, the ticks of discharge at which the estimator's SOC sat at 0 % (the capacity in
+  use spent while the cell still gave charge), their squared errors and the charge they moved
+  (:meth:`RunAccumulator.past_empty`);
 - a min-max decimation for the plots: per bin of ``ceil(n_ticks / PLOT_BINS)`` ticks the smallest
   and largest value of each plotted series with their times, so a one-tick spike stays visible;
   a record of at most ``PLOT_BINS`` ticks keeps every tick.
@@ -43,6 +46,11 @@ IntArray = npt.NDArray[np.int64]
 
 #: Bins of the plots' min-max decimation (two points per bin and series).
 PLOT_BINS = 4000
+#: A published SOC at or below this (fraction) is at empty: the guard publishes a count that
+#: passed 0 as 0, and the observer's SOC stops there.
+EMPTY_SOC = 1e-4
+#: Steps between ticks longer than this (s) move no charge in the past-empty count (a gap).
+EMPTY_MAX_DT_S = 60.0
 #: The series the plots draw, per cell: parameters (Fig. 10) and voltages with their error (11).
 PLOT_SERIES = ("R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F", "lambda_", "v_meas_V", "v_model_V",
                "error_V")  # fmt: skip
@@ -273,6 +281,13 @@ class RunAccumulator:
         self.window_ticks = np.zeros(n_cells, np.int64)
         self.window_held = np.zeros(n_cells, np.int64)
         self.window_on_bound = np.zeros((len(WATCHED), n_cells), np.int64)
+        #: per cell: discharge ticks at SOC 0 with a model error, their squared errors (V^2),
+        #: the charge over them (Ah), the first one's time (s)
+        self.empty_ticks = np.zeros(n_cells, np.int64)
+        self.empty_sse = np.zeros(n_cells)
+        self.empty_Ah = np.zeros(n_cells)
+        self.empty_from_s = np.full(n_cells, np.nan)
+        self._t_prev = math.nan
 
     def add(self, block: EstimateBlock, parts: PartMasks, score_soc: FloatArray) -> None:
         """The next block of estimates, where its parts lie and its scoring SOC (ticks, cells)."""
@@ -314,6 +329,7 @@ class RunAccumulator:
             x = block[name]
             pub = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
             self.published_on_bound[j] += int(np.count_nonzero(pub))
+        self._count_empty(block, ok, err)
         vals = [meas if k == "v_meas_V" else meas - model if k == "error_V" else block[k]
                 for k in PLOT_SERIES]  # fmt: skip
         self.plot.add(block.t_s, np.stack(vals, axis=1))
@@ -336,6 +352,38 @@ class RunAccumulator:
             "share_of_ticks_on_a_bound": share,
             "ends_on_a_bound": at_end,
             "published_on_a_bound": published,
+        }
+
+    def _count_empty(self, block: EstimateBlock, ok: BoolArray, err: FloatArray) -> None:
+        """The discharge ticks whose published SOC sits at 0 (``past_empty``)."""
+        t = block.t_s
+        dt = np.diff(t, prepend=self._t_prev)
+        self._t_prev = float(t[-1])
+        dt = np.where(np.isfinite(dt) & (dt > 0) & (dt <= EMPTY_MAX_DT_S), dt, 0.0)
+        i = np.asarray(block.current_A, dtype=np.float64)
+        soc = np.asarray(block["soc"], dtype=np.float64)
+        at = (soc <= EMPTY_SOC) & (i > 0)[:, None] & ok
+        if not np.count_nonzero(at):
+            return
+        self.empty_ticks += np.count_nonzero(at, axis=0)
+        self.empty_sse += np.sum(np.where(at, err * err, 0.0), axis=0)
+        self.empty_Ah += np.sum(np.where(at, (i * dt)[:, None], 0.0), axis=0) / 3600.0
+        first = np.where(at.any(axis=0), t[np.argmax(at, axis=0)], np.nan)
+        self.empty_from_s = np.where(np.isnan(self.empty_from_s), first, self.empty_from_s)
+
+    def past_empty(self, cell: int) -> dict[str, float] | None:
+        """One cell's discharge past its estimated empty: ticks, the charge moved there (Ah),
+        the model's RMSE over them (V) and the first one's time (s); None where it never
+        discharged at SOC 0. A 2RC model cannot follow the voltage collapse there, and a
+        cell that still gives charge holds more than the capacity in use (or started higher)."""
+        n = int(self.empty_ticks[cell])
+        if n == 0:
+            return None
+        return {
+            "ticks": n,
+            "charge_Ah": float(self.empty_Ah[cell]),
+            "rmse_V": math.sqrt(float(self.empty_sse[cell]) / n),
+            "from_t_s": float(self.empty_from_s[cell]),
         }
 
     def held(self, cell: int) -> tuple[float, str | None, float]:

@@ -514,6 +514,34 @@ def held_warnings(result: IdentifyResult, window: EvalWindow) -> list[str]:
     return lines
 
 
+#: A discharge past the estimated empty is warned about from this share of the capacity in use.
+PAST_EMPTY_SHARE = 0.005
+
+
+def past_empty_warnings(result: IdentifyResult, window: EvalWindow) -> list[str]:
+    """A line per cell that gave ``PAST_EMPTY_SHARE`` of its capacity or more while its SOC sat
+    at 0 %: the whole record's RMSE is then mostly those ticks (CALCE DST 45 C from 80 % with
+    the shipped 2.0 Ah: 124 mV over its last 691 ticks, 2 mV over SOC 95-15 %), and the cause is
+    the capacity or the start, not the parameters."""
+    acc = result.scorer(window).acc
+    last = acc.last
+    lines = []
+    for c, name in enumerate(result.cell_names):
+        past = acc.past_empty(c)
+        q_Ah = float(last["capacity_Ah"][0, c]) if last is not None else math.nan
+        if past is None or not past["charge_Ah"] >= PAST_EMPTY_SHARE * q_Ah:
+            continue
+        lines.append(
+            f"WARNING: {name}: SOC at 0 % on {past['ticks']} ticks of discharge from t = "
+            f"{past['from_t_s']:.0f} s, over which the cell gave {past['charge_Ah']:.3g} Ah "
+            f"more: it holds more than the {q_Ah:.4g} Ah in use (or started fuller than "
+            f"estimated), and the model cannot follow it past its empty (RMSE "
+            f"{1e3 * past['rmse_V']:.1f} mV on those ticks); --capacity-ah or the cell "
+            "config's capacity_Ah at this temperature"
+        )
+    return lines
+
+
 def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, Any]:
     """The content of metrics.json.
 
@@ -538,6 +566,7 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
             "held_share": held.held,
             "most_on_bound": held.bound_param,
             "most_on_bound_share": held.bound,
+            "past_empty": scorer.acc.past_empty(c),
         }
     return {
         "algorithm": result.variant,
