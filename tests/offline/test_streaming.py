@@ -219,8 +219,8 @@ def test_a_cell_held_on_most_ticks_is_warned_about() -> None:
 def test_a_discharge_past_the_estimated_empty_is_counted_and_warned_about(
     cuts: tuple[int, ...],
 ) -> None:
-    """Cell a's SOC reaches 0 at t = 50 s and the cell goes on giving 2 A for 30 s (a 10 s gap
-    over 60 s between) and is charged at SOC 0 after; cell b never reaches 0. Counted the same
+    """Cell a's SOC reaches 0 at t = 50 s and the cell goes on giving 2 A for 30 ticks (one step
+    of them a 101 s gap) and is charged at SOC 0 after; cell b never reaches 0. Counted the same
     however the run is cut into blocks; the warning names the charge past empty and the RMSE
     there."""
     t = np.arange(100.0)
