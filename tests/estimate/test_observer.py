@@ -183,6 +183,31 @@ def test_a_wrong_fixed_start_converges_by_the_end_of_the_first_drive_and_rest() 
     )
 
 
+def test_a_record_too_little_excited_to_converge_still_corrects_its_soc() -> None:
+    """Six hours of a C/20 constant-current discharge (3.5 A) of the reference cell from 90 %,
+    1 mV of noise, with a cell config that fixes the start at 80 %: no current step, so the
+    parameters never converge. After ``unconverged_wait_s`` (30 min) the observer corrects SOC
+    through the start values anyway; it used to skip such a cell until an anchor: the 10-point
+    error stayed to the end (0 updates, published std 31 points)."""
+    cell = reference_cell()
+    n = 6 * 360
+    t = np.arange(n) * 10.0
+    i = np.full(n, 3.5)
+    sim = simulate(t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah,
+                   gamma=cell.hysteresis.gamma, soc0=0.9, **TRUTH)  # fmt: skip
+    v = sim.v_V[0] + np.random.default_rng(5).normal(0.0, 1e-3, n)
+    fixed = cell.model_copy(update={"soc_init": SocInit(policy="fixed", soc0=0.8)})
+    bank = build_bank(fixed, 1, tuning=TUN)
+    out = bank.update_block(SampleBlock.from_arrays(t, i, v[:, None]))
+    assert not (out.quality[:, 0] == Quality.CONVERGED).any()  # never converged
+    err = out["soc"][:, 0] - sim.soc[np.searchsorted(t, out.t_s)]
+    assert abs(err[0]) == pytest.approx(0.1, abs=2e-3)
+    assert abs(err[_at(out, 1700.0)]) > 0.09  # nothing before the wait
+    late = err[_at(out, 2 * H) :]
+    assert np.abs(late).max() < 0.02, f"SOC error after 2 h up to {np.abs(late).max():.4f}"
+    assert out["soc_std"][-1, 0] < 0.03
+
+
 def test_a_wrong_start_is_not_learnt_as_a_current_offset() -> None:
     """The true offset is 0. The first anchor (07:15, rest) must correct SOC, not move the
     pack's current offset, which then miscounts every cell for the whole drive."""

@@ -216,8 +216,9 @@ def _call(
         state_jit.offset_walk(obs, pk)
         ocv = obs.model.ocv
         tun = obs.tun
-        so = np.array([obs.b, obs._qb, obs._since_s, obs._rest_s, pk.qb_coef,
-                       tun.update_period_s, tun.anchor_min_rest_s, obs._b_max])  # fmt: skip
+        so = np.array([obs.b, obs._qb, obs._since_s, obs._rest_s, obs._seen_s, pk.qb_coef,
+                       tun.update_period_s, tun.anchor_min_rest_s, obs._b_max,
+                       tun.unconverged_wait_s])  # fmt: skip
         obs_args = (
             True, st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A,
             f64(obs._tau_load_s), obs._learn_gate, obs.P, obs.d, so, obs._anchored, pk.cells,
@@ -255,7 +256,9 @@ def _call(
     st.z, st.h = z, h
     if obs is not None:
         obs._tau_load_s, obs._learn_gate, obs.d, obs._anchored = tau_load, learn_gate, d, anchored
-        obs.b, obs._qb, obs._since_s, obs._rest_s = (float(x) for x in so[: fk.QB_COEF])
+        obs.b, obs._qb, obs._since_s, obs._rest_s, obs._seen_s = (
+            float(x) for x in so[: fk.QB_COEF]
+        )
         obs.counters["observer_updates"] += int(counts[fk.C_UPD])
         obs.counters["observer_gated"] += int(counts[fk.C_GATED])
     pa.R0, pa.R1, pa.R2 = R0, R1, R2

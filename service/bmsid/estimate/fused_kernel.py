@@ -63,8 +63,8 @@ HELD_F = (R0F, R1F, C1F, R2F, C2F, TAU1F, TAU2F, OCVOFFF)
 PUB_F = (R1F, R2F, TAU1F, TAU2F, C1F, C2F)
 #: Per-tick floats of ``per_tick``: forgetting limits, the innovation RMS's gain.
 LAM_LO, LAM_HI, GAIN, N_PT = 0, 1, 2, 3
-#: The observer's scalars ``so`` (in place): offset b, qb, since_s, rest_s, and constants.
-B, QB, SINCE, REST, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, N_SO = range(9)
+#: The observer's scalars ``so`` (in place): offset b, qb, since_s, rest_s, seen_s, and constants.
+B, QB, SINCE, REST, SEEN, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, WAIT, N_SO = range(11)
 #: The counters ``counts`` (in place).
 C_REJ, C_UPD, C_GATED, C_DIV, C_HELD, C_CLAMP, N_C = range(7)
 #: Why the loop stopped: the end, a tick for the Python path, a re-initialisation after a tick.
@@ -181,6 +181,7 @@ def _fused_source(
             )  # fmt: skip
             so[QB] += so[QB_COEF] * dt / 86400.0
             so[SINCE] += dt
+            so[SEEN] += dt
         else:
             out, learn, all_ok, resting = _STEP(
                 z, h, empty, empty, empty, empty, empty, ok, v, ok, st, 0.0, cur, ip, dt, 0.0,
@@ -256,7 +257,8 @@ def _fused_source(
             if so[SINCE] >= so[UPD_PERIOD]:
                 m_arg = m_out if d.shape[0] else z
                 u1 = (P, g, qz, so[QB], so[SINCE], d_walk, z, out[2], out[3], h, m_table, v,
-                      ok, R0, R1, R2, v_model, m_arg, arx_ok, no_anchor)  # fmt: skip
+                      ok, R0, R1, R2, v_model, m_arg, np.logical_or(arx_ok, so[SEEN] >= so[WAIT]),
+                      no_anchor)  # fmt: skip
                 u2 = (i_load, False, cur, so[REST] <= 0.0, b, so[B_MAX], ocv, inv_v, inv_z,
                       knots, d, m_knots, utun)  # fmt: skip
                 z_n, d_n, gate_n, _anch, _zo, _zv, b_n, n_gated, updated = _UPDATE(*u1, *u2)

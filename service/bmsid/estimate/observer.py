@@ -92,13 +92,10 @@ class ObserverState(CoulombState):
         self._eff = np.broadcast_to(np.asarray(model.efficiency, dtype=np.float64), (n,)).copy()
         # Accumulated since the last update: dz/db, SOC and offset process noise, data time.
         self._g, self._qz = np.zeros(n), np.zeros(n)
-        self._qb = self._since_s = self._rest_s = 0.0
-        self._i_load_A = np.zeros(n)
-        self._tau_load_s = np.asarray(model.start("tau2_s"), dtype=np.float64).copy()
-        self._anchored = np.zeros(n, dtype=bool)
-        self._reanchor = self._widen = False
-        self._learn_gate = np.ones(n, dtype=bool)
-        self._start_var = np.zeros(n)
+        self._qb = self._since_s = self._rest_s = self._seen_s = 0.0  # seen: since the start
+        self._i_load_A, self._tau_load_s = np.zeros(n), np.array(model.start("tau2_s"), float)
+        self._anchored, self._reanchor, self._widen = np.zeros(n, dtype=bool), False, False
+        self._learn_gate, self._start_var = np.ones(n, dtype=bool), np.zeros(n)
         tau_relax_s = relaxation_tau_s(model.start("tau1_s"), model.start("tau2_s"))
         self._relax = StartRelaxation(n, tau_relax_s, tuning.anchor_min_rest_s)
         self.counters |= {"observer_updates": 0, "observer_gated": 0, "anchors": 0, "reanchors": 0}
@@ -183,6 +180,7 @@ class ObserverState(CoulombState):
         q_mean_Ah = float(q_Ah.sum() / q_Ah.size)  # np.mean's sum and division, a third the cost
         self._qb += (tun.offset_walk_C_per_sqrt_day * q_mean_Ah) ** 2 * dt_s / 86400.0
         self._since_s += dt_s
+        self._seen_s += dt_s
 
     @property
     def learn_gate(self) -> BoolArray:
@@ -197,8 +195,9 @@ class ObserverState(CoulombState):
         """The measurement update, when one is due (period, anchor or restart), from the
         parameter stage's a-priori model voltage and parameters of this tick. Cells whose
         parameters have not converged once update only at anchors and restarts (their model
-        error is the start values', not SOC's)."""
+        error is the start values', not SOC's) for ``unconverged_wait_s`` of data."""
         tun = self.tun
+        converged = converged | (self._seen_s >= tun.unconverged_wait_s)
         self._tau_load_s = tau2 = params["tau2_s"]
         # Shorter than anchor_min_rest_s (most ticks): no anchor, five array operations skipped.
         anchor: BoolArray | None = None
@@ -308,8 +307,7 @@ class ObserverState(CoulombState):
             return cells
         n = self.n
         # what the count accumulated for a deferred cell before its start is not its own
-        self._g = np.where(cells, 0.0, self._g)
-        self._qz = np.where(cells, 0.0, self._qz)
+        self._g, self._qz = np.where(cells, 0.0, self._g), np.where(cells, 0.0, self._qz)
         sigma = np.where(cells, np.sqrt(self._start_var), np.sqrt(np.diag(self.P)[:n]))
         keep = ~cells
         self.P[:n, :n] *= np.outer(keep, keep)  # a restarted cell forgets its correlations
@@ -372,6 +370,7 @@ class ObserverState(CoulombState):
             **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS},
             **{k.lstrip("_"): float(getattr(self, k)) for k in self._SCALARS},
             **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS_MAP},
+            "seen_s": self._seen_s,
             "reanchor": self._reanchor,
             "capacity": self.capacity.state_dict(),
             "start_relaxation": self._relax.state_dict(),
@@ -393,6 +392,7 @@ class ObserverState(CoulombState):
         load_arrays(self, renamed, self._ARRAYS, "state/observer")
         for k in self._SCALARS:
             setattr(self, k, float(obs[k.lstrip("_")]))
+        self._seen_s = float(obs.get("seen_s", self.tun.unconverged_wait_s))  # older: has run
         self._reanchor = bool(obs["reanchor"])
         self.capacity.load_state_dict(obs["capacity"])
         if "start_relaxation" in obs:  # absent from checkpoints before it: nothing watched

@@ -155,6 +155,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
         )  # fmt: skip
         obs._qb += pk.qb_coef * tick.dt_s / 86400.0
         obs._since_s += tick.dt_s
+        obs._seen_s += tick.dt_s
     else:
         out, learn, all_ok, resting = ok_.STEP.impl(
             st.z, st.h, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, tick.ok, tick.v_V,

@@ -641,9 +641,9 @@ def check_excitation(
             f"excitation_C {excitation_C:g} x the {what}capacity {capacity_Ah:g} Ah = "
             f"{excitation_C * capacity_Ah:.3g} A (the threshold is relative to the capacity); "
             f"parameters stay near their start values and the swarm may never run, and the "
-            f"SOC observer corrects SOC only at rests long enough to anchor it (its updates "
-            f"wait for identified parameters): SOC is the coulomb count from the start "
-            f"otherwise{hint}",
+            f"SOC observer corrects SOC through those start values only after an hour without "
+            f"identified parameters (observer.unconverged_wait_s), at rests long enough to "
+            f"anchor it before that{hint}",
         )
     ]
 
