@@ -252,9 +252,8 @@ class ObserverState(CoulombState):
             self._use_capacity()
             self._anchored = self._anchored | anchored
             self.counters["anchors"] += int(anchored.sum())
-        if self._reanchor:
-            self.counters["reanchors"] += 1
-            self._reanchor = False
+        self.counters["reanchors"] += int(self._reanchor)
+        self._reanchor = False
         self._gate_learning()
 
     def _predict(self) -> None:
@@ -305,7 +304,7 @@ class ObserverState(CoulombState):
         cells = super()._start(tick, cells)
         if not cells.any():
             return cells
-        n = self.n
+        n, self._seen_s = self.n, 0.0  # a (re)started cell's start values wait an hour too
         # what the count accumulated for a deferred cell before its start is not its own
         self._g, self._qz = np.where(cells, 0.0, self._g), np.where(cells, 0.0, self._qz)
         sigma = np.where(cells, np.sqrt(self._start_var), np.sqrt(np.diag(self.P)[:n]))

@@ -43,11 +43,12 @@ class ObserverTuning(BaseModel):
     unconverged_wait_s: float = Field(3600.0, gt=0.0)
     """Until its parameters have converged once, a cell's SOC is corrected only at anchors and
     restarts (its model error is the start values', which a wrong start would turn into a
-    current offset). After this much of the record's data (s) without convergence (too little
-    excitation ever: a low-rate test, a constant-current discharge) it is corrected like a
-    converged one, through its start values: without that the A123 C/27 test given to
-    ``identify`` had one update and a SOC std of 27 points at its end, and a constant-current
-    discharge from a start 10 points wrong stayed 10 points wrong. An hour: a drive-cycle record
+    current offset). After this much data (s) since the pack's last cell (re)started, still
+    without convergence (too little excitation ever: a low-rate test, a constant-current
+    discharge), it is corrected like a converged one, through its start values: without that
+    the A123 C/27 test given to ``identify`` had one update and a SOC std of 27 points at its
+    end, and a constant-current discharge from a start 10 points wrong stayed 10 points wrong.
+    An hour: a drive-cycle record
     can take over half of one to converge (A123 DYN50: 2,159 s; with 1,800 s here its RMSE over
     SOC 95-15 % went 3.29 -> 3.36 mV)."""
     v_sigma_floor_V: float = Field(1e-3, gt=0.0)
