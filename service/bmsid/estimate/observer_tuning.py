@@ -48,9 +48,8 @@ class ObserverTuning(BaseModel):
     discharge), it is corrected like a converged one, through its start values: without that
     the A123 C/27 test given to ``identify`` had one update and a SOC std of 27 points at its
     end, and a constant-current discharge from a start 10 points wrong stayed 10 points wrong.
-    An hour: a drive-cycle record
-    can take over half of one to converge (A123 DYN50: 2,159 s; with 1,800 s here its RMSE over
-    SOC 95-15 % went 3.29 -> 3.36 mV)."""
+    An hour: a drive-cycle record can take over half of one to converge (A123 DYN50: 2,159 s;
+    with 1,800 s here its RMSE over SOC 95-15 % went 3.29 -> 3.36 mV)."""
     v_sigma_floor_V: float = Field(1e-3, gt=0.0)
     """Lower bound of the assumed model error at an anchor, V (a rested cell's voltage noise)."""
     gate_sigmas: float = Field(5.0, gt=1.0)
