@@ -20,7 +20,7 @@ from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import EstimateBlock
 from bmsid.metrics import VoltageMetrics
 from bmsid.offline.identify import IdentifySpec, identify_file, run_arrays
-from bmsid.offline.outputs import summary_line
+from bmsid.offline.outputs import error_band_line, summary_line
 from bmsid.offline.scoring import (
     SOC_BANDS,
     EvalWindow,
@@ -212,6 +212,27 @@ def test_default_window_is_the_whole_record() -> None:
     assert IdentifySpec(cell=paper_cell()).window == EvalWindow()
     assert not EvalWindow(0.1).is_whole_record
     assert not EvalWindow(soc_lo=0.2).is_whole_record
+
+
+def test_a_soc_band_holding_most_of_the_error_is_named() -> None:
+    """200 ticks from SOC 100 % to 0 %, 1 mV of error but in the last 20 (SOC 0-10 %): 50 mV
+    there holds 99.6 % of the squared error and is named, so is 5 mV (74 %, 5x the rest's);
+    2 mV (31 %) and an even error are not."""
+    n = 200
+    for err_mV, named in ((50.0, True), (5.0, True), (2.0, False), (1.0, False)):
+        e = np.full((n, 1), 1e-3)
+        e[-20:] = err_mV * 1e-3
+        tr = trace(e, np.linspace(1.0, 0.0, n)[:, None])
+        line = error_band_line(metrics_document(result(tr), EvalWindow()))
+        assert (line is not None) == named, (err_mV, line)
+    e = np.full((n, 1), 1e-3)
+    e[-20:] = 0.05
+    line = error_band_line(metrics_document(result(trace(e, np.linspace(1.0, 0.0, n)[:, None])),
+                                            EvalWindow()))  # fmt: skip
+    assert line == (
+        "most of the model error lies at SOC 0-10 %: 50.0 mV RMSE over its 20 ticks, 100 % of the "
+        "squared error; 1.00 mV over the other 180 (metrics.json soc_bands)"
+    )
 
 
 def test_summary_line_gives_the_whole_record_and_the_startup() -> None:

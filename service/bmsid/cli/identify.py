@@ -71,6 +71,7 @@ from bmsid.offline.inputs import (
 from bmsid.offline.outputs import (
     SCORE_SOC0_HELP,
     OutputSpec,
+    error_band_line,
     observer_text,
     ocv_range_warning,
     soc_init_text,
@@ -289,7 +290,10 @@ def run(args: argparse.Namespace) -> int:
         soc_findings = plausibility.check_soc_range(result.soc_extremes(), cell.capacity_Ah, start)
         for f in soc_findings:
             print(f.line())
-    print(summary_line({**metrics_document(result, window), **meta}))
+    doc = {**metrics_document(result, window), **meta}
+    print(summary_line(doc))
+    if (band := error_band_line(doc)) is not None:
+        print(band)
     for line in [*held_warnings(result, window), *past_empty_warnings(result, window)]:
         print(line)
     if (obs := observer_text(result)) is not None:
