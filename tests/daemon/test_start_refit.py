@@ -64,10 +64,11 @@ def test_a_start_mid_drive_continues_from_the_fitted_start_as_offline(
     assert host.bank.soc_init_method == WINDOW_FIT
     assert "start SOC fitted over the first 1200 s (it opened under load)" in caplog.text
     # Offline: the fit over the record's first window, then one bank over the whole record.
-    soc0 = fitted_start_soc([block], run.cell, host.spec.tuning, None)
-    assert soc0 is not None
-    assert np.all(np.abs(soc0 - truth) < 0.015), (soc0, truth)
-    ref = build_bank(run.cell, N_CELLS, "hy-affrls-lpso", host.spec.tuning, soc0=soc0)
+    fitted = fitted_start_soc([block], run.cell, host.spec.tuning, None)
+    assert fitted is not None
+    assert np.all(np.abs(fitted.soc0 - truth) < 0.015), (fitted.soc0, truth)
+    ref = build_bank(run.cell, N_CELLS, "hy-affrls-lpso", host.spec.tuning, soc0=fitted.soc0,
+                     branch0_V=fitted.branch_V)  # fmt: skip
     ref.update_block(block)
     np.testing.assert_allclose(host.bank.state.z, ref.state.z, rtol=0, atol=1e-12)
     np.testing.assert_allclose(host.bank.params.outputs()["R0_ohm"],
@@ -75,7 +76,7 @@ def test_a_start_mid_drive_continues_from_the_fitted_start_as_offline(
     assert np.all(np.abs(host.bank.state.z - run.soc_true[-1]) < 0.015)
 
 
-def test_a_rested_start_a_given_soc0_and_a_restore_keep_their_start(tmp_path: Path) -> None:
+def test_a_rested_start_and_a_restore_keep_their_start(tmp_path: Path) -> None:
     run, block = _record(0)  # paper_dst_case opens with a rest: the first voltage is an OCV
     host = _host(tmp_path / "rested", run)
     assert _feed(host, block.slice(0, int(WINDOW_S) + 200)) == "ocv_at_rest"
@@ -83,10 +84,32 @@ def test_a_rested_start_a_given_soc0_and_a_restore_keep_their_start(tmp_path: Pa
     assert host.bank.soc_init_method == "ocv_at_rest"
     assert host._head is None  # the window was seen: nothing more is kept
     given = _host(tmp_path / "given", run, soc0=0.9)
-    assert given._head is None
     given.checkpoint(clean=True)
     restored = _host(tmp_path / "given", run, restore=True)
     assert restored._head is None
+
+
+def test_a_configured_soc0_entered_under_load_keeps_it_and_fits_the_branches(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The true SOC configured, entered mid-drive: the SOC stays as configured, the branches
+    are fitted over the first window, as ``identify --soc0`` does."""
+    run, block = _record(ENTER_S)
+    truth = float(run.soc_true[ENTER_S])
+    host = _host(tmp_path, run, soc0=truth)
+    with caplog.at_level(logging.INFO, logger="bmsid.daemon.bank_worker"):
+        assert _feed(host, block) == "given"
+    assert host.counters["start_refits"] == 1
+    assert "start branches fitted (SOC as configured) over the first 1200 s" in caplog.text
+    fitted = fitted_start_soc([block], run.cell, host.spec.tuning, None, soc0=truth)
+    assert fitted is not None and not fitted.soc_fitted
+    assert np.all(fitted.soc0 == truth) and np.all(fitted.branch_V > 0.01)
+    ref = build_bank(run.cell, N_CELLS, "hy-affrls-lpso", host.spec.tuning, soc0=truth,
+                     branch0_V=fitted.branch_V)  # fmt: skip
+    ref.update_block(block)
+    np.testing.assert_allclose(host.bank.state.z, ref.state.z, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(host.bank.params.outputs()["R0_ohm"],
+                               ref.params.outputs()["R0_ohm"], rtol=1e-12)  # fmt: skip
 
 
 def test_a_fast_bus_keeps_the_first_voltage_start_and_says_so(

@@ -6,13 +6,20 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
-from bmsid.config.engine import build_bank
+from bmsid.config.engine import build_bank, ocv_model
 from bmsid.estimate.start_fit import fit_start_soc
+from bmsid.model.simulator import SimResult, simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_file
-from bmsid.offline.start_soc import WINDOW_FIT
-from bmsid.synthetic import paper_dst_case
+from bmsid.offline.outputs import soc_init_text
+from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
+from bmsid.profiles import dst_current
+from bmsid.samples import SampleBlock
+from bmsid.synthetic import TRUTH, paper_dst_case
+
+FloatArray = npt.NDArray[np.float64]
 
 
 def _mid_drive(start_s: int, n_cells: int = 1) -> tuple[object, slice]:
@@ -67,8 +74,11 @@ def test_identify_fits_a_loaded_start_and_keeps_a_rested_one(tmp_path: Path) -> 
         if name == "loaded":
             assert res.soc_init_method == WINDOW_FIT
             assert abs(float(first["soc"][0][0]) - truth) < 0.015
+            assert res.start_branch_V is not None and res.start_branch_V[0] > 0.01
+            assert "; RC branches from " in soc_init_text(res)
         else:
             assert res.soc_init_method == "ocv_at_rest"
+            assert res.start_branch_V is None  # at rest and relaxed: empty branches
 
 
 def test_a_dead_tap_or_a_late_cell_gets_no_fit_and_does_not_stop_the_others(
@@ -106,3 +116,69 @@ def test_nan_currents_hold_the_last_one() -> None:
     i[np.random.default_rng(0).random(i.shape[0]) < 0.05] = np.nan
     fit = fit_start_soc(run.t_s[k], i, run.voltages_V[k], model, np.array([truth + 0.05]))
     assert abs(fit.soc0[0] - truth) < 0.015, (fit.soc0, truth)
+
+
+def _entered_under_load(start_s: int) -> tuple[SimResult, FloatArray, FloatArray, slice]:
+    """The paper cell's DST from 90 %, noise-free, entered ``start_s`` in (truth kept)."""
+    cell = paper_dst_case(10).cell
+    t = np.arange(start_s + 3000, dtype=np.float64)
+    i = dst_current(t, 140.0)
+    sim = simulate(
+        t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah, gamma=cell.hysteresis.gamma,
+        soc0=0.9, **{k: TRUTH[k] for k in ("R0_ohm", "R1_ohm", "tau1_s", "R2_ohm", "tau2_s")},
+    )  # fmt: skip
+    return sim, t, i, slice(start_s, None)
+
+
+def test_a_start_under_load_finds_the_voltage_its_branches_hold() -> None:
+    """Entered mid-DST, the two RC branches hold 24-28 mV; the fit finds their sum within
+    2 mV (the split between the two follows its time-constant grid)."""
+    cell = paper_dst_case(10).cell
+    model = build_bank(cell, 1, "hy-affrls").model
+    for start_s in (1500, 2016):
+        sim, t, i, k = _entered_under_load(start_s)
+        truth_V = sim.U1_V[0, start_s] + sim.U2_V[0, start_s]
+        assert truth_V > 0.02
+        z = float(sim.soc[start_s])
+        fit = fit_start_soc(t[k], i[k], sim.v_V.T[k], model, np.array([z + 0.03]))
+        assert abs(fit.branch_V[0].sum() - truth_V) < 2e-3, (start_s, fit.branch_V, truth_V)
+
+
+def test_a_bank_started_from_the_fit_opens_with_its_branches() -> None:
+    """A bank given the fitted branch voltages holds them across its start R1, R2, and its
+    model tracks the record from the first minutes: the first 300 s of the paper cell entered
+    2,016 s into DST have a third of the model error of the same start with empty branches
+    (whose error the first updates put into R0)."""
+    run, k = _mid_drive(2016)
+    block = SampleBlock.from_arrays(run.t_s[k], run.current_A[k], run.voltages_V[k])
+    fitted = fitted_start_soc([block], run.cell, None, None)
+    assert fitted is not None and np.all(fitted.branch_V > 0)
+    rmse = {}
+    for name, branch in (("seeded", fitted.branch_V), ("empty", None)):
+        bank = build_bank(run.cell, 1, "hy-affrls-lpso", soc0=fitted.soc0, branch0_V=branch)
+        if branch is not None:
+            p = bank.params.outputs()
+            held = np.stack([bank.params.x1 * p["R1_ohm"], bank.params.x2 * p["R2_ohm"]], 1)
+            np.testing.assert_allclose(held, branch, rtol=1e-12)
+        out = bank.update_block(block)
+        rmse[name] = float(np.sqrt(np.mean(out["v_error_V"][:300] ** 2)))
+    assert rmse["seeded"] < 0.6 * rmse["empty"], rmse
+
+
+def test_identify_with_soc0_keeps_it_and_fits_only_the_branches(tmp_path: Path) -> None:
+    """``identify --soc0`` on the loaded start: the SOC is the one given (no dz fitted), the
+    branches start where the fit finds them, and the run says so."""
+    run, k = _mid_drive(2016)
+    truth = float(run.soc_true[k][0])
+    path = tmp_path / "loaded.csv"
+    write_tester_csv(
+        TesterData(t_s=run.t_s[k] - run.t_s[k][0], current_A=run.current_A[k],
+                   cell_voltages_V=run.voltages_V[k], cell_names=["voltage_V"]),
+        path,
+    )  # fmt: skip
+    res = identify_file(path, IdentifySpec(cell=run.cell, variant="hy-affrls-lpso", soc0=truth))
+    first = res.first_tick()
+    assert first is not None and float(first["soc"][0][0]) == truth
+    assert res.soc_init_method == "given"
+    assert res.start_branch_V is not None and res.start_branch_V[0] > 0.01
+    assert soc_init_text(res).startswith(f"initial SOC {100 * truth:.1f} %: given by --soc0; RC")

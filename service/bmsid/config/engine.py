@@ -89,8 +89,10 @@ def build_bank(
     cell_ids: npt.ArrayLike | None = None,
     n_stagger: int | None = None,
     start: StartValues | None = None,
+    branch0_V: FloatArray | None = None,
 ) -> EstimatorBank:
     """A new estimator bank of ``n_cells`` cells of type ``cell`` (see ``EstimatorBank``);
-    ``start``: start values measured on the record (see ``cell_model``)."""
+    ``start``: start values measured on the record (see ``cell_model``); ``branch0_V``: the
+    branches' voltages at the first sample (V, (n_cells, 2)), None for empty ones."""
     model = cell_model(cell, n_cells, start, tuning)
-    return EstimatorBank(model, variant, tuning, soc0, cell_ids, n_stagger)
+    return EstimatorBank(model, variant, tuning, soc0, cell_ids, n_stagger, branch0_V)

@@ -293,8 +293,7 @@ class BankHost:
         # A config without start values or bounds: measure them on the first samples, as
         # offline identification does on a record, before the estimators start.
         self._probing = self.spec.cell.initial is None or self.spec.cell.bounds is None
-        if self.spec.soc0 is None and self.spec.cell.soc_init.policy == "ocv_at_rest":
-            self._head = StartHead()
+        self._head = StartHead()  # a fresh start: its first window refits it
         self.counters["start_refits"] = 0
 
     def _fresh_bank(self) -> EstimatorBank:
@@ -520,34 +519,41 @@ class BankHost:
         )  # fmt: skip
 
     def _refit_start(self, head: SampleBlock) -> None:
-        """Where the start SOC fitted over ``head`` holds, a bank from it that has replayed
-        ``head`` replaces the running one (``daemon/start_refit.py``)."""
+        """Where the start fitted over ``head`` holds (its branches, and its SOC unless that
+        is configured), a bank from it that has replayed ``head`` replaces the running one
+        (``daemon/start_refit.py``)."""
         from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
         from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc  # noqa: PLC0415
 
         s = self.spec
-        soc0 = fitted_start_soc([head], s.cell, s.tuning, self.start_values)
-        if soc0 is None:
+        fitted = fitted_start_soc([head], s.cell, s.tuning, self.start_values, soc0=s.soc0)
+        if fitted is None:
             log.info(
-                "start SOC kept after %.0f s (%s): the first voltage was at rest and relaxed, "
+                "start kept after %.0f s (%s): the first voltage was at rest and relaxed, "
                 "or no start fit held", WINDOW_S, self.bank.soc_init_method,
             )  # fmt: skip
             return
+        soc0 = fitted.soc0 if fitted.soc_fitted else s.soc0
         bank = build_bank(s.cell, s.n_cells, s.variant, s.tuning, soc0=soc0,
-                          start=self.start_values)  # fmt: skip
+                          start=self.start_values, branch0_V=fitted.branch_V)  # fmt: skip
         step = 64 * samples_per_tick(head.t_s, s.tuning.id_period_s)
         for start in range(0, len(head), step):
             bank.update_block(head.slice(start, start + step))
             if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
                 self._beat_t = now
                 self.beat()
-        bank.state.soc_init_method = WINDOW_FIT
+        opened = {"ocv_ir_corrected": "under load"}.get(self.bank.soc_init_method, "relaxing")
+        what = "start SOC fitted"
+        if fitted.soc_fitted:
+            bank.state.soc_init_method = WINDOW_FIT
+        else:  # the configured SOC stays (its start method too); loaded or relaxing, as judged
+            what, opened = "start branches fitted (SOC as configured)", "under load or relaxing"
         log.info(
-            "start SOC fitted over the first %.0f s (it opened %s): %.1f %% (mean of %d cells); "
-            "the bank replayed those samples from there: SOC now %.1f %% (was %.1f %%)",
-            WINDOW_S, {"ocv_ir_corrected": "under load"}.get(self.bank.soc_init_method, "relaxing"),
-            100 * float(soc0.mean()), s.n_cells, 100 * float(bank.state.z.mean()),
-            100 * float(self.bank.state.z.mean()),
+            "%s over the first %.0f s (it opened %s): %.1f %%, branches %.1f mV (means of %d "
+            "cells); the bank replayed those samples from there: SOC now %.1f %% (was %.1f %%)",
+            what, WINDOW_S, opened, 100 * float(fitted.soc0.mean()),
+            1e3 * float(fitted.branch_V.sum(axis=1).mean()), s.n_cells,
+            100 * float(bank.state.z.mean()), 100 * float(self.bank.state.z.mean()),
         )  # fmt: skip
         self.bank = bank
         self.counters["start_refits"] += 1

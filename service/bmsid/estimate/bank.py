@@ -89,6 +89,9 @@ class EstimatorBank:
         variant: ``non-hy-affrls``, ``hy-affrls`` or ``hy-affrls-lpso``.
         tuning: estimator constants (defaults documented in ``EstimatorTuning``).
         soc0: initial SOC (fraction, scalar or per cell); None applies ``model.soc_start``.
+        branch0_V: the RC branches' voltages at the first sample (V, (n_cells, 2), the drops
+            ``R1 x1``, ``R2 x2`` of Eq. 9), as a start fit over the record's first minutes
+            finds them under load (``offline/start_soc.py``); None: empty branches (a rest).
         cell_ids: global index of each cell (seeds its swarm and staggers its schedule), default
             0..n_cells-1; ``n_stagger`` is the number of cells the schedule is spread over.
     """
@@ -101,6 +104,7 @@ class EstimatorBank:
         soc0: float | FloatArray | None = None,
         cell_ids: npt.ArrayLike | None = None,
         n_stagger: int | None = None,
+        branch0_V: FloatArray | None = None,
     ) -> None:
         if variant not in VARIANT_STAGES:
             raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}")
@@ -120,6 +124,12 @@ class EstimatorBank:
             else CoulombState(model, soc0, tun.knee_slope_factor)
         )
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
+        #: per cell, the voltage the RC branches started holding (V, their sum); None: empty
+        self.start_branch_V: FloatArray | None = None
+        if branch0_V is not None:
+            u = np.asarray(branch0_V, dtype=np.float64).reshape(n, 2)
+            if self.params.seed_branches(u):
+                self.start_branch_V = np.nan_to_num(u).sum(axis=1)
         self._excitation_limit_A = per_cell_limit(self.tuning.excitation_C, model)
         self.guard = PublishGuard.for_model(model, self.tuning)
         self.average = PublishAverage(n, self.tuning.publish_average_tau1)

@@ -36,6 +36,7 @@ from bmsid.estimate.stage import (
     innovation_gain,
     is_excited,
     per_cell_limit,
+    unit_branch_states,
 )
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.swarms import RunningSwarms, SwarmSchedule, WindowBuffer
@@ -59,12 +60,9 @@ class FusionStage:
     name = "params"
 
     def __init__(
-        self,
-        model: CellModel,
-        tuning: EstimatorTuning,
-        cell_ids: npt.NDArray[np.int64],
+        self, model: CellModel, tuning: EstimatorTuning, cell_ids: npt.NDArray[np.int64],
         n_stagger: int,
-    ) -> None:
+    ) -> None:  # fmt: skip
         self.model, self.tuning = model, tuning
         self.n = n = model.n_cells
         self.cell_ids = cell_ids
@@ -126,8 +124,7 @@ class FusionStage:
 
     def _start_values(self) -> None:
         m, n = self.model, self.n
-        self.x1 = np.zeros(n)
-        self.x2 = np.zeros(n)
+        self.x1, self.x2 = np.zeros(n), np.zeros(n)  # empty branches (seed_branches: loaded)
         self.tau1 = np.clip(m.start("tau1_s"), *m.bound("tau1_s"))
         self.tau2 = np.clip(m.start("tau2_s"), *m.bound("tau2_s"))
         self.theta = self._theta0.copy()
@@ -368,6 +365,10 @@ class FusionStage:
         }
 
     _PER_CELL = ("x1", "x2", "tau1", "tau2", "theta", "P", "lam", "sig_e", "arx_err")
+
+    def seed_branches(self, branch_V: FloatArray) -> bool:  # the start R1, R2 hold branch_V
+        self.x1, self.x2 = unit_branch_states(branch_V, self.R1, self.R2)
+        return True
 
     def reset(self, mask: BoolArray) -> None:
         """The masked cells restart from their start values; their running swarm ends."""

@@ -107,12 +107,30 @@ class ParameterStage(Stage, Protocol):
     #: cells clamped to a bound at the last step (quality OUT_OF_BOUNDS)
     clamped: BoolArray
 
+    def seed_branches(self, branch_V: FloatArray) -> bool:
+        """Start the RC branches at the given voltages (V, (n_cells, 2): ``R1 x1``, ``R2 x2``
+        of Eq. 9 with the start values' R1, R2), before the first tick; NaN leaves a branch
+        empty. False: this stage keeps its branches empty."""
+        ...
+
 
 def per_cell_limit(share_C: float, model: CellModel) -> float | FloatArray:
     """``share_C`` x each cell's capacity, in A: one float when every cell has the same
     capacity (the usual pack), so the per-tick comparisons stay on Python scalars."""
     lim = share_C * model.capacity_Ah
     return float(lim[0]) if np.all(lim == lim[0]) else lim
+
+
+def unit_branch_states(branch_V: FloatArray, r1_ohm: FloatArray, r2_ohm: FloatArray) -> tuple[
+    FloatArray, FloatArray]:  # fmt: skip
+    """The unit-gain branch states x1, x2 (A, Eq. 8) that hold ``branch_V`` (V, (n, 2)) across
+    R1, R2 (ohm): 0 where a voltage is not finite or its resistance not positive."""
+    out = []
+    for j, r in enumerate((r1_ohm, r2_ohm)):
+        u = branch_V[:, j]
+        ok = np.isfinite(u) & (r > 0)
+        out.append(np.where(ok, u / np.where(ok, r, 1.0), 0.0))
+    return out[0], out[1]
 
 
 def is_quiet(tick: Tick, rest_limit_A: float | FloatArray) -> bool | BoolArray:

@@ -18,7 +18,13 @@ linearised in dz is
 states of Eq. 8, c_j the branch voltages at the window start), linear in (R0, R1, R2, dz, c1,
 c2) for fixed time constants: a grid over (tau1, tau2) and a least-squares solve for each, the
 best kept, re-linearised until dz settles. The relaxation and the load are explained by the
-branches; what they cannot explain, a level that follows the OCV slope, is SOC. Pure numpy.
+branches; what they cannot explain, a level that follows the OCV slope, is SOC. Where SOC is
+known (given by the user) the dz column is left out. Pure numpy.
+
+The engine starts its branches at the fitted ``-c_j`` (``EstimatorBank(branch0_V=...)``), not
+empty: a bank that meets a loaded first voltage with empty branches reads their voltage as a
+model error and its first updates put it into R0 (the CALCE 25 C BJDST record entered 1,800 s
+in: R0 74 -> 121 mOhm in 15 s, 22 mV of error over the first minute).
 
 Measured (``bench/starts_real.py``): the four polarised 25 C starts read 77.6 / 77.9 / 43.4 /
 43.9 % from their first voltages for 80 / 80 / 50 / 50 %; fitted over 20 min, 80.5 / 81.8 /
@@ -61,20 +67,26 @@ MAX_DZ = 0.3
 
 @dataclass(frozen=True)
 class StartFit:
-    """Per cell: the fitted start SOC (NaN where no fit) and the fit's RMSE (V)."""
+    """Per cell: the fitted start SOC (NaN where no fit), the fit's RMSE (V) and the two
+    branches' voltages at the first sample (V, (cells, 2), NaN where no fit): the drops
+    ``u_j = R_j x_j`` of Eq. 9 (``v = OCV + M h - R0 i - u1 - u2``), ``-c_j`` of the fit."""
 
     soc0: FloatArray
     rmse_V: FloatArray
     window_s: float
+    branch_V: FloatArray
 
 
 def fit_start_soc(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, model: CellModel,
     soc_guess: FloatArray, window_s: float = WINDOW_S, tuning: EstimatorTuning | None = None,
+    soc_known: bool = False,
 ) -> StartFit:  # fmt: skip
     """The start SOC of each cell fitted over the first ``window_s`` of the record (module
-    docstring), from ``soc_guess`` (the first voltage's reading). Samples (s, A with + =
-    discharge, V (samples, cells)); NaN voltages are left out, and so are samples with a NaN
+    docstring), from ``soc_guess`` (the first voltage's reading); with ``soc_known`` the
+    guess is the SOC (given by the user) and only the branches are fitted (no dz column).
+    Samples (s, A with + = discharge, V (samples, cells)); NaN voltages are left out, and so
+    are samples with a NaN
     current (the branches and the count hold the current before through them); a step longer
     than ``tuning.gap_s`` carries no current (a rest, as the engine assumes over a gap); the
     grid keeps tau2 >= ``tuning.tau_ratio_min`` tau1 (None: the defaults). NaN where
@@ -91,8 +103,9 @@ def fit_start_soc(
     n = v.shape[1]
     soc0 = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
+    branch = np.full((n, 2), np.nan)
     if t.shape[0] < MIN_SAMPLES or t[-1] - t[0] < 0.5 * window_s:
-        return StartFit(soc0, rmse, window_s)
+        return StartFit(soc0, rmse, window_s, branch)
     dt = np.maximum(np.diff(t), 0.0)
     i_held = np.where(dt > tun.gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
@@ -118,8 +131,9 @@ def fit_start_soc(
             z = z0 - charge_As / q_As
             zc, _ = model.ocv.clamp(z)
             y = v[:, c] - model.ocv.ocv(zc) - model.ocv.hysteresis_M(zc) * h
-            fit = _best_fit(y[ok], -i[ok], x1[:, ok], x2[:, ok], model.ocv.docv_dz(zc)[ok],
-                            d1[:, ok], d2[:, ok], pairs)  # fmt: skip
+            slope = None if soc_known else model.ocv.docv_dz(zc)[ok]
+            fit = _best_fit(y[ok], -i[ok], x1[:, ok], x2[:, ok], slope, d1[:, ok], d2[:, ok],
+                            pairs)  # fmt: skip
             if fit is None or abs(fit[1]) > MAX_DZ:
                 fit = None
                 break
@@ -128,7 +142,8 @@ def fit_start_soc(
                 break
         if fit is not None and abs(z0 - float(soc_guess[c])) <= MAX_DZ:
             soc0[c], rmse[c] = z0, fit[0]
-    return StartFit(soc0, rmse, window_s)
+            branch[c] = -fit[2], -fit[3]
+    return StartFit(soc0, rmse, window_s, branch)
 
 
 def _held(current_A: FloatArray) -> FloatArray:
@@ -157,18 +172,20 @@ def _hysteresis(i_held: FloatArray, dt: FloatArray, model: CellModel, c: int) ->
 
 
 def _best_fit(
-    y: FloatArray, minus_i: FloatArray, x1: FloatArray, x2: FloatArray, slope: FloatArray,
-    d1: FloatArray, d2: FloatArray, pairs: npt.NDArray[np.bool_],
-) -> tuple[float, float] | None:  # fmt: skip
-    """(RMSE V, dz) of the best physical (R0, R1, R2 > 0) solve over the time-constant grid's
-    ``pairs``."""
-    best: tuple[float, float] | None = None
+    y: FloatArray, minus_i: FloatArray, x1: FloatArray, x2: FloatArray,
+    slope: FloatArray | None, d1: FloatArray, d2: FloatArray, pairs: npt.NDArray[np.bool_],
+) -> tuple[float, float, float, float] | None:  # fmt: skip
+    """(RMSE V, dz, c1 V, c2 V) of the best physical (R0, R1, R2 > 0) solve over the
+    time-constant grid's ``pairs``; without ``slope`` SOC is known (dz 0, not fitted)."""
+    best: tuple[float, float, float, float] | None = None
     for j1, j2 in zip(*np.nonzero(pairs), strict=True):
-        A = np.column_stack([minus_i, -x1[j1], -x2[j2], slope, d1[j1], d2[j2]])
+        cols = [minus_i, -x1[j1], -x2[j2]] + ([] if slope is None else [slope])
+        A = np.column_stack([*cols, d1[j1], d2[j2]])
         th, *_ = np.linalg.lstsq(A, y, rcond=None)
         if not (th[0] > 0 and th[1] > 0 and th[2] > 0 and np.all(np.isfinite(th))):
             continue
         rmse = float(np.sqrt(np.mean((y - A @ th) ** 2)))
         if best is None or rmse < best[0]:
-            best = (rmse, float(th[3]))
+            dz = 0.0 if slope is None else float(th[3])
+            best = (rmse, dz, float(th[-2]), float(th[-1]))
     return best

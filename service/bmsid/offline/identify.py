@@ -169,6 +169,7 @@ def run_blocks(
     start: StartValues | None = None,
     gates: GateConfig | None = None,
     scorer: RunScorer | None = None,
+    branch0_V: FloatArray | None = None,
 ) -> IdentifyResult:
     """Feed sample blocks in order, through the plausibility gates, to a new bank of
     ``n_cells`` cells.
@@ -179,7 +180,7 @@ def run_blocks(
         The recording in time order (s, A with + = discharge, V).
     n_cells : int
         Voltage columns of every block.
-    cell, variant, tuning, soc0
+    cell, variant, tuning, soc0, branch0_V
         The bank's setup (see :func:`~bmsid.config.engine.build_bank`).
     progress : callable or None
         Called with the samples of each block once the bank has eaten it.
@@ -203,7 +204,7 @@ def run_blocks(
         ``runtime_s`` counts the gates' and the bank's time only (no reading, writing or
         progress); ``input_gates`` what the gates refused.
     """
-    bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0, start=start)
+    bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0, start=start, branch0_V=branch0_V)
     gate = input_gate(cell, n_cells, tuning, gates or GateConfig())
     parts: list[EstimateBlock] = []
     n = 0
@@ -234,6 +235,7 @@ def run_blocks(
         start_values=start,
         input_gates=gate.state.report(),
         summary=scorer,
+        start_branch_V=bank.start_branch_V,
     )
 
 
@@ -353,12 +355,16 @@ def identify_source(
     """
     probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
     start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
+    # a start under load or still relaxing: its branches (and SOC, unless known) fitted over
+    # the first window
+    fresh_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
+    fitted = fitted_start_soc(
+        source.blocks(spec.block_size), spec.cell, spec.tuning, start, fresh_gate, spec.soc0
+    )
+    soc_fitted = fitted is not None and fitted.soc_fitted
     soc0: float | FloatArray | None = spec.soc0
-    if soc0 is None:  # a start under load or still relaxing: fitted over the first window
-        fresh_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
-        soc0 = fitted_start_soc(
-            source.blocks(spec.block_size), spec.cell, spec.tuning, start, fresh_gate
-        )
+    if soc_fitted and fitted is not None:
+        soc0 = fitted.soc0
     bounds = watched_bounds(spec.cell, start, spec.tuning, source.n_cells)
     scorer: RunScorer | None = None
     if not spec.keep_trace:
@@ -380,8 +386,9 @@ def identify_source(
         result = run_blocks(
             source.blocks(spec.block_size), source.n_cells, spec.cell, spec.variant, spec.tuning,
             soc0, progress, source.cell_names, sink, start, spec.gates, scorer,
+            None if fitted is None else fitted.branch_V,
         )  # fmt: skip
-    if spec.soc0 is None and soc0 is not None:
+    if soc_fitted:
         result = replace(result, soc_init_method=WINDOW_FIT)
     if out is not None:
         # a kept trace is scored once here, with the bounds, as the streamed run was

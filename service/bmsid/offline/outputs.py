@@ -167,6 +167,15 @@ def soc_init_text(result: IdentifyResult, rest_limit_A: float | None = None) -> 
         "observer refines it)",
         "pending": "none: no cell carried a valid voltage",
     }.get(result.soc_init_method, result.soc_init_method)
+    b = result.start_branch_V
+    if b is not None:  # under load or relaxing: what the RC branches held at the start
+        volts = ", ".join(f"{1e3 * u:.1f} mV" for u in b[:4]) + (" ..." if b.size > 4 else "")
+        also = (
+            ""
+            if result.soc_init_method == "window_fit"
+            else f" (fitted over the first {START_WINDOW_S / 60:.0f} min)"
+        )
+        how += f"; RC branches from {volts}{also}"
     return f"initial SOC {socs}: {how}"
 
 

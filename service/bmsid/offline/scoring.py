@@ -403,6 +403,10 @@ class IdentifyResult:
         evaluation window (a streamed run); None: computed from ``trace`` when needed.
     n_ticks : int
         Identification ticks of the run.
+    start_branch_V : ndarray or None
+        Per cell, the voltage the RC branches held at the first sample (V, their sum), fitted
+        over the record's first minutes where it opened under load or relaxing
+        (``offline/start_soc.py``); None: the branches started empty.
     """
 
     variant: Variant
@@ -415,6 +419,7 @@ class IdentifyResult:
     start_values: StartValues | None = None
     input_gates: dict[str, Any] = field(default_factory=dict)
     summary: RunScorer | None = None
+    start_branch_V: FloatArray | None = None
 
     @property
     def n_ticks(self) -> int:
@@ -549,11 +554,13 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     ``mape_pct``; the whole record by default), then ``overall`` (every tick), ``startup`` (the
     first ``STARTUP_FRACTION`` of the ticks) and ``after_startup`` (the rest), ``soc_bands``
     (non-empty 10 % SOC bands), ``evaluation_window`` and ``scoring_soc`` (the SOC that decided
-    the window and bands); the same per cell under ``cells``.
+    the window and bands); the same per cell under ``cells``; ``start_branch_V`` per cell (V,
+    null for empty branches).
     """
     scorer = result.scorer(window)
     s = scorer.scores()
     n, n0 = scorer.acc.seen, s.n_startup_ticks
+    b = result.start_branch_V
     cells: dict[str, Any] = {}
     for c, name in enumerate(result.cell_names):
         held = HeldShare(*scorer.acc.held(c))
@@ -580,6 +587,7 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
         "n_input_samples": result.n_samples,
         "n_ticks": n,
         "soc_init_method": result.soc_init_method,
+        "start_branch_V": None if b is None else [float(x) for x in b],
         "counters": result.counters,
         "cells": cells,
     }
