@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from bmsid.config.cell import SocInit
 from bmsid.config.engine import build_bank, ocv_model
 from bmsid.estimate.start_fit import fit_start_soc
 from bmsid.model.simulator import SimResult, simulate
@@ -182,3 +183,13 @@ def test_identify_with_soc0_keeps_it_and_fits_only_the_branches(tmp_path: Path) 
     assert res.soc_init_method == "given"
     assert res.start_branch_V is not None and res.start_branch_V[0] > 0.01
     assert soc_init_text(res).startswith(f"initial SOC {100 * truth:.1f} %: given by --soc0; RC")
+
+
+def test_a_config_fixed_start_soc_gets_no_fit() -> None:
+    """A cell config's fixed ``soc0`` is a standing guess, not the record's start: a loaded
+    start is not fitted then (a wrong SOC would be fitted into the branches)."""
+    run, k = _mid_drive(2016)
+    block = SampleBlock.from_arrays(run.t_s[k], run.current_A[k], run.voltages_V[k])
+    fixed = run.cell.model_copy(update={"soc_init": SocInit(policy="fixed", soc0=0.6)})
+    assert fitted_start_soc([block], fixed, None, None) is None
+    assert fitted_start_soc([block], run.cell, None, None) is not None

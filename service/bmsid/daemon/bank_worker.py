@@ -293,7 +293,9 @@ class BankHost:
         # A config without start values or bounds: measure them on the first samples, as
         # offline identification does on a record, before the estimators start.
         self._probing = self.spec.cell.initial is None or self.spec.cell.bounds is None
-        self._head = StartHead()  # a fresh start: its first window refits it
+        # a fresh start: its first window refits it (the SOC too, unless configured)
+        if self.spec.soc0 is not None or self.spec.cell.soc_init.policy == "ocv_at_rest":
+            self._head = StartHead()
         self.counters["start_refits"] = 0
 
     def _fresh_bank(self) -> EstimatorBank:

@@ -10,10 +10,10 @@ through it and carries on with that bank: from then on the daemon's estimates ar
 offline run of the same record gives. What was published during the window stays published;
 the step at the swap is logged and counted (``start_refits``).
 
-A configured ``soc0`` (or the config's fixed one) stays as it is: only the RC branches'
-voltages at the first sample are fitted there, which a loaded start needs as much (``identify
---soc0`` does the same). Only a fresh start is refitted (a restore re-anchors from the voltage
-at restart: ``estimate/state.py``), and only while the kept samples stay within
+A configured ``soc0`` stays as it is: only the RC branches' voltages at the first sample are
+fitted there, which a loaded start needs as much (``identify --soc0`` does the same). Only a
+fresh start is refitted (a restore re-anchors from the voltage at restart:
+``estimate/state.py``), and only while the kept samples stay within
 ``MAX_HEAD_CELL_SAMPLES`` (32 MB of voltages: 1,200 s of 96 cells at 30 Hz); a faster bus keeps
 the first voltage's start, and says so.
 """

@@ -38,8 +38,8 @@ class FittedStart:
 
     soc0: FloatArray
     branch_V: FloatArray
-    #: False where the start SOC was known (given, or the config's fixed one): only the
-    #: branches were fitted, and the start keeps its own ``soc_init_method``
+    #: False where the start SOC was given: only the branches were fitted, and the start
+    #: keeps its own ``soc_init_method``
     soc_fitted: bool = True
 
 
@@ -51,16 +51,16 @@ def fitted_start_soc(
     """Per cell, the start SOC and branch voltages fitted over the record's first ``WINDOW_S``
     (through ``gate``, fresh plausibility gates, when given), or None where the first voltage
     is to be trusted or no fit holds (cells without one keep their first voltage's reading).
-    A known start SOC (``soc0``, or the config's fixed one) is kept as it is and only the
-    branches are fitted.
+    A known start SOC (``soc0``: ``--soc0``, the daemon's configured one) is kept as it is
+    and only the branches are fitted; a cell config's fixed ``soc0`` is a standing guess, not
+    this start's SOC: such a start is not fitted (a wrong SOC would be fitted into the
+    branches).
 
     The branches' voltages matter as much as the SOC: a bank started at the fitted SOC with
     its branches empty meets, under load, a first voltage off by what the branches hold (CALCE
     25 C BJDST entered 1,800 s in: 16 mV), and its first updates put that into R0 (74 -> 121
     mOhm): 3.26 mV over SOC 95-15 %, against 1.04 mV with the fitted branches."""
     si = cell.soc_init
-    if soc0 is None and si.policy == "fixed":
-        soc0 = si.soc0
     if soc0 is None and si.policy != "ocv_at_rest":
         return None
     b = gated_head(blocks, WINDOW_S, gate)
