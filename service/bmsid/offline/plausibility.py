@@ -711,10 +711,11 @@ def check_start_relaxation(
             "warning",
             "start_not_relaxed",
             f"the record opens with {span_s:.0f} s at rest while the voltage still moves "
-            f"{1e3 * rate[worst]:+.2f} mV/s ({way} ended just before): the start SOC, read "
-            "from the first voltage through the OCV, misses the relaxation still to come (a "
-            "CALCE US06 test that opened 3 s after a step at +1.2 mV/s read 77.9 % for 80 %, "
-            "and its RMSE doubled); give --soc0 when the start is known",
+            f"{1e3 * rate[worst]:+.2f} mV/s ({way} ended just before): the first voltage is "
+            "no OCV yet, so the start SOC and the RC branches are fitted over the first 20 min "
+            "instead (a CALCE US06 test that opened 3 s after a step at +1.2 mV/s read 77.9 % "
+            "for 80 % from its first voltage, 81.8 % fitted); give --soc0 when the start is "
+            "known",
         )
     ]
 
