@@ -42,6 +42,13 @@ def _uniform(x: FloatArray) -> float | FloatArray:
 START_V_SIGMA_V = 0.01
 
 
+def starts_at_rest(current_A: float, model: CellModel) -> bool:
+    """A start at rest: the first tick's current (A) within ``soc_start.rest_current_C`` x
+    each cell's capacity; a start under load (or without a current) IR-corrects its first
+    voltage."""
+    return bool(np.all(abs(current_A) <= model.soc_start.rest_current_C * model.capacity_Ah))
+
+
 def start_soc_sigma(
     model: CellModel, z: FloatArray, i_abs_A: float, sigma_max: float
 ) -> FloatArray:
@@ -164,13 +171,13 @@ class CoulombState:
             z = np.full(self.n, si.soc0)
             method = "config"
         else:
-            rest = abs(tick.current_A) <= si.rest_current_C * self.model.capacity_Ah
             v_eq = tick.v_V + self.model.start("R0_ohm") * tick.current_A
             z = self.model.ocv.soc_from_ocv(np.where(tick.ok & np.isfinite(v_eq), v_eq, np.nan))
             cells = cells & np.isfinite(z)
             if not cells.any():
                 return cells
-            method = "ocv_at_rest" if np.all(rest) else "ocv_ir_corrected"
+            rest = starts_at_rest(tick.current_A, self.model)
+            method = "ocv_at_rest" if rest else "ocv_ir_corrected"
         self.z = np.where(cells, z, self.z)
         self.h = np.where(cells, 0.0, self.h)
         if cells.all() or self.soc_init_method == "pending":

@@ -19,6 +19,7 @@ from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank
 from bmsid.estimate.start_fit import WINDOW_S, fit_start_soc
 from bmsid.estimate.startvalues import StartValues
+from bmsid.estimate.state import starts_at_rest
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.gates import InputGate, gated_head
 from bmsid.offline.plausibility import check_start_relaxation
@@ -71,12 +72,11 @@ def fitted_start_soc(
                                                       b.cell_voltages_V[:2]))  # fmt: skip
     if not len(first.t_s):
         return None
-    capacity = bank.model.capacity_Ah
-    # the engine's own rule for a start under load (``state.CoulombState._start``)
-    loaded = not np.all(abs(first.current_A[0]) <= si.rest_current_C * capacity)
+    loaded = not starts_at_rest(float(first.current_A[0]), bank.model)
     r0 = float(bank.model.start("R0_ohm")[0])
+    capacity = float(bank.model.capacity_Ah[0])
     relaxing = check_start_relaxation(
-        b.t_s, b.current_A, b.cell_voltages_V, float(capacity[0]), r0, si.rest_current_C
+        b.t_s, b.current_A, b.cell_voltages_V, capacity, r0, si.rest_current_C
     )
     if not (loaded or relaxing):
         return None
