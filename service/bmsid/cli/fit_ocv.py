@@ -109,9 +109,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     g.add_argument(
         "--soc-anchor",
-        choices=("none", "full"),
-        default="none",
-        help="full: shift each table's SOC so its highest discharge point is 100 %%",
+        choices=("auto", "none", "full"),
+        default="auto",
+        help="auto (default): shift a table whose SOC runs above 100 %% so that its highest "
+        "discharge point is 100 %%; full: every table; none: the SOC as given",
     )
     g.add_argument(
         "--hysteresis-from",

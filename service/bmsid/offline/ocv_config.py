@@ -19,7 +19,13 @@ import numpy as np
 from bmsid.config.cell import CellConfig, InitialParameters, ParameterBounds, load_cell_config
 from bmsid.errors import UserError
 from bmsid.offline import plausibility
-from bmsid.offline.csvio import ColumnMap, TesterData, read_ocv_points, read_tester_csv
+from bmsid.offline.csvio import (
+    ColumnMap,
+    OcvPoints,
+    TesterData,
+    read_ocv_points,
+    read_tester_csv,
+)
 from bmsid.offline.ocv_fit import (
     EQ32_KNOTS,
     Eq4Fit,
@@ -71,8 +77,11 @@ class OcvFitSpec:
         Parameter bounds stored in the config; None: the defaults.
     branch : {"discharge", "charge"} or None
         Branch of tables whose column names do not say it.
-    soc_anchor : {"none", "full"}
-        ``full``: shift each table's SOC so its highest discharge point is 100 %.
+    soc_anchor : {"auto", "none", "full"}
+        ``auto`` (default): a table whose SOC runs above 100 % is shifted so that its highest
+        discharge point is 100 % (a rest above full is the full rest on another SOC
+        reference); one within 0-100 % keeps its axis. ``full``: every table shifted so.
+        ``none``: as given (points beyond the fit's range are moved onto it).
     hysteresis_from : str or None
         Cell config whose M(z) is taken when the tables have one branch only.
     ends : bool
@@ -97,7 +106,7 @@ class OcvFitSpec:
     initial: InitialParameters | None = None
     bounds: ParameterBounds | None = None
     branch: Branch | None = None
-    soc_anchor: Literal["none", "full"] = "none"
+    soc_anchor: Literal["auto", "none", "full"] = "auto"
     hysteresis_from: str | None = None
     ends: bool = True
     correction: bool = True
@@ -267,6 +276,25 @@ def fit_test_files(
     return result, br.capacity_Ah, br.coulombic_efficiency, info
 
 
+def _anchor_shift(
+    path: str | Path, named: Sequence[tuple[str | None, OcvPoints]],
+    anchor: Literal["auto", "none", "full"], info: list[str],
+) -> float:  # fmt: skip
+    """The SOC shift (fraction) of one table (``OcvFitSpec.soc_anchor``), said in ``info``.
+
+    A table's SOC axis is its own count: the CALCE sibling cells' tables run to 100.7-108.9 %.
+    Taken as given, the points above full were moved onto the fit's range and a user's 0 C
+    config read the 0 C DST record's 81.9 % start as 88.5 % (README, Model and conventions)."""
+    dis = [pr.soc for b, pr in named if b == "discharge"] or [pr.soc for _, pr in named]
+    top = float(max(np.max(s) for s in dis))
+    if anchor == "none" or (anchor == "auto" and top <= 1.0):
+        return 0.0
+    why = "" if anchor == "full" else f": its top point, {100 * top:.2f} %, lies above full"
+    shift = 1.0 - top
+    info.append(f"{path}: SOC shifted by {100 * shift:+.2f} % (top discharge point = 100 %{why})")
+    return shift
+
+
 def fit_point_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
 ) -> tuple[OcvFitResult, float, float, list[str]]:
@@ -288,13 +316,7 @@ def fit_point_files(
         for branch, _ in named:
             if branch is None:
                 raise UserError(f"{path}: the columns do not name a branch; give --branch")
-        shift = 0.0
-        if spec.soc_anchor == "full":
-            dis = [pr.soc for b, pr in named if b == "discharge"] or [pr.soc for _, pr in named]
-            shift = 1.0 - float(max(np.max(s) for s in dis))
-            info.append(
-                f"{path}: SOC shifted by {100 * shift:+.2f} % (top discharge point = 100 %)"
-            )
+        shift = _anchor_shift(path, named, spec.soc_anchor, info)
         for branch, pr in named:
             assert branch is not None
             pooled[branch][0].append(pr.soc + shift)
