@@ -39,6 +39,7 @@ from bmsid.offline.ocv_fit import (
     fit_rest_points,
     monotonicity_violation_V,
 )
+from bmsid.offline.ocv_incremental import incremental_points
 
 Branch = Literal["discharge", "charge"]
 
@@ -232,6 +233,13 @@ def fit_test_files(
         else:
             raise UserError(f"{path}: {data.n_cells} cell voltage columns; choose one with --cell")
         parts.append(OcvTestPart(data.t_s, data.current_A, data.cell_voltages_V[:, col]))
+    inc = incremental_points(parts, spec.capacity_Ah, spec.coulombic_efficiency)
+    if inc is not None:  # pulses and rests: the rests' voltages are the points
+        result = fit_rest_points(
+            inc.discharge, inc.charge, trim_soc=spec.trim_soc, knots=spec.knots, ends=spec.ends
+        )
+        warn = capacity_warning(spec.capacity_Ah, inc.measured_capacity_Ah)
+        return result, inc.capacity_Ah, inc.eta, [*input_notes, *inc.info, *warn]
     br = extract_branches(
         parts,
         capacity_Ah=spec.capacity_Ah,

@@ -190,3 +190,59 @@ def c20_ocv_test(
         cell=cell, t_s=t, current_A=i_meas, v_V=v, soc_true=sim.soc, h_true=sim.h[0],
         m_V=m_V, gamma=gamma, eta=eta, bump_V=bump_V, segments=segments,
     )  # fmt: skip
+
+
+def incremental_ocv_test(
+    cell: OcvTestCell = NMC_CELL,
+    *,
+    m_V: float = 0.015,
+    gamma: float = 30.0,
+    pulse_C: float = 0.5,
+    step_soc: float = 0.1,
+    rest_s: float = 3600.0,
+    rest_end_s: float = 7200.0,
+    charge_back: bool = True,
+    eta: float = 1.0,
+    dt_s: float = 10.0,
+    v_noise_V: float = 1e-3,
+    i_noise_A: float = 1e-3,
+    seed: int = 1,
+) -> SyntheticOcvTest:
+    """An incremental OCV test of ``cell`` with a constant true half-gap ``m_V`` (V): a rest
+    full (h = +1), then discharge pulses of ``pulse_C`` each moving ``step_soc`` of the
+    capacity, ``rest_s`` of rest after each (``rest_end_s`` after the one that empties the
+    cell); with ``charge_back`` the same back up to full (the charge runs ``1/eta`` as long).
+    Noise and sampling as ``c20_ocv_test``."""
+    cap = cell.capacity_Ah
+    n_steps = round(1.0 / step_soc)
+    n_pulse = max(round(step_soc * 3600.0 / pulse_C / dt_s), 1)
+
+    def n(s: float) -> int:
+        return max(round(s / dt_s), 1)
+
+    steps: list[tuple[str, float, int]] = [("rest full", 0.0, n(rest_s))]
+    for k in range(n_steps):
+        steps.append((f"discharge pulse {k + 1}", pulse_C * cap, n_pulse))
+        steps.append((f"rest {k + 1}", 0.0, n(rest_end_s if k == n_steps - 1 else rest_s)))
+    if charge_back:
+        for k in range(n_steps):
+            steps.append((f"charge pulse {k + 1}", -pulse_C * cap, round(n_pulse / eta)))
+            steps.append((f"charge rest {k + 1}", 0.0, n(rest_s)))
+    current = np.concatenate([np.full(k, i) for _, i, k in steps])
+    bounds = np.cumsum([0, *[k for _, _, k in steps]])
+    segments = tuple(
+        (name, int(a), int(b)) for (name, _, _), a, b in zip(steps, bounds[:-1], bounds[1:],
+                                                             strict=True)
+    )  # fmt: skip
+    t = np.arange(current.shape[0], dtype=np.float64) * dt_s
+    sim = simulate(
+        t, current, cell.ocv(m_V), capacity_Ah=cap, R0_ohm=cell.R0_ohm, R1_ohm=cell.R1_ohm,
+        tau1_s=cell.tau1_s, R2_ohm=cell.R2_ohm, tau2_s=cell.tau2_s, gamma=gamma, eta=eta,
+        soc0=1.0, h0=1.0,
+    )  # fmt: skip
+    rng = np.random.default_rng(seed)
+    return SyntheticOcvTest(
+        cell=cell, t_s=t, current_A=current + rng.normal(0.0, i_noise_A, t.shape[0]),
+        v_V=sim.v_V[0] + rng.normal(0.0, v_noise_V, t.shape[0]), soc_true=sim.soc,
+        h_true=sim.h[0], m_V=m_V, gamma=gamma, eta=eta, segments=segments,
+    )  # fmt: skip

@@ -1,0 +1,127 @@
+"""fit-ocv on incremental OCV tests (pulses with long rests between, ``ocv_incremental.py``):
+known-truth tests from ``bmsid.synthetic.ocv_test.incremental_ocv_test``. Before, fit-ocv
+refused them ("too fast for an OCV test"); now the rests' voltages are the points."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bmsid.cli.main import main
+from bmsid.config.cell import load_cell_config
+from bmsid.config.engine import ocv_model
+from bmsid.offline.csvio import TesterData, write_tester_csv
+from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
+from bmsid.offline.ocv_fit import OcvTestPart
+from bmsid.offline.ocv_incremental import incremental_points
+from bmsid.synthetic.ocv_test import (
+    LFP_CELL,
+    NMC_CELL,
+    OcvTestCell,
+    SyntheticOcvTest,
+    c20_ocv_test,
+    incremental_ocv_test,
+)
+
+M_TRUE = 0.015
+CELLS = pytest.mark.parametrize("cell", [NMC_CELL, LFP_CELL], ids=["nmc", "lfp"])
+
+
+def _csv(test: SyntheticOcvTest, path: Path) -> Path:
+    data = TesterData(
+        t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
+        cell_names=["voltage_V"],
+    )  # fmt: skip
+    write_tester_csv(data, path)
+    return path
+
+
+def _part(test: SyntheticOcvTest) -> OcvTestPart:
+    return OcvTestPart(test.t_s, test.current_A, test.v_V)
+
+
+@CELLS
+def test_an_incremental_test_gives_the_ocv_the_half_gap_and_the_capacity(
+    cell: OcvTestCell, tmp_path: Path
+) -> None:
+    """Ten C/2 pulses down, ten up, an hour's rest after each: the mean OCV within 2 mV of the
+    truth over SOC 15-85 %, the pooled half-gap within 3 mV of 15 mV, the capacity within
+    0.5 %."""
+    test = incremental_ocv_test(cell, m_V=M_TRUE)
+    fit = fit_ocv_files([_csv(test, tmp_path / "inc.csv")], OcvFitSpec("inc"))
+    assert any(line.startswith("an incremental OCV test") for line in fit.info)
+    res = fit.result
+    assert res.hysteresis is not None and res.hysteresis.present
+    assert res.hysteresis.pooled_V == pytest.approx(M_TRUE, abs=0.003)
+    assert fit.config.capacity_Ah == pytest.approx(cell.capacity_Ah, rel=0.005)
+    z = np.linspace(0.15, 0.85, 71)
+    err = ocv_model(fit.config).ocv(z) - cell.ocv().ocv(z)
+    assert np.max(np.abs(err)) < 0.002
+
+
+def test_no_hysteresis_is_not_made_up() -> None:
+    """The same test without hysteresis: the pooled half-gap's CI holds 0 (the rests' leftover
+    relaxation, which widens the gap, stays within it)."""
+    pts = incremental_points([_part(incremental_ocv_test(NMC_CELL, m_V=0.0, seed=3))])
+    assert pts is not None and pts.discharge is not None and pts.charge is not None
+    from bmsid.offline.ocv_fit import fit_rest_points
+
+    res = fit_rest_points(pts.discharge, pts.charge)
+    assert res.hysteresis is not None
+    assert not res.hysteresis.present
+    assert abs(res.hysteresis.pooled_V) < 0.002
+
+
+def test_points_sit_on_their_branches() -> None:
+    """Each rest's point is on its pulse's branch at the rest's SOC; the rest before the first
+    (discharge) pulse is the full end of the charge branch."""
+    test = incremental_ocv_test(NMC_CELL, m_V=M_TRUE, step_soc=0.2)
+    pts = incremental_points([_part(test)])
+    assert pts is not None and pts.discharge is not None and pts.charge is not None
+    np.testing.assert_allclose(pts.discharge[0], [0.8, 0.6, 0.4, 0.2, 0.0], atol=0.002)
+    np.testing.assert_allclose(pts.charge[0], [1.0, 0.2, 0.4, 0.6, 0.8, 1.0], atol=0.002)
+    ocv = NMC_CELL.ocv(M_TRUE)
+    mid = (pts.discharge[0] > 0.1) & (pts.discharge[0] < 0.9)
+    z = pts.discharge[0][mid]
+    # discharge rests lie M below the mean (h = -1), within the leftover relaxation
+    np.testing.assert_allclose(pts.discharge[1][mid], ocv.ocv(z) - M_TRUE, atol=0.002)
+
+
+def test_a_discharge_only_test_has_one_branch(tmp_path: Path) -> None:
+    test = incremental_ocv_test(NMC_CELL, m_V=M_TRUE, charge_back=False)
+    pts = incremental_points([_part(test)])
+    assert pts is not None and pts.charge is not None and pts.discharge is not None
+    assert pts.charge[0].tolist() == pytest.approx([1.0], abs=1e-3)  # the rest at full only
+    assert "does not return to its start" in pts.info[1]
+    assert pts.eta == 1.0
+
+
+def test_a_low_rate_test_is_not_incremental() -> None:
+    """A C/20 test (with its short pulses at the ends) keeps the low-rate path."""
+    assert incremental_points([_part(c20_ocv_test(NMC_CELL, pulse_C=1.0))]) is None
+    assert incremental_points([_part(c20_ocv_test(LFP_CELL))]) is None
+
+
+def test_a_coulombic_efficiency_below_one_is_measured() -> None:
+    test = incremental_ocv_test(NMC_CELL, m_V=M_TRUE, eta=0.99)
+    pts = incremental_points([_part(test)])
+    assert pts is not None
+    i = np.round(test.current_A, 2)  # the pulses' charge as scheduled (whole samples)
+    assert pts.eta == pytest.approx(i[i > 0].sum() / -i[i < 0].sum(), abs=0.001)
+    assert pts.eta < 0.99
+    assert pts.charge is not None and pts.charge[0][-1] == pytest.approx(1.0, abs=0.002)
+
+
+def test_cli_writes_a_config_from_an_incremental_test(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = _csv(incremental_ocv_test(LFP_CELL, m_V=M_TRUE), tmp_path / "gitt.csv")
+    out = tmp_path / "lfp.toml"
+    assert main(["fit-ocv", str(src), "--chemistry", "LFP", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "an incremental OCV test (10 discharge pulses" in text
+    cfg = load_cell_config(out)
+    assert cfg.capacity_Ah == pytest.approx(LFP_CELL.capacity_Ah, rel=0.005)
+    assert cfg.hysteresis is not None and max(cfg.hysteresis.M_V) > 0.01
