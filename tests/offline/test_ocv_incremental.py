@@ -125,3 +125,31 @@ def test_cli_writes_a_config_from_an_incremental_test(
     cfg = load_cell_config(out)
     assert cfg.capacity_Ah == pytest.approx(LFP_CELL.capacity_Ah, rel=0.005)
     assert cfg.hysteresis is not None and max(cfg.hysteresis.M_V) > 0.01
+
+
+def test_an_hppc_test_puts_its_rests_on_the_discharge_branch() -> None:
+    """An HPPC test from full (per step a 10 s 1C discharge pulse, 40 s rest, a 10 s 0.75C
+    charge pulse, 10 min rest, 10 % SOC at 1C, 30 min rest): its 10 s pulses move h too little
+    to set a branch, so every rest after the first 10 % step is a discharge point, at the
+    truth's discharge OCV within the leftover relaxation."""
+    from bmsid.model.simulator import simulate
+
+    cell, c_A = NMC_CELL, NMC_CELL.capacity_Ah
+    segments = [(1800, 0.0)]
+    for _ in range(9):
+        segments += [(10, c_A), (40, 0.0), (10, -0.75 * c_A), (600, 0.0), (360, c_A), (1800, 0.0)]
+    i = np.concatenate([np.full(d, a) for d, a in segments])
+    t = np.arange(i.size, dtype=np.float64)
+    sim = simulate(
+        t, i, cell.ocv(M_TRUE), capacity_Ah=c_A, R0_ohm=cell.R0_ohm, R1_ohm=cell.R1_ohm,
+        tau1_s=cell.tau1_s, R2_ohm=cell.R2_ohm, tau2_s=cell.tau2_s, gamma=30.0, soc0=1.0,
+        h0=1.0,
+    )  # fmt: skip
+    # it ends at 7 %, not empty: the capacity is given (the charge to its deepest point is not)
+    pts = incremental_points([OcvTestPart(t, i, sim.v_V[0])], capacity_Ah=c_A)
+    assert pts is not None and pts.discharge is not None and pts.charge is not None
+    # the rests before the first 10 % step: h still +1 from the charge that filled the cell
+    np.testing.assert_allclose(pts.charge[0], [1.0, 1.0 - 10 / 3600 * 0.25], atol=1e-6)
+    assert pts.discharge[0].size == 17
+    z, v = pts.discharge
+    np.testing.assert_allclose(v, cell.ocv(M_TRUE).ocv(z) - M_TRUE, atol=0.004)

@@ -33,7 +33,8 @@ Points = tuple[FloatArray, FloatArray]
 
 #: A rest this long (s) gives an OCV point.
 MIN_POINT_REST_S = 600.0
-#: Pulses of one sign needed (each moving at least ``MIN_PULSE_SHARE`` of that sign's charge).
+#: Pulses of one sign needed, each moving at least ``MIN_PULSE_SHARE`` of the test's swing (the
+#: charge of its larger direction).
 MIN_PULSES = 4
 MIN_PULSE_SHARE = 0.01
 #: A test whose largest pulse moves more than this share of its sign's charge has a branch: it
@@ -68,15 +69,20 @@ def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
-def _pulsed(sign: npt.NDArray[np.int64], ah: FloatArray, s: int) -> tuple[int, float]:
-    """(pulses of sign ``s`` that move at least ``MIN_PULSE_SHARE`` of its charge, the
-    largest pulse's share of it)."""
+def _pulses(
+    sign: npt.NDArray[np.int64], ah: FloatArray, s: int, swing_Ah: float
+) -> tuple[list[int], float]:  # fmt: skip
+    """(the last sample of each pulse of sign ``s`` that moves at least ``MIN_PULSE_SHARE`` of
+    ``swing_Ah``, the larger of the test's two directions, the largest pulse's share of this
+    sign's charge). Smaller pulses (an HPPC test's 10 s ones) leave the hysteresis state where
+    it was: they do not set a rest's branch."""
     runs = _runs(sign == s)
     per = np.array([abs(float(ah[b] - ah[a])) for a, b in runs]) if runs else np.zeros(0)
     total = float(per.sum())
     if total <= 0:
-        return 0, 1.0
-    return int(np.count_nonzero(per >= MIN_PULSE_SHARE * total)), float(per.max() / total)
+        return [], 1.0
+    ends = [b - 1 for (_, b), q in zip(runs, per, strict=True) if q >= MIN_PULSE_SHARE * swing_Ah]
+    return ends, float(per.max() / total)
 
 
 def incremental_points(
@@ -97,18 +103,25 @@ def incremental_points(
     sign = np.where(i > REST_FRACTION * i_max, 1, np.where(i < -REST_FRACTION * i_max, -1, 0))
     d_cum = np.concatenate([[0.0], np.cumsum(np.clip(i, 0, None) * dt / 3600.0)])
     c_cum = np.concatenate([[0.0], np.cumsum(np.clip(-i, 0, None) * dt / 3600.0)])
-    moving = np.flatnonzero(sign != 0)
-    if not moving.size:
+    swing = max(float(d_cum[-1]), float(c_cum[-1]))
+    dis, share_d = _pulses(sign, d_cum, 1, swing)
+    chg, share_c = _pulses(sign, c_cum, -1, swing)
+    if not dis and not chg:
         return None
-    s1 = int(sign[moving[0]])  # +1: the test starts full and discharges first
-    n_first, share_first = _pulsed(sign, d_cum if s1 > 0 else c_cum, s1)
+    s1 = 1 if dis and (not chg or dis[0] < chg[0]) else -1  # +1: starts full, discharges first
+    first, share_first = (dis, share_d) if s1 > 0 else (chg, share_c)
+    n_first = len(first)
     if n_first < MIN_PULSES or share_first > MAX_PULSE_SHARE:
         return None
-    rests = [(a, b) for a, b in _runs(sign == 0) if t[b - 1] - t[a] >= MIN_POINT_REST_S]
+    ends = np.array(sorted(dis + chg), dtype=np.int64)  # the pulses that set a rest's branch
+    # a rest lasts until the next sample's current (a 10 min rest at 1 s is 600 samples)
+    rests = [
+        (a, b) for a, b in _runs(sign == 0) if t[min(b, t.size - 1)] - t[a] >= MIN_POINT_REST_S
+    ]
     if len(rests) < MIN_PULSES:
         return None
 
-    f0 = int(moving[0])  # the start: SOC 1 (discharge first) or 0, up to the first pulse
+    f0 = int(np.flatnonzero(sign != 0)[0])  # the start: SOC 1 (discharge first) or 0
     tot_d, tot_c = float(d_cum[-1] - d_cum[f0]), float(c_cum[-1] - c_cum[f0])
     v_end = [_end_voltage(t, v, a, b) for a, b in rests]
     returns = abs(v_end[-1] - v_end[0]) <= RETURN_TOL_V and tot_d > 0 and tot_c > 0
@@ -130,7 +143,7 @@ def incremental_points(
     pts: dict[int, tuple[list[float], list[float]]] = {1: ([], []), -1: ([], [])}
     drift: list[float] = []
     for (a, b), u in zip(rests, v_end, strict=True):
-        before = moving[moving < a]
+        before = ends[ends < a]
         branch = int(sign[before[-1]]) if before.size else -s1
         if not np.isfinite(u):
             continue  # a rest without a voltage at its end
