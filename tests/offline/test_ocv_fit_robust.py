@@ -120,3 +120,15 @@ def test_r0_is_the_step_with_the_lowest_upper_bound() -> None:
     steps = [CurrentStep(0.2167, 0.0283, 10, True), CurrentStep(0.0183, 0.0094, 20, True)]
     pol = _choose_polarisation([], steps, 0.29, [])
     assert pol.R0_ohm == pytest.approx(0.0183)
+
+
+def test_current_noise_at_rest_is_not_a_branch() -> None:
+    """A C/20 discharge alone, its rests' current noise (1 mA) crossing the rest threshold for a
+    few samples: that was taken for the charge branch and crashed the split (an internal
+    error); it is no branch, and the test is refused for what it lacks."""
+    test = c20_ocv_test(NMC_CELL, m_V=M_TRUE)
+    k = _segment(test, "rest empty")[1]
+    i = test.current_A[:k]
+    assert np.count_nonzero(i < -0.001) > 0  # the noise does cross it
+    with pytest.raises(UserError, match="the OCV test has no charge branch"):
+        extract_branches([OcvTestPart(test.t_s[:k], i, test.v_V[:k])])

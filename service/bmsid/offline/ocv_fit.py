@@ -270,6 +270,9 @@ def fit_piecewise_linear(
 
 #: Rest: |I| at most this fraction of the test's largest current.
 REST_FRACTION = 0.01
+#: A branch carries at least this share of the other branch's charge (less is current noise
+#: across the rest threshold, or a pulse).
+MIN_BRANCH_SHARE = 0.2
 #: Shortest rest (s) after a branch whose relaxation is fitted for the polarisation.
 MIN_RELAX_S = 300.0
 #: Shortest rest (s) whose voltage counts as a rested end voltage (empty or full).
@@ -690,6 +693,10 @@ def extract_branches(
                 ah = abs(float(q1[bb - 1] - q1[aa]))
                 if ah > best.get(s, (0.0, 0, 0))[0]:
                     best[s] = (ah, aa, bb)
+    # A "branch" carrying a fraction of the other's charge is no branch: a few samples of a
+    # tester's current noise across the rest threshold (it crashed the split), or a top-up.
+    longest = max((ah for ah, _, _ in best.values()), default=0.0)
+    best = {s: b for s, b in best.items() if b[0] >= MIN_BRANCH_SHARE * longest}
     for s, name in ((1, "discharge"), (-1, "charge")):
         if s not in best:
             hint = (
