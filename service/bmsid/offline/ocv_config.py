@@ -40,6 +40,7 @@ from bmsid.offline.ocv_fit import (
     monotonicity_violation_V,
 )
 from bmsid.offline.ocv_incremental import incremental_points
+from bmsid.offline.ocv_one_branch import one_branch_points
 
 Branch = Literal["discharge", "charge"]
 
@@ -240,6 +241,15 @@ def fit_test_files(
         )
         warn = capacity_warning(spec.capacity_Ah, inc.measured_capacity_Ah)
         return result, inc.capacity_Ah, inc.eta, [*input_notes, *inc.info, *warn]
+    one = one_branch_points(parts, spec.capacity_Ah, spec.gamma)
+    if one is not None:  # a discharge (or charge) alone: its corrected voltage as the points
+        result = fit_rest_points(
+            one.discharge, one.charge, m_table=_hysteresis_table(spec.hysteresis_from),
+            trim_soc=spec.trim_soc, knots=spec.knots, ends=spec.ends,
+        )  # fmt: skip
+        warn = capacity_warning(spec.capacity_Ah, one.measured_capacity_Ah)
+        eta = 1.0 if spec.coulombic_efficiency is None else spec.coulombic_efficiency
+        return result, one.capacity_Ah, eta, [*input_notes, *one.info, *warn]
     br = extract_branches(
         parts,
         capacity_Ah=spec.capacity_Ah,
@@ -303,6 +313,17 @@ def _anchor_shift(
     return shift
 
 
+def _hysteresis_table(path: str | None) -> tuple[FloatArray, FloatArray] | None:
+    """(SOC, M V) of the cell config at ``path`` (``--hysteresis-from``), or None."""
+    if path is None:
+        return None
+    other = load_cell_config(path)
+    return (
+        np.asarray(other.hysteresis.soc, dtype=np.float64),
+        np.asarray(other.hysteresis.M_V, dtype=np.float64),
+    )
+
+
 def fit_point_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
 ) -> tuple[OcvFitResult, float, float, list[str]]:
@@ -329,13 +350,7 @@ def fit_point_files(
             assert branch is not None
             pooled[branch][0].append(pr.soc + shift)
             pooled[branch][1].append(pr.ocv_V)
-    m_table = None
-    if spec.hysteresis_from is not None:
-        other = load_cell_config(spec.hysteresis_from)
-        m_table = (
-            np.asarray(other.hysteresis.soc, dtype=np.float64),
-            np.asarray(other.hysteresis.M_V, dtype=np.float64),
-        )
+    m_table = _hysteresis_table(spec.hysteresis_from)
     branches = {b: (np.concatenate(zs), np.concatenate(vs)) for b, (zs, vs) in pooled.items() if zs}
     result = fit_rest_points(
         branches.get("discharge"),

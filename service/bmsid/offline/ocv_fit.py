@@ -647,6 +647,34 @@ def current_steps(
     return sorted(out, key=lambda st: st.index)
 
 
+def relaxation_after(
+    t_s: FloatArray, current_A: FloatArray, v_V: FloatArray, run: tuple[int, int],
+    rests: Sequence[tuple[int, int]],
+) -> tuple[RelaxationFit, int] | None:  # fmt: skip
+    """The relaxation fit (``fit_relaxation``) of the rest that starts at the end of the
+    constant-current ``run`` [a, b) (noise at rest may blur the end by a sample), from the
+    loaded voltage at the switch extrapolated from the run's last samples, and the rest's first
+    sample; None without a rest there or a fit."""
+    a, b = run
+    rest = next(((ra, rb) for ra, rb in rests if abs(ra - b) <= 3 and ra > a), None)
+    if rest is None:
+        return None
+    ra, rb = rest
+    k0 = max(a, ra - LOAD_FIT_SAMPLES)
+    tt, vv = t_s[k0:ra] - t_s[ra], v_V[k0:ra]
+    if tt.shape[0] >= 4 + LOAD_FIT_DEGREE:
+        coef, cov_l = np.polyfit(tt, vv, LOAD_FIT_DEGREE, cov=True)
+        v_sw = float(coef[-1])
+        v_sw_se = float(np.sqrt(max(float(cov_l[-1, -1]), 0.0)))
+    else:
+        v_sw, v_sw_se = float(v_V[ra - 1]), 0.0
+    fit = fit_relaxation(
+        t_s[ra:rb], v_V[ra:rb], current_A=float(np.median(current_A[a:b])),
+        v_load_V=float(v_sw), run_s=float(t_s[ra] - t_s[a]), v_load_se_V=v_sw_se,
+    )  # fmt: skip
+    return None if fit is None else (fit, ra)
+
+
 def _end_voltage(v: FloatArray, a: int, b: int) -> float:
     """Rested voltage of the rest [a, b): the mean of its last 5 % (at least one sample)."""
     k = max(1, (b - a) // 20)
@@ -792,26 +820,9 @@ def extract_branches(
     steps = current_steps(t_all, i_all, v_all, file_start, i_rest=i_rest, rests=rests)
     relax: list[RelaxationFit] = []
     for a, b in ((da, db), (ca, cb)):
-        # The rest that starts at the run's end (noise at rest may blur the end by a sample).
-        rest = next(((ra, rb) for ra, rb in rests if abs(ra - b) <= 3 and ra > a), None)
-        if rest is None:
-            continue
-        ra, rb = rest
-        # The loaded voltage at the switch, extrapolated from the run's last samples.
-        k0 = max(a, ra - LOAD_FIT_SAMPLES)
-        tt, vv = t_all[k0:ra] - t_all[ra], v_all[k0:ra]
-        if tt.shape[0] >= 4 + LOAD_FIT_DEGREE:
-            coef, cov_l = np.polyfit(tt, vv, LOAD_FIT_DEGREE, cov=True)
-            v_sw = float(coef[-1])
-            v_sw_se = float(np.sqrt(max(float(cov_l[-1, -1]), 0.0)))
-        else:
-            v_sw, v_sw_se = float(v_all[ra - 1]), 0.0
-        fit = fit_relaxation(
-            t_all[ra:rb], v_all[ra:rb], current_A=float(np.median(i_all[a:b])),
-            v_load_V=float(v_sw), run_s=float(t_all[ra] - t_all[a]), v_load_se_V=v_sw_se,
-        )  # fmt: skip
-        if fit is not None:
-            relax.append(replace(fit, soc=float(z_all[ra])))
+        found = relaxation_after(t_all, i_all, v_all, (a, b), rests)
+        if found is not None:
+            relax.append(replace(found[0], soc=float(z_all[found[1]])))
     # What M >= 0 allows: the polarisation cannot exceed the raw half-gap at mid SOC (a check
     # that is reported, never used to set the polarisation).
     mid = np.linspace(0.2, 0.8, 61)
