@@ -29,10 +29,12 @@ TOL = 0.003
 CELLS = pytest.mark.parametrize("cell", [NMC_CELL, LFP_CELL], ids=["nmc", "lfp"])
 
 
-def write_ocv_test_csv(test: SyntheticOcvTest, path: Path) -> Path:
-    """A synthetic OCV test as a one-cell tester CSV (what a user hands ``fit-ocv``)."""
+def write_ocv_test_csv(test: SyntheticOcvTest, path: Path, stop: int | None = None) -> Path:
+    """A synthetic OCV test (its samples before ``stop``) as a one-cell tester CSV (what a user
+    hands ``fit-ocv``)."""
+    k = slice(stop)
     data = TesterData(
-        t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
+        t_s=test.t_s[k], current_A=test.current_A[k], cell_voltages_V=test.v_V[k, None],
         cell_names=["voltage_V"],
     )  # fmt: skip
     write_tester_csv(data, path)

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_ocv_fit_hysteresis import write_ocv_test_csv
 
 from bmsid.cli.main import main
 from bmsid.config.cell import load_cell_config
 from bmsid.config.engine import ocv_model
-from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
 from bmsid.offline.ocv_fit import OcvTestPart
 from bmsid.offline.ocv_incremental import incremental_points
@@ -29,15 +29,6 @@ M_TRUE = 0.015
 CELLS = pytest.mark.parametrize("cell", [NMC_CELL, LFP_CELL], ids=["nmc", "lfp"])
 
 
-def _csv(test: SyntheticOcvTest, path: Path) -> Path:
-    data = TesterData(
-        t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
-        cell_names=["voltage_V"],
-    )  # fmt: skip
-    write_tester_csv(data, path)
-    return path
-
-
 def _part(test: SyntheticOcvTest) -> OcvTestPart:
     return OcvTestPart(test.t_s, test.current_A, test.v_V)
 
@@ -50,7 +41,7 @@ def test_an_incremental_test_gives_the_ocv_the_half_gap_and_the_capacity(
     truth over SOC 15-85 %, the pooled half-gap within 3 mV of 15 mV, the capacity within
     0.5 %."""
     test = incremental_ocv_test(cell, m_V=M_TRUE)
-    fit = fit_ocv_files([_csv(test, tmp_path / "inc.csv")], OcvFitSpec("inc"))
+    fit = fit_ocv_files([write_ocv_test_csv(test, tmp_path / "inc.csv")], OcvFitSpec("inc"))
     assert any(line.startswith("an incremental OCV test") for line in fit.info)
     res = fit.result
     assert res.hysteresis is not None and res.hysteresis.present
@@ -117,7 +108,7 @@ def test_a_coulombic_efficiency_below_one_is_measured() -> None:
 def test_cli_writes_a_config_from_an_incremental_test(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    src = _csv(incremental_ocv_test(LFP_CELL, m_V=M_TRUE), tmp_path / "gitt.csv")
+    src = write_ocv_test_csv(incremental_ocv_test(LFP_CELL, m_V=M_TRUE), tmp_path / "gitt.csv")
     out = tmp_path / "lfp.toml"
     assert main(["fit-ocv", str(src), "--chemistry", "LFP", "--out", str(out)]) == 0
     text = capsys.readouterr().out

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_ocv_fit_hysteresis import write_ocv_test_csv
 
 from bmsid.cli.main import main
 from bmsid.config.cell import save_cell_config
 from bmsid.config.engine import ocv_model
-from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.ocv_config import OcvFitSpec, fit_ocv_files
 from bmsid.offline.ocv_fit import OcvTestPart
 from bmsid.offline.ocv_one_branch import one_branch_points
@@ -24,13 +24,11 @@ CELLS = pytest.mark.parametrize("cell", [NMC_CELL, LFP_CELL], ids=["nmc", "lfp"]
 
 
 def _discharge_only(test: SyntheticOcvTest, path: Path) -> Path:
-    k = next(b for name, _, b in test.segments if name == "rest empty")
-    data = TesterData(
-        t_s=test.t_s[:k], current_A=test.current_A[:k], cell_voltages_V=test.v_V[:k, None],
-        cell_names=["voltage_V"],
-    )  # fmt: skip
-    write_tester_csv(data, path)
-    return path
+    return write_ocv_test_csv(test, path, _discharge_end(test))
+
+
+def _discharge_end(test: SyntheticOcvTest) -> int:
+    return next(b for name, _, b in test.segments if name == "rest empty")
 
 
 @CELLS
@@ -44,7 +42,7 @@ def test_a_discharge_alone_gives_the_discharge_ocv(cell: OcvTestCell, tmp_path: 
     assert fit.info[0].startswith("one branch: a discharge at")
     assert fit.config.capacity_Ah == pytest.approx(cell.capacity_Ah, rel=0.005)
     assert max(fit.config.hysteresis.M_V) == 0.0
-    k = next(b for name, _, b in test.segments if name == "rest empty")
+    k = _discharge_end(test)
     pts = one_branch_points([OcvTestPart(test.t_s[:k], test.current_A[:k], test.v_V[:k])])
     assert pts is not None and pts.discharge is not None and pts.charge is None
     z, v = pts.discharge
@@ -60,13 +58,7 @@ def test_a_discharge_alone_gives_the_discharge_ocv(cell: OcvTestCell, tmp_path: 
 def test_with_a_hysteresis_table_the_mean_is_the_cells(tmp_path: Path) -> None:
     """``--hysteresis-from`` a config holding the cell's M: the curve is the true mean."""
     test = c20_ocv_test(NMC_CELL, m_V=M_TRUE)
-    full = tmp_path / "full.csv"
-    write_tester_csv(
-        TesterData(t_s=test.t_s, current_A=test.current_A, cell_voltages_V=test.v_V[:, None],
-                   cell_names=["voltage_V"]),
-        full,
-    )  # fmt: skip
-    both = fit_ocv_files([full], OcvFitSpec("both"))
+    both = fit_ocv_files([write_ocv_test_csv(test, tmp_path / "full.csv")], OcvFitSpec("both"))
     save_cell_config(both.config, tmp_path / "both.toml")
     src = _discharge_only(test, tmp_path / "dis.csv")
     fit = fit_ocv_files([src], OcvFitSpec("dis", hysteresis_from=str(tmp_path / "both.toml")))

@@ -681,6 +681,17 @@ def _end_voltage(v: FloatArray, a: int, b: int) -> float:
     return float(np.mean(v[b - k : b]))
 
 
+def joined(
+    parts: Sequence[OcvTestPart],
+) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+    """The parts' time (s), current (A), voltage (V) in one, and where each file starts."""
+    t = np.concatenate([p.t_s for p in parts])
+    file_start = np.zeros(t.shape[0], dtype=bool)
+    file_start[np.cumsum([0, *[p.t_s.shape[0] for p in parts[:-1]]])] = True
+    i = np.concatenate([p.current_A for p in parts])
+    return t, i, np.concatenate([p.v_V for p in parts]), file_start
+
+
 def extract_branches(
     parts: Sequence[OcvTestPart],
     *,
@@ -693,12 +704,7 @@ def extract_branches(
     if not parts:
         raise UserError("no OCV test data")
     notes: list[str] = []
-    t_all = np.concatenate([p.t_s for p in parts])
-    i_all = np.concatenate([p.current_A for p in parts])
-    v_all = np.concatenate([p.v_V for p in parts])
-    n_all = i_all.shape[0]
-    file_start = np.zeros(n_all, dtype=bool)
-    file_start[np.cumsum([0, *[p.t_s.shape[0] for p in parts[:-1]]])] = True
+    t_all, i_all, v_all, file_start = joined(parts)
     i_max = float(np.max(np.abs(i_all)))
     if i_max <= 0:
         raise UserError("the OCV test has no current at all")

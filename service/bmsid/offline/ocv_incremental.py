@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart
+from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, joined
 
 FloatArray = npt.NDArray[np.float64]
 Points = tuple[FloatArray, FloatArray]
@@ -92,14 +92,12 @@ def incremental_points(
     """The points of ``parts`` (in time order) if they are an incremental OCV test (module
     doc): at least ``MIN_PULSES`` pulses of the first pulse's sign, none of them carrying more
     than ``MAX_PULSE_SHARE`` of that sign's charge; else None (a low-rate test)."""
-    t = np.concatenate([p.t_s for p in parts])
-    i = np.concatenate([p.current_A for p in parts])
-    v = np.concatenate([p.v_V for p in parts])
+    t, i, v, file_start = joined(parts)
     i_max = float(np.max(np.abs(i))) if i.size else 0.0
     if i_max <= 0:
         return None
     dt = np.diff(t, append=t[-1])
-    dt[np.cumsum([p.t_s.shape[0] for p in parts[:-1]], dtype=np.int64) - 1] = 0.0  # file joins
+    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0  # no time passes across a file join
     sign = np.where(i > REST_FRACTION * i_max, 1, np.where(i < -REST_FRACTION * i_max, -1, 0))
     d_cum = np.concatenate([[0.0], np.cumsum(np.clip(i, 0, None) * dt / 3600.0)])
     c_cum = np.concatenate([[0.0], np.cumsum(np.clip(-i, 0, None) * dt / 3600.0)])

@@ -36,6 +36,7 @@ from bmsid.offline.ocv_fit import (
     branch_states,
     c_rate_text,
     current_steps,
+    joined,
     relaxation_after,
 )
 
@@ -63,13 +64,8 @@ def one_branch_points(
 ) -> OneBranch | None:
     """The points of ``parts`` (in time order) if they hold one low-rate branch and nothing of
     the other (module doc); None where both are there (the two-branch path)."""
-    t = np.concatenate([p.t_s for p in parts])
-    i = np.concatenate([p.current_A for p in parts])
-    v = np.concatenate([p.v_V for p in parts])
-    n = t.shape[0]
-    file_start = np.zeros(n, dtype=bool)
-    file_start[np.cumsum([0, *[p.t_s.shape[0] for p in parts[:-1]]])] = True
-    i_max = float(np.max(np.abs(i))) if n else 0.0
+    t, i, v, file_start = joined(parts)
+    i_max = float(np.max(np.abs(i))) if i.size else 0.0
     if i_max <= 0:
         return None
     dt = np.diff(t, append=t[-1])

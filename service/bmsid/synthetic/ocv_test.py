@@ -170,7 +170,15 @@ def c20_ocv_test(
         charge_q -= pulse_q  # a charge pulse at empty: the charge has that much less to do
     steps.append(("charge", -i_ocv, round(n_branch * charge_q / eta)))
     steps.append(("rest end", 0.0, n(rest_end_s)))
+    return _run(cell, steps, dt_s, m_V, gamma, eta, v_noise_V, i_noise_A, seed, bump_V)
 
+
+def _run(
+    cell: OcvTestCell, steps: list[tuple[str, float, int]], dt_s: float, m_V: float,
+    gamma: float, eta: float, v_noise_V: float, i_noise_A: float, seed: int, bump_V: float = 0.0,
+) -> SyntheticOcvTest:  # fmt: skip
+    """The schedule ``steps`` (name, current A, samples) simulated from full (h = +1) and
+    measured with noise."""
     current = np.concatenate([np.full(k, i) for _, i, k in steps])
     bounds = np.cumsum([0, *[k for _, _, k in steps]])
     segments = tuple(
@@ -179,9 +187,9 @@ def c20_ocv_test(
     )  # fmt: skip
     t = np.arange(current.shape[0], dtype=np.float64) * dt_s
     sim = simulate(
-        t, current, cell.ocv(m_V, bump_V), capacity_Ah=cap, R0_ohm=cell.R0_ohm, R1_ohm=cell.R1_ohm,
-        tau1_s=cell.tau1_s, R2_ohm=cell.R2_ohm, tau2_s=cell.tau2_s, gamma=gamma, eta=eta,
-        soc0=1.0, h0=1.0,
+        t, current, cell.ocv(m_V, bump_V), capacity_Ah=cell.capacity_Ah, R0_ohm=cell.R0_ohm,
+        R1_ohm=cell.R1_ohm, tau1_s=cell.tau1_s, R2_ohm=cell.R2_ohm, tau2_s=cell.tau2_s,
+        gamma=gamma, eta=eta, soc0=1.0, h0=1.0,
     )  # fmt: skip
     rng = np.random.default_rng(seed)
     v = sim.v_V[0] + rng.normal(0.0, v_noise_V, t.shape[0])
@@ -228,21 +236,4 @@ def incremental_ocv_test(
         for k in range(n_steps):
             steps.append((f"charge pulse {k + 1}", -pulse_C * cap, round(n_pulse / eta)))
             steps.append((f"charge rest {k + 1}", 0.0, n(rest_s)))
-    current = np.concatenate([np.full(k, i) for _, i, k in steps])
-    bounds = np.cumsum([0, *[k for _, _, k in steps]])
-    segments = tuple(
-        (name, int(a), int(b)) for (name, _, _), a, b in zip(steps, bounds[:-1], bounds[1:],
-                                                             strict=True)
-    )  # fmt: skip
-    t = np.arange(current.shape[0], dtype=np.float64) * dt_s
-    sim = simulate(
-        t, current, cell.ocv(m_V), capacity_Ah=cap, R0_ohm=cell.R0_ohm, R1_ohm=cell.R1_ohm,
-        tau1_s=cell.tau1_s, R2_ohm=cell.R2_ohm, tau2_s=cell.tau2_s, gamma=gamma, eta=eta,
-        soc0=1.0, h0=1.0,
-    )  # fmt: skip
-    rng = np.random.default_rng(seed)
-    return SyntheticOcvTest(
-        cell=cell, t_s=t, current_A=current + rng.normal(0.0, i_noise_A, t.shape[0]),
-        v_V=sim.v_V[0] + rng.normal(0.0, v_noise_V, t.shape[0]), soc_true=sim.soc,
-        h_true=sim.h[0], m_V=m_V, gamma=gamma, eta=eta, segments=segments,
-    )  # fmt: skip
+    return _run(cell, steps, dt_s, m_V, gamma, eta, v_noise_V, i_noise_A, seed)
