@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, joined
+from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, _runs, joined
 
 FloatArray = npt.NDArray[np.float64]
 Points = tuple[FloatArray, FloatArray]
@@ -60,13 +60,6 @@ class IncrementalPoints:
     measured_capacity_Ah: float
     eta: float
     info: list[str] = field(default_factory=list)
-
-
-def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
-    """Contiguous True runs as (start, stop) index pairs, stop exclusive."""
-    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
-    edges = np.flatnonzero(np.diff(m))
-    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 def _pulses(
