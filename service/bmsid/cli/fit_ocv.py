@@ -1,9 +1,13 @@
 """``bmsid fit-ocv``: fit OCV (Eq. 4) and hysteresis M(z) from a test; write a cell config.
 
-Two inputs:
+Inputs:
 
 - a low-rate (C/20-C/30) discharge-then-charge test as tester CSV files (one file, or several
   in time order, e.g. the discharge and the charge files, or all four parts of Plett's test);
+  a discharge (or charge) alone is fitted as its one branch (``ocv_one_branch``: M from
+  ``--hysteresis-from``, else 0);
+- an incremental test (pulses with rests of >= 10 min between, GITT-like): the rests'
+  voltages are the points (``ocv_incremental``);
 - ``--points``: rest-point tables (SOC, OCV) with one or both branches (``read_ocv_points``).
 
 Where Eq. 4's six terms miss the test's mean OCV by more than its voltage noise, a correction
