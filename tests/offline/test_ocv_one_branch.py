@@ -72,3 +72,21 @@ def test_cli_fits_a_discharge_alone(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert main(["fit-ocv", str(src), "--out", str(tmp_path / "c.toml")]) == 0
     out = capsys.readouterr().out
     assert "one branch: a discharge at" in out and "no hysteresis table: M = 0" in out
+
+
+def test_a_drive_is_no_ocv_test(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A DST drive handed to fit-ocv: said to be no OCV test (it read "no charge branch ...
+    give both branches", which a discharge alone no longer needs)."""
+    from bmsid.offline.csvio import TesterData, write_tester_csv
+    from bmsid.synthetic import paper_dst_case
+
+    run = paper_dst_case(3000)
+    src = tmp_path / "dst.csv"
+    write_tester_csv(
+        TesterData(t_s=run.t_s, current_A=run.current_A, cell_voltages_V=run.voltages_V,
+                   cell_names=["voltage_V"]),
+        src,
+    )  # fmt: skip
+    assert main(["fit-ocv", str(src), "--out", str(tmp_path / "c.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "no OCV test: its longest discharge run is" in err and "bmsid identify" in err

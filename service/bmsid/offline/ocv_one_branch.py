@@ -87,8 +87,14 @@ def one_branch_points(
     i_med = float(np.median(np.abs(i[a:b])))
     measured = abs(float(q[b - 1] - q[a]))
     cap = capacity_Ah if capacity_Ah is not None else measured
-    if i_med / cap > MAX_OCV_C_RATE:
-        return None  # a drive or a pulse test: not this path's
+    if i_med / cap > MAX_OCV_C_RATE:  # a drive, or pulses without the rests of an OCV test
+        rate = "" if capacity_Ah is None else f", {c_rate_text(i_med / cap)} of {cap:.4g} Ah"
+        raise UserError(
+            f"no OCV test: its longest {name} run is {i_med:.4g} A for {t[b - 1] - t[a]:.0f} s "
+            f"({measured:.4g} Ah{rate}); an OCV test runs a whole branch at C/20-C/30, or "
+            "pulses with rests of >= 10 min between them (an incremental test); a drive goes "
+            "to bmsid identify"
+        )
     z = (1.0 if s > 0 else 0.0) - (q - q[a]) / cap  # from full (discharge) or empty (charge)
     idx = np.flatnonzero(np.abs(np.abs(i[a:b]) - i_med) <= 0.1 * i_med) + a
     span = float(np.ptp(z[idx])) if idx.size else 0.0
