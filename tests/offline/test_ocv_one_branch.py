@@ -33,9 +33,10 @@ def _discharge_end(test: SyntheticOcvTest) -> int:
 
 @CELLS
 def test_a_discharge_alone_gives_the_discharge_ocv(cell: OcvTestCell, tmp_path: Path) -> None:
-    """The corrected points lie within 3 mV of the true discharge OCV (mean - M) in each 10 %
-    band of SOC 10-90 %, the curve within 5 mV RMS over 15-85 %, the capacity within 0.5 %; with no
-    hysteresis table M is 0 and the curve is that branch."""
+    """The corrected points lie within 4 mV of the true discharge OCV (mean - M) in each 10 %
+    band of SOC 10-90 %, the curve (Eq. 4 and the correction table the whole branch gives)
+    within 3.5 mV RMS over 15-85 %, the capacity within 0.5 %; with no hysteresis table M is 0
+    and the curve is that branch."""
     test = c20_ocv_test(cell, m_V=M_TRUE)
     src = _discharge_only(test, tmp_path / "dis.csv")
     fit = fit_ocv_files([src], OcvFitSpec("dis"))
@@ -47,12 +48,15 @@ def test_a_discharge_alone_gives_the_discharge_ocv(cell: OcvTestCell, tmp_path: 
     assert pts is not None and pts.discharge is not None and pts.charge is None
     z, v = pts.discharge
     err_pts = v - (cell.ocv().ocv(z) - M_TRUE)
-    for lo in np.arange(0.1, 0.9, 0.1):  # per 10 % band: the 1 mV noise averaged
+    # per 10 % band (the 1 mV noise averaged): what is left is the correction's error, the C/20
+    # onset step's noise (1 se: 2.8 mV of the 5.5 mV the NMC cell's branch holds)
+    for lo in np.arange(0.1, 0.9, 0.1):
         band = (z >= lo) & (z < lo + 0.1)
-        assert abs(float(np.mean(err_pts[band]))) < 0.003
+        assert abs(float(np.mean(err_pts[band]))) < 0.004
     zz = np.linspace(0.15, 0.85, 71)
     err = ocv_model(fit.config).ocv(zz) - (cell.ocv().ocv(zz) - M_TRUE)
-    assert np.sqrt(np.mean(err**2)) < 0.005
+    assert np.sqrt(np.mean(err**2)) < 0.0035  # with the correction table beyond Eq. 4
+    assert fit.result.correction is not None and fit.result.correction.written
 
 
 def test_with_a_hysteresis_table_the_mean_is_the_cells(tmp_path: Path) -> None:
@@ -64,7 +68,7 @@ def test_with_a_hysteresis_table_the_mean_is_the_cells(tmp_path: Path) -> None:
     fit = fit_ocv_files([src], OcvFitSpec("dis", hysteresis_from=str(tmp_path / "both.toml")))
     zz = np.linspace(0.15, 0.85, 71)
     err = ocv_model(fit.config).ocv(zz) - NMC_CELL.ocv().ocv(zz)
-    assert np.sqrt(np.mean(err**2)) < 0.005
+    assert np.sqrt(np.mean(err**2)) < 0.0045  # 3.5 mV: the branch's, and M's from the table
 
 
 def test_cli_fits_a_discharge_alone(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -246,6 +246,7 @@ def fit_test_files(
         result = fit_rest_points(
             one.discharge, one.charge, m_table=_hysteresis_table(spec.hysteresis_from),
             trim_soc=spec.trim_soc, knots=spec.knots, ends=spec.ends,
+            dense=one.dense if spec.correction else None,
         )  # fmt: skip
         warn = capacity_warning(spec.capacity_Ah, one.measured_capacity_Ah)
         eta = 1.0 if spec.coulombic_efficiency is None else spec.coulombic_efficiency

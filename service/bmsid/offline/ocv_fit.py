@@ -1534,6 +1534,17 @@ def fit_ocv_test(
     return replace(result, residuals=tuple(bands))
 
 
+@dataclass(frozen=True)
+class DenseBranch:
+    """A low-rate test's one branch as measured, polarisation-corrected: SOC (fraction),
+    voltage (V), which branch, and its one-sample voltage noise (V)."""
+
+    branch: str
+    z: FloatArray
+    v_V: FloatArray
+    noise_V: float
+
+
 def fit_rest_points(
     discharge: tuple[FloatArray, FloatArray] | None,
     charge: tuple[FloatArray, FloatArray] | None,
@@ -1542,6 +1553,7 @@ def fit_rest_points(
     trim_soc: float = 0.02,
     knots: Sequence[float] = EQ32_KNOTS,
     ends: bool = True,
+    dense: DenseBranch | None = None,
 ) -> OcvFitResult:
     """Fit rest-point tables (SOC fraction, OCV V) with one or both branches.
 
@@ -1555,7 +1567,9 @@ def fit_rest_points(
     ``m_table`` (soc, M_V) is used, or M = 0 with a note. The mean is Eq. 4
     fitted to all points shifted onto the mean: discharge points + M(z), charge points - M(z)
     (Plett's convention: discharge lies M below the mean), over the union of the branches' SOC
-    ranges, which becomes the config's [soc_min, soc_max].
+    ranges, which becomes the config's [soc_min, soc_max]. ``dense``: the whole branch the
+    points were thinned from (a low-rate test's one branch, ``ocv_one_branch``), whose misfit
+    to Eq. 4 gives the correction table as a two-branch test's does (``ocv_correction``).
     """
     notes: list[str] = []
     branches: dict[str, tuple[FloatArray, FloatArray]] = {}
@@ -1609,16 +1623,31 @@ def fit_rest_points(
         else None
         for a, pts in end_pts.items()
     }
+    corr = None
+    if dense is not None:  # what Eq. 4 misses of the whole branch, shifted onto the mean
+        sign = 1.0 if dense.branch == "discharge" else -1.0
+        zd, vd = _in_range(dense.z, dense.v_V, mean.soc_lo, mean.soc_hi)
+        vm = vd + sign * np.interp(zd, m_soc, m_vals) - eval_ocv(mean.coeffs, zd)
+        corr = fit_correction(mean.coeffs, [(zd, vm)], mean.soc_lo, mean.soc_hi, dense.noise_V)
     lo_j, hi_j, v_empty, v_full = _join_ends(
-        mean.coeffs, mean.soc_lo, mean.soc_hi, v_ends[0.0], v_ends[1.0], notes
-    )
+        mean.coeffs, mean.soc_lo, mean.soc_hi, v_ends[0.0], v_ends[1.0], notes,
+        None if corr is None else corr.table,
+    )  # fmt: skip
     result = OcvFitResult(
         mean=mean, discharge=fits.get("discharge"), charge=fits.get("charge"),
         soc_min=lo_j, soc_max=hi_j, m_soc=m_soc, m_V=m_vals, gap_soc=gap_soc,
         half_gap_raw_V=half, half_gap_V=half, notes=tuple(notes), m_ci95_V=m_ci, m_fit_V=m_fit,
         v_empty_V=v_empty, v_full_V=v_full, m_fit_ci95_V=m_fit_ci, hysteresis=evidence,
+        correction=corr,
     )  # fmt: skip
-    model = result.ocv_model()
+    try:
+        model = result.ocv_model()
+    except ValueError as exc:  # the table with the ends as joined: refused, Eq. 4 alone
+        if corr is None or not corr.written:
+            raise
+        corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
+        result = replace(result, correction=corr)
+        model = result.ocv_model()
     bands: list[BandResidual] = []
     for name, pts in (("discharge", discharge), ("charge", charge)):
         if pts is not None:

@@ -3,20 +3,21 @@
 Many labs run only the discharge (a "pseudo-OCV"): ``ocv_fit.extract_branches`` needs both
 branches (the gap between them is the hysteresis, and its mid-SOC size bounds the
 polarisation) and refused it. Here the branch's voltage is corrected for the test's
-polarisation as there (R0 + R1 + R2 from the relaxation of the rest after the branch, else the
-onset's one-sample step with the RC part assumed, ``ocv_fit._choose_polarisation``; no gap to
-check it against), and the corrected branch, thinned to ``MAX_POINTS``, with the rested
-voltages at full and empty, is fitted as a rest-point table (``ocv_fit.fit_rest_points``): M(z)
-from ``--hysteresis-from``, else 0 (the mean is then the branch, M off it). SOC is counted over
-the branch from its start (full for a discharge) on the measured capacity (the branch's
-charge) or the given one. Pure numpy.
+polarisation from the onset's one-sample step with the RC part assumed
+(``ocv_fit._choose_polarisation``: the rest after a whole branch lies at the end of the SOC
+range, where the OCV relaxes too, and no branch gap tells that knee apart), and the corrected
+branch, thinned to ``MAX_POINTS``, with the rested voltages at full and empty, is fitted as a
+rest-point table (``ocv_fit.fit_rest_points``), the whole branch giving the correction table
+beyond Eq. 4 as a two-branch test's does: M(z) from ``--hysteresis-from``, else 0 (the mean is
+then the branch, M off it). SOC is counted over the branch from its start (full for a
+discharge) on the measured capacity (the branch's charge) or the given one. Pure numpy.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -29,6 +30,7 @@ from bmsid.offline.ocv_fit import (
     MIN_BRANCH_SPAN,
     MIN_END_REST_S,
     REST_FRACTION,
+    DenseBranch,
     OcvTestPart,
     _choose_polarisation,
     _end_voltage,
@@ -38,6 +40,7 @@ from bmsid.offline.ocv_fit import (
     current_steps,
     joined,
     relaxation_after,
+    voltage_noise_V,
 )
 
 FloatArray = npt.NDArray[np.float64]
@@ -56,6 +59,8 @@ class OneBranch:
     charge: Points | None
     capacity_Ah: float
     measured_capacity_Ah: float
+    #: the whole corrected branch, for the correction table beyond Eq. 4
+    dense: DenseBranch
     info: list[str] = field(default_factory=list)
 
 
@@ -107,10 +112,18 @@ def one_branch_points(
     i_quiet = max(REST_FRACTION * i_max, 0.1 * i_med)
     rests = _runs(np.abs(i) <= i_quiet)
     notes: list[str] = []
+    # The rest after a whole branch lies at its end, where the OCV itself relaxes (solid
+    # diffusion at a knee: the DFN cells' rests after a C/20 discharge read 157-747 mOhm for
+    # tens), and no gap tells such a knee apart here: the onset's step, RC part assumed.
     found = relaxation_after(t, i, v, (a, b), rests)
-    relax = [] if found is None else [replace(found[0], soc=float(z[found[1]]))]
     steps = current_steps(t, i, v, file_start, i_rest=REST_FRACTION * i_max, rests=rests)
-    pol = _choose_polarisation(relax, steps, 0.0, notes)  # no gap: nothing bounds it
+    pol = _choose_polarisation([], steps, 0.0, notes)
+    if found is not None:
+        notes.append(
+            f"not used for the polarisation: the relaxation after the {name} at SOC "
+            f"{100 * abs(float(z[found[1]])):.1f} % ({1e3 * found[0].r_total_ohm:.1f} mOhm), "
+            "at the end of the SOC range, where the OCV relaxes too"
+        )
     kap = gamma / (cap * 3600.0)
     x1, x2, _ = branch_states(
         t, i, file_start, tau1_s=pol.tau1_s, tau2_s=pol.tau2_s, kappa_dis=kap, kappa_chg=kap,
@@ -145,4 +158,6 @@ def one_branch_points(
         + f" mOhm: {1e3 * i_med * pol.r_total_ohm:.2f} mV at the branch current",
         *notes,
     ]
-    return OneBranch(pts if s > 0 else None, None if s > 0 else pts, cap, measured, info)
+    noise = voltage_noise_V(v_corr[idx], [(0, idx.size)])  # its own first differences
+    dense = DenseBranch(name, z[idx], v_corr[idx], noise)
+    return OneBranch(pts if s > 0 else None, None if s > 0 else pts, cap, measured, dense, info)
