@@ -1519,19 +1519,26 @@ def fit_ocv_test(
         v_empty_V=v_empty, v_full_V=v_full, test=branches, m_fit_ci95_V=m_ci,
         hysteresis=replace(evidence, status=tuple(status)), correction=corr,
     )  # fmt: skip
-    try:
-        model = result.ocv_model()
-    except ValueError as exc:  # the table with the ends as joined: refused, Eq. 4 alone
-        if corr is None or not corr.written:
-            raise
-        corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
-        result = replace(result, correction=corr)
-        model = result.ocv_model()
+    result, model = _model_or_eq4(result)
     bands: list[BandResidual] = []
     for name, b in (("discharge", dis), ("charge", chg)):
         v_model = model.ocv(b.z) + model.hysteresis_M(b.z) * b.h
         bands += band_residuals(name, b.z, b.v_V - v_model)
     return replace(result, residuals=tuple(bands))
+
+
+def _model_or_eq4(result: OcvFitResult) -> tuple[OcvFitResult, OcvModel]:
+    """The fit's OCV model; where its written correction table is refused with the end segments
+    as joined, the result without it (Eq. 4 alone, the reason in the correction's report)."""
+    try:
+        return result, result.ocv_model()
+    except ValueError as exc:
+        corr = result.correction
+        if corr is None or not corr.written:
+            raise
+        corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
+        result = replace(result, correction=corr)
+        return result, result.ocv_model()
 
 
 @dataclass(frozen=True)
@@ -1640,14 +1647,7 @@ def fit_rest_points(
         v_empty_V=v_empty, v_full_V=v_full, m_fit_ci95_V=m_fit_ci, hysteresis=evidence,
         correction=corr,
     )  # fmt: skip
-    try:
-        model = result.ocv_model()
-    except ValueError as exc:  # the table with the ends as joined: refused, Eq. 4 alone
-        if corr is None or not corr.written:
-            raise
-        corr = replace(corr, written=False, reason=f"refused with the end segments: {exc}")
-        result = replace(result, correction=corr)
-        model = result.ocv_model()
+    result, model = _model_or_eq4(result)
     bands: list[BandResidual] = []
     for name, pts in (("discharge", discharge), ("charge", charge)):
         if pts is not None:
