@@ -692,6 +692,25 @@ def joined(
     return t, i, np.concatenate([p.v_V for p in parts]), file_start
 
 
+def branch_runs(
+    sign: npt.NDArray[np.int64], q_Ah: FloatArray, file_start: npt.NDArray[np.bool_]
+) -> dict[int, tuple[float, int, int]]:
+    """Per current sign (+1 discharge, -1 charge) the run [a, b) carrying the most charge (Ah,
+    never across a file boundary) by the count ``q_Ah`` before each sample; a sign whose run
+    carries less than ``MIN_BRANCH_SHARE`` of the other's is left out: a few samples of a
+    tester's current noise across the rest threshold (it crashed the split), or a top-up."""
+    best: dict[int, tuple[float, int, int]] = {}
+    for s in (1, -1):
+        for a, b in _runs(sign == s):
+            cuts = [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
+            for aa, bb in itertools.pairwise(cuts):
+                ah = abs(float(q_Ah[bb - 1] - q_Ah[aa]))
+                if ah > best.get(s, (0.0, 0, 0))[0]:
+                    best[s] = (ah, aa, bb)
+    longest = max((ah for ah, _, _ in best.values()), default=0.0)
+    return {s: r for s, r in best.items() if r[0] >= MIN_BRANCH_SHARE * longest}
+
+
 def extract_branches(
     parts: Sequence[OcvTestPart],
     *,
@@ -719,18 +738,7 @@ def extract_branches(
 
     # The two branches: the sign runs carrying the most charge (never across a file boundary).
     sign = np.where(i_all > i_rest, 1, np.where(i_all < -i_rest, -1, 0))
-    best: dict[int, tuple[float, int, int]] = {}
-    for s in (1, -1):
-        for a, b in _runs(sign == s):
-            cuts = [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
-            for aa, bb in itertools.pairwise(cuts):
-                ah = abs(float(q1[bb - 1] - q1[aa]))
-                if ah > best.get(s, (0.0, 0, 0))[0]:
-                    best[s] = (ah, aa, bb)
-    # A "branch" carrying a fraction of the other's charge is no branch: a few samples of a
-    # tester's current noise across the rest threshold (it crashed the split), or a top-up.
-    longest = max((ah for ah, _, _ in best.values()), default=0.0)
-    best = {s: b for s, b in best.items() if b[0] >= MIN_BRANCH_SHARE * longest}
+    best = branch_runs(sign, q1, file_start)
     for s, name in ((1, "discharge"), (-1, "charge")):
         if s not in best:
             hint = (

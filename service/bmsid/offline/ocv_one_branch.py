@@ -26,7 +26,6 @@ from bmsid.errors import UserError
 from bmsid.offline.ocv_fit import (
     END_SOC_TOL,
     MAX_OCV_C_RATE,
-    MIN_BRANCH_SHARE,
     MIN_BRANCH_SPAN,
     MIN_END_REST_S,
     REST_FRACTION,
@@ -35,6 +34,7 @@ from bmsid.offline.ocv_fit import (
     _choose_polarisation,
     _end_voltage,
     _runs,
+    branch_runs,
     branch_states,
     c_rate_text,
     current_steps,
@@ -77,14 +77,7 @@ def one_branch_points(
     dt[np.flatnonzero(file_start)[1:] - 1] = 0.0
     q = np.concatenate([[0.0], np.cumsum(i * dt / 3600.0)[:-1]])  # Ah out before each sample
     sign = np.where(i > REST_FRACTION * i_max, 1, np.where(i < -REST_FRACTION * i_max, -1, 0))
-    best: dict[int, tuple[float, int, int]] = {}
-    for s in (1, -1):
-        for a, b in _runs(sign == s):
-            ah = abs(float(q[b - 1] - q[a]))
-            if ah > best.get(s, (0.0, 0, 0))[0]:
-                best[s] = (ah, a, b)
-    longest = max((ah for ah, _, _ in best.values()), default=0.0)
-    best = {s: r for s, r in best.items() if r[0] >= MIN_BRANCH_SHARE * longest}
+    best = branch_runs(sign, q, file_start)
     if len(best) != 1:
         return None
     s, (_, a, b) = next(iter(best.items()))
