@@ -94,3 +94,18 @@ def test_a_drive_is_no_ocv_test(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert main(["fit-ocv", str(src), "--out", str(tmp_path / "c.toml")]) == 2
     err = capsys.readouterr().err
     assert "no OCV test: its longest discharge run is" in err and "bmsid identify" in err
+
+
+def test_a_charge_alone_gives_the_charge_ocv() -> None:
+    """The charge half of the same test (from the rest at empty): SOC counted up from empty,
+    the corrected points on the charge branch (mean + M) within 4 mV per 10 % band."""
+    test = c20_ocv_test(NMC_CELL, m_V=M_TRUE)
+    k = next(a for name, a, _ in test.segments if name == "rest empty")
+    pts = one_branch_points([OcvTestPart(test.t_s[k:], test.current_A[k:], test.v_V[k:])])
+    assert pts is not None and pts.charge is not None and pts.discharge is None
+    assert pts.capacity_Ah == pytest.approx(NMC_CELL.capacity_Ah, rel=0.005)
+    z, v = pts.charge
+    err = v - (NMC_CELL.ocv().ocv(z) + M_TRUE)
+    for lo in np.arange(0.1, 0.9, 0.1):
+        band = (z >= lo) & (z < lo + 0.1)
+        assert abs(float(np.mean(err[band]))) < 0.004
