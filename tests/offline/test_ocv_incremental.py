@@ -144,3 +144,24 @@ def test_an_hppc_test_puts_its_rests_on_the_discharge_branch() -> None:
     assert pts.discharge[0].size == 17
     z, v = pts.discharge
     np.testing.assert_allclose(v, cell.ocv(M_TRUE).ocv(z) - M_TRUE, atol=0.004)
+
+
+def test_a_test_in_two_files_with_a_clock_restart(tmp_path: Path) -> None:
+    """The same test exported as two files, the second's clock from 0 again, split inside the
+    rest at empty: each file's rests are its own, and the fit is the single file's."""
+    test = incremental_ocv_test(NMC_CELL, m_V=M_TRUE)
+    a, b = next((a, b) for name, a, b in test.segments if name == "rest 10")
+    k = (a + b) // 2
+    first = OcvTestPart(test.t_s[:k], test.current_A[:k], test.v_V[:k])
+    second = OcvTestPart(test.t_s[k:] - test.t_s[k], test.current_A[k:], test.v_V[k:])
+    one = incremental_points([_part(test)])
+    two = incremental_points([first, second])
+    assert one is not None and two is not None
+    assert two.capacity_Ah == pytest.approx(one.capacity_Ah, rel=1e-3)
+    assert two.discharge is not None and one.discharge is not None
+    assert two.discharge[0].size == one.discharge[0].size + 1  # the rest at empty, in halves
+    from bmsid.offline.ocv_fit import fit_rest_points
+
+    res = fit_rest_points(two.discharge, two.charge)
+    assert res.hysteresis is not None
+    assert res.hysteresis.pooled_V == pytest.approx(M_TRUE, abs=0.003)

@@ -692,6 +692,20 @@ def joined(
     return t, i, np.concatenate([p.v_V for p in parts]), file_start
 
 
+def file_runs(
+    mask: npt.NDArray[np.bool_], file_start: npt.NDArray[np.bool_]
+) -> list[tuple[int, int]]:
+    """``_runs`` of ``mask`` cut where a file starts (a file begins after a pause of unknown
+    length, and its clock may start again)."""
+    return [
+        (aa, bb)
+        for a, b in _runs(mask)
+        for aa, bb in itertools.pairwise(
+            [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
+        )
+    ]
+
+
 def branch_runs(
     sign: npt.NDArray[np.int64], q_Ah: FloatArray, file_start: npt.NDArray[np.bool_]
 ) -> dict[int, tuple[float, int, int]]:
@@ -701,12 +715,10 @@ def branch_runs(
     tester's current noise across the rest threshold (it crashed the split), or a top-up."""
     best: dict[int, tuple[float, int, int]] = {}
     for s in (1, -1):
-        for a, b in _runs(sign == s):
-            cuts = [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
-            for aa, bb in itertools.pairwise(cuts):
-                ah = abs(float(q_Ah[bb - 1] - q_Ah[aa]))
-                if ah > best.get(s, (0.0, 0, 0))[0]:
-                    best[s] = (ah, aa, bb)
+        for a, b in file_runs(sign == s, file_start):
+            ah = abs(float(q_Ah[b - 1] - q_Ah[a]))
+            if ah > best.get(s, (0.0, 0, 0))[0]:
+                best[s] = (ah, a, b)
     longest = max((ah for ah, _, _ in best.values()), default=0.0)
     return {s: r for s, r in best.items() if r[0] >= MIN_BRANCH_SHARE * longest}
 
@@ -781,13 +793,7 @@ def extract_branches(
     i_quiet = max(
         i_rest, 0.1 * min(float(np.median(np.abs(i_all[a:b]))) for a, b in ((da, db), (ca, cb)))
     )
-    rests = [
-        (aa, bb)
-        for a, b in _runs(np.abs(i_all) <= i_quiet)
-        for aa, bb in itertools.pairwise(
-            [a, *[int(k) for k in np.flatnonzero(file_start[a + 1 : b]) + a + 1], b]
-        )
-    ]
+    rests = file_runs(np.abs(i_all) <= i_quiet, file_start)
     throughput = _scale_charge(
         eta_meas=eta_meas, given=coulombic_efficiency, dis_Ah=dis_Ah, chg_Ah=chg_Ah,
         s1=s1, f0=f0, top=top, second=(s0, cb if s1 > 0 else db), rests=rests,

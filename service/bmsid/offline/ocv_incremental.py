@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, _runs, joined
+from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, file_runs, joined
 
 FloatArray = npt.NDArray[np.float64]
 Points = tuple[FloatArray, FloatArray]
@@ -62,14 +62,21 @@ class IncrementalPoints:
     info: list[str] = field(default_factory=list)
 
 
+def _span_s(t: FloatArray, a: int, b: int) -> float:
+    """How long the run [a, b) lasts, s, its last sample's interval included (a 10 min rest at
+    1 s is 600 samples), within its file."""
+    return float(t[b - 1] - t[a] + (t[b - 1] - t[b - 2] if b - a >= 2 else 0.0))
+
+
 def _pulses(
-    sign: npt.NDArray[np.int64], ah: FloatArray, s: int, swing_Ah: float
+    sign: npt.NDArray[np.int64], ah: FloatArray, s: int, swing_Ah: float,
+    file_start: npt.NDArray[np.bool_],
 ) -> tuple[list[int], float]:  # fmt: skip
     """(the last sample of each pulse of sign ``s`` that moves at least ``MIN_PULSE_SHARE`` of
     ``swing_Ah``, the larger of the test's two directions, the largest pulse's share of this
     sign's charge). Smaller pulses (an HPPC test's 10 s ones) leave the hysteresis state where
     it was: they do not set a rest's branch."""
-    runs = _runs(sign == s)
+    runs = file_runs(sign == s, file_start)
     per = np.array([abs(float(ah[b] - ah[a])) for a, b in runs]) if runs else np.zeros(0)
     total = float(per.sum())
     if total <= 0:
@@ -95,8 +102,8 @@ def incremental_points(
     d_cum = np.concatenate([[0.0], np.cumsum(np.clip(i, 0, None) * dt / 3600.0)])
     c_cum = np.concatenate([[0.0], np.cumsum(np.clip(-i, 0, None) * dt / 3600.0)])
     swing = max(float(d_cum[-1]), float(c_cum[-1]))
-    dis, share_d = _pulses(sign, d_cum, 1, swing)
-    chg, share_c = _pulses(sign, c_cum, -1, swing)
+    dis, share_d = _pulses(sign, d_cum, 1, swing, file_start)
+    chg, share_c = _pulses(sign, c_cum, -1, swing, file_start)
     if not dis and not chg:
         return None
     s1 = 1 if dis and (not chg or dis[0] < chg[0]) else -1  # +1: starts full, discharges first
@@ -105,10 +112,8 @@ def incremental_points(
     if n_first < MIN_PULSES or share_first > MAX_PULSE_SHARE:
         return None
     ends = np.array(sorted(dis + chg), dtype=np.int64)  # the pulses that set a rest's branch
-    # a rest lasts until the next sample's current (a 10 min rest at 1 s is 600 samples)
-    rests = [
-        (a, b) for a, b in _runs(sign == 0) if t[min(b, t.size - 1)] - t[a] >= MIN_POINT_REST_S
-    ]
+    rests = file_runs(sign == 0, file_start)
+    rests = [(a, b) for a, b in rests if _span_s(t, a, b) >= MIN_POINT_REST_S]
     if len(rests) < MIN_PULSES:
         return None
 

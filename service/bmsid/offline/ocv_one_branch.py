@@ -33,11 +33,11 @@ from bmsid.offline.ocv_fit import (
     OcvTestPart,
     _choose_polarisation,
     _end_voltage,
-    _runs,
     branch_runs,
     branch_states,
     c_rate_text,
     current_steps,
+    file_runs,
     joined,
     relaxation_after,
     voltage_noise_V,
@@ -103,7 +103,7 @@ def one_branch_points(
         )
 
     i_quiet = max(REST_FRACTION * i_max, 0.1 * i_med)
-    rests = _runs(np.abs(i) <= i_quiet)
+    rests = file_runs(np.abs(i) <= i_quiet, file_start)
     notes: list[str] = []
     # The rest after a whole branch lies at its end, where the OCV itself relaxes (solid
     # diffusion at a knee: the DFN cells' rests after a C/20 discharge read 157-747 mOhm for
