@@ -106,8 +106,9 @@ def one_branch_points(
     rests = file_runs(np.abs(i) <= i_quiet, file_start)
     notes: list[str] = []
     # The rest after a whole branch lies at its end, where the OCV itself relaxes (solid
-    # diffusion at a knee: the DFN cells' rests after a C/20 discharge read 157-747 mOhm for
-    # tens), and no gap tells such a knee apart here: the onset's step, RC part assumed.
+    # diffusion at a knee: the five PyBaMM cells' rests after a C/20 discharge read 251-2,808
+    # mOhm, 2.6-19x their onset steps with the RC part assumed), and no gap tells such a knee
+    # apart here: the onset's step, RC part assumed.
     found = relaxation_after(t, i, v, (a, b), rests)
     steps = current_steps(t, i, v, file_start, i_rest=REST_FRACTION * i_max, rests=rests)
     pol = _choose_polarisation([], steps, 0.0, notes)
