@@ -563,8 +563,7 @@ def branch_states(
     rest). ``kappa_dis``/``kappa_chg``: Eq. 6's kappa (1/(A s)) on discharge / charge.
     """
     n = t_s.shape[0]
-    dt = np.diff(t_s, append=t_s[-1])
-    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0  # no time passes across a file boundary
+    dt = held_intervals(t_s, file_start)
     a1 = rc_decay(dt, tau1_s)
     a2 = rc_decay(dt, tau2_s)
     kappa = np.where(current_A < 0, kappa_chg, kappa_dis)
@@ -692,6 +691,25 @@ def joined(
     return t, i, np.concatenate([p.v_V for p in parts]), file_start
 
 
+def held_intervals(t_s: FloatArray, file_start: npt.NDArray[np.bool_]) -> FloatArray:
+    """The interval (s) over which each sample's current is held forward: to the next sample,
+    0 at the last one and across a file boundary (no time passes between files)."""
+    dt = np.diff(t_s, append=t_s[-1])
+    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0
+    return dt
+
+
+def charge_counts(
+    t_s: FloatArray, current_A: FloatArray, file_start: npt.NDArray[np.bool_]
+) -> tuple[FloatArray, FloatArray]:
+    """Ah discharged and Ah charged before each sample, and after the last (n + 1 entries):
+    each sample's current held forward over its interval (``held_intervals``)."""
+    dt = held_intervals(t_s, file_start)
+    d = np.concatenate([[0.0], np.cumsum(np.clip(current_A, 0, None) * dt / 3600.0)])
+    c = np.concatenate([[0.0], np.cumsum(np.clip(-current_A, 0, None) * dt / 3600.0)])
+    return d, c
+
+
 def file_runs(
     mask: npt.NDArray[np.bool_], file_start: npt.NDArray[np.bool_]
 ) -> list[tuple[int, int]]:
@@ -741,11 +759,8 @@ def extract_branches(
         raise UserError("the OCV test has no current at all")
     i_rest = REST_FRACTION * i_max
 
-    # Ah per forward-held interval (none across a file boundary), cumulative before each sample.
-    dt = np.diff(t_all, append=t_all[-1])
-    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0
-    d_cum = np.concatenate([[0.0], np.cumsum(np.clip(i_all, 0, None) * dt / 3600.0)[:-1]])
-    c_cum = np.concatenate([[0.0], np.cumsum(np.clip(-i_all, 0, None) * dt / 3600.0)[:-1]])
+    d_cum, c_cum = (x[:-1] for x in charge_counts(t_all, i_all, file_start))
+    dt = held_intervals(t_all, file_start)
     q1 = d_cum - c_cum  # net Ah removed, eta = 1
 
     # The two branches: the sign runs carrying the most charge (never across a file boundary).

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, file_runs, joined
+from bmsid.offline.ocv_fit import REST_FRACTION, OcvTestPart, charge_counts, file_runs, joined
 
 FloatArray = npt.NDArray[np.float64]
 Points = tuple[FloatArray, FloatArray]
@@ -96,11 +96,8 @@ def incremental_points(
     i_max = float(np.max(np.abs(i))) if i.size else 0.0
     if i_max <= 0:
         return None
-    dt = np.diff(t, append=t[-1])
-    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0  # no time passes across a file join
     sign = np.where(i > REST_FRACTION * i_max, 1, np.where(i < -REST_FRACTION * i_max, -1, 0))
-    d_cum = np.concatenate([[0.0], np.cumsum(np.clip(i, 0, None) * dt / 3600.0)])
-    c_cum = np.concatenate([[0.0], np.cumsum(np.clip(-i, 0, None) * dt / 3600.0)])
+    d_cum, c_cum = charge_counts(t, i, file_start)
     swing = max(float(d_cum[-1]), float(c_cum[-1]))
     dis, share_d = _pulses(sign, d_cum, 1, swing, file_start)
     chg, share_c = _pulses(sign, c_cum, -1, swing, file_start)

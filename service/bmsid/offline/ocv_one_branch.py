@@ -38,6 +38,7 @@ from bmsid.offline.ocv_fit import (
     c_rate_text,
     current_steps,
     file_runs,
+    held_intervals,
     joined,
     relaxation_after,
     voltage_noise_V,
@@ -73,8 +74,7 @@ def one_branch_points(
     i_max = float(np.max(np.abs(i))) if i.size else 0.0
     if i_max <= 0:
         return None
-    dt = np.diff(t, append=t[-1])
-    dt[np.flatnonzero(file_start)[1:] - 1] = 0.0
+    dt = held_intervals(t, file_start)
     q = np.concatenate([[0.0], np.cumsum(i * dt / 3600.0)[:-1]])  # Ah out before each sample
     sign = np.where(i > REST_FRACTION * i_max, 1, np.where(i < -REST_FRACTION * i_max, -1, 0))
     best = branch_runs(sign, q, file_start)
