@@ -3,7 +3,7 @@
 The module forms P H' and H P H' from the sparse H (one SOC column per cell, the offset, the
 hysteresis map); the reference below builds H dense and applies the textbook
 (I - K H) P (I - K H)' + K R K' with the consider gain (the offset's row zeroed for unforced
-cells)."""
+cells, every entry but its own SOC's zeroed for a lone cell)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.estimate.observer_ekf import joint_update
+from bmsid.estimate.observer_kernel import lone_cells
 
 
-def _reference(P, n, idx, hz, hb, G, e, r, forced, consider):  # type: ignore[no-untyped-def]
-    """Dense H, Kalman gain, the offset row zeroed for unforced cells, Joseph's form."""
+def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone):  # type: ignore[no-untyped-def]
+    """Dense H, Kalman gain, the offset row zeroed for unforced cells and a lone cell's column
+    but for its own SOC, Joseph's form."""
     N = P.shape[0]
     H = np.zeros((idx.size, N))
     H[np.arange(idx.size), idx] = hz[idx]
@@ -26,6 +28,11 @@ def _reference(P, n, idx, hz, hb, G, e, r, forced, consider):  # type: ignore[no
     K = P @ H.T @ np.linalg.inv(S)
     if consider:
         K[n, ~forced[idx]] = 0.0
+    for q, c in enumerate(idx):
+        if lone[c]:
+            own = K[c, q]
+            K[:, q] = 0.0
+            K[c, q] = own
     A = np.eye(N) - K @ H
     P_new = A @ P @ A.T + K @ np.diag(r[idx]) @ K.T
     return K @ e[idx], P_new
@@ -51,13 +58,14 @@ def test_the_update_is_josephs_form_of_the_consider_gain(
     e = rng.normal(size=n) * 1e-3
     r = rng.uniform(1e-6, 1e-4, n)
     forced = rng.random(n) < 0.3
+    lone = rng.random(n) < 0.3
     idx = np.flatnonzero(rng.random(n) < 0.8)
     step = joint_update(P, n, idx, hz, hb, G, e, r, forced, gate_sigmas=1e9,
-                        consider_offset=consider)  # fmt: skip
+                        consider_offset=consider, lone=lone)  # fmt: skip
     if idx.size == 0:
         assert step.dx is None
         return
-    dx_ref, P_ref = _reference(P, n, idx, hz, hb, G, e, r, forced, consider)
+    dx_ref, P_ref = _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone)
     assert step.dx is not None and step.P is not None
     np.testing.assert_allclose(step.dx, dx_ref, rtol=1e-7, atol=1e-12)
     P_ref = 0.5 * (P_ref + P_ref.T)
@@ -74,3 +82,35 @@ def test_a_gated_cell_is_left_out_and_counted() -> None:
     assert step.dx is not None
     assert step.dx[1] == pytest.approx(0.0)  # the gated cell's SOC did not move
     assert step.dx[2] == 0.0  # unforced: the offset is a consider state
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    e=st.lists(st.floats(-0.2, 0.2), min_size=1, max_size=12),
+    shift=st.floats(-1.0, 1.0),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_lone_cells_are_what_one_cell_shows_alone(e: list[float], shift: float, seed: int) -> None:
+    """Fewer than 3 valid cells: none lone; a shift common to every cell (an offset) changes
+    nothing; the median cell is never lone; invalid cells never are."""
+    ev = np.asarray(e)
+    valid = np.random.default_rng(seed).random(ev.size) < 0.8
+    lone = lone_cells(ev, 1e-6, valid, 9.0)
+    assert not lone[~valid].any()
+    if valid.sum() < 3:
+        assert not lone.any()
+        return
+    v = np.flatnonzero(valid)
+    med = np.median(ev[v])
+    thr = 9.0 * max((1.4826 * np.median(np.abs(ev[v] - med))) ** 2, 1e-6)
+    clear = np.abs((ev - med) ** 2 - thr) > 1e-9  # not on the boundary, where rounding decides
+    shifted = lone_cells(ev + shift, 1e-6, valid, 9.0)
+    np.testing.assert_array_equal(shifted[clear], lone[clear])
+    mid = v[np.argsort(ev[v])[v.size // 2]]
+    assert not lone[mid]
+
+
+def test_one_cell_far_off_is_lone_and_the_others_are_not() -> None:
+    e = np.array([1e-3, 1.2e-3, 0.8e-3, 50e-3, 1.1e-3])
+    lone = lone_cells(e, 1e-6, np.ones(5, dtype=bool), 9.0)
+    np.testing.assert_array_equal(lone, [False, False, False, True, False])

@@ -34,6 +34,7 @@ from bmsid.offline.scoring import (
     RunScorer,
     SocReference,
     held_warnings,
+    lone_cell_warnings,
     past_empty_warnings,
 )
 from bmsid.offline.writers import TickDecimator
@@ -213,6 +214,25 @@ def test_a_cell_held_on_most_ticks_is_warned_about() -> None:
         "a bound on 60 %: the model does not follow this cell within its bounds there (an OCV "
         "curve that misfits it, or dynamics outside them); params.csv's quality column says where"
     ]
+
+
+@pytest.mark.parametrize("n_cells", [2, 4])
+def test_a_cell_far_worse_than_its_pack_is_warned_about(n_cells: int) -> None:
+    """Cells b.. miss the voltage by 1 mV, cell a by 15 mV (every tenth tick 150 mV): a pack of
+    4 names a; a pair cannot tell which cell is off and says nothing."""
+    full = _block(np.arange(100.0), n_cells=n_cells)
+    full.cells["v_meas_V"][:] = 3.0
+    full.cells["v_model_V"][:] = 3.001
+    full.cells["v_model_V"][::10, 0] = 3.15
+    names = [chr(ord("a") + c) for c in range(n_cells)]
+    result = IdentifyResult("hy-affrls-lpso", full, "given", {}, 0.0, 100, names)
+    lines = lone_cell_warnings(result, EvalWindow())
+    if n_cells == 2:
+        assert lines == []
+        return
+    assert len(lines) == 1 and lines[0].startswith(
+        "WARNING: a: model error 47.44 mV RMS, 47.4x the pack's median (1.00 mV)"
+    ), lines
 
 
 @pytest.mark.parametrize("cuts", [(), (1,), (55, 56, 70)])

@@ -78,7 +78,12 @@ from bmsid.offline.outputs import (
     summary_line,
 )
 from bmsid.offline.record_checks import check_record
-from bmsid.offline.scoring import held_warnings, metrics_document, past_empty_warnings
+from bmsid.offline.scoring import (
+    held_warnings,
+    lone_cell_warnings,
+    metrics_document,
+    past_empty_warnings,
+)
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -294,7 +299,11 @@ def run(args: argparse.Namespace) -> int:
     print(summary_line(doc))
     if (band := error_band_line(doc)) is not None:
         print(band)
-    for line in [*held_warnings(result, window), *past_empty_warnings(result, window)]:
+    for line in [
+        *held_warnings(result, window),
+        *lone_cell_warnings(result, window),
+        *past_empty_warnings(result, window),
+    ]:
         print(line)
     if (obs := observer_text(result)) is not None:
         print(obs)

@@ -40,6 +40,7 @@ from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covariance
 from bmsid.estimate.observer_ekf import IndexArray, joint_update
+from bmsid.estimate.observer_kernel import lone_cells
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.start_relaxation import StartRelaxation, relaxation_tau_s, widened_variance
@@ -244,7 +245,8 @@ class ObserverState(CoulombState):
         valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
         forced = anchor | self._reanchor
         valid &= converged | forced
-        self._update(np.flatnonzero(valid), hz, hb, G, e, r, forced)
+        lone = lone_cells(e, tun.v_sigma_floor_V**2, valid, tun.agree_sigmas**2)
+        self._update(np.flatnonzero(valid), hz, hb, G, e, r, forced, lone)
         anchored = anchor & valid
         if anchored.any():
             z_var = r / np.maximum(hz**2, 1e-12)
@@ -272,14 +274,14 @@ class ObserverState(CoulombState):
 
     def _update(
         self, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray, e: FloatArray,
-        r: FloatArray, forced: BoolArray | bool,
+        r: FloatArray, forced: BoolArray | bool, lone: BoolArray | None = None,
     ) -> None:  # fmt: skip
         """Joint EKF update of the cells ``idx`` (``observer_ekf.joint_update``); the offset
         is a consider state under load (module docstring)."""
         n = self.n
         step = joint_update(
             self.P, n, idx, hz, hb, G, e, r, np.broadcast_to(forced, (n,)),
-            self.tun.gate_sigmas, consider_offset=self._rest_s <= 0.0,
+            self.tun.gate_sigmas, consider_offset=self._rest_s <= 0.0, lone=lone,
         )  # fmt: skip
         self.counters["observer_gated"] += step.n_gated
         if step.dx is None or step.P is None:

@@ -30,13 +30,15 @@ class EkfStep(NamedTuple):
 def joint_update(
     P: FloatArray, n: int, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray,
     e: FloatArray, r: FloatArray, forced: BoolArray, gate_sigmas: float, consider_offset: bool,
+    lone: BoolArray | None = None,
 ) -> EkfStep:  # fmt: skip
     """Update the cells ``idx`` (of ``n``) with innovations ``e`` (V) of variance ``r`` (V^2).
 
     ``hz``: dOCV/dz (V); ``hb``: dv/db, the DC resistance (ohm); ``G``: dv/dd (n, K). Cells not
     ``forced`` (an anchor, a restart) are used only when ``e^2 <= gate_sigmas^2 S_cc``. With
     ``consider_offset`` the unforced cells leave the offset alone (Schmidt-Kalman: it stays in P
-    but is not updated; under load it is confounded with the parameters' errors). The
+    but is not updated; under load it is confounded with the parameters' errors). A ``lone``
+    cell (``observer_kernel.lone_cells``) updates its own SOC only. The
     covariance is updated in Joseph form, P - K (PH')' - (PH') K' + K S K', true for any gain,
     symmetrised, its diagonal kept >= 0.
     """
@@ -58,6 +60,11 @@ def joint_update(
         return EkfStep(None, None, n_gated)
     if consider_offset:
         K[n, ~forced[idx]] = 0.0
+    if lone is not None and lone[idx].any():
+        q = np.flatnonzero(lone[idx])
+        own = K[idx[q], q]
+        K[:, q] = 0.0
+        K[idx[q], q] = own
     dx = K @ e[idx]
     if not np.all(np.isfinite(dx)):
         return EkfStep(None, None, n_gated)

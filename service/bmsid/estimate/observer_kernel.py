@@ -184,8 +184,30 @@ def _warm_step(kernel: Callable[..., Any]) -> object:
 
 # ------------------------------------------------------------------ the measurement update
 #: Layout of the update's tuning vector ``utun``: v_sigma^2, r_dc_rel_sigma, v_sigma_floor^2,
-#: gate_sigmas^2, learn_ocv_sigma (``ObserverTuning``).
-V_SIGMA2, R_DC_REL, FLOOR2, GATE2, LEARN_OCV, N_UTUN = 0, 1, 2, 3, 4, 5
+#: gate_sigmas^2, learn_ocv_sigma, agree_sigmas^2 (``ObserverTuning``).
+V_SIGMA2, R_DC_REL, FLOOR2, GATE2, LEARN_OCV, AGREE2, N_UTUN = 0, 1, 2, 3, 4, 5, 6
+
+
+@helper
+def lone_cells(e: FloatArray, floor2: float, valid: BoolArray, agree2: float) -> BoolArray:
+    """The valid cells whose innovation ``e`` (V) disagrees with the pack's: further from the
+    valid cells' median than ``sqrt(agree2)`` times their robust spread (1.4826 x the median
+    absolute deviation), or times the rested voltage noise ``sqrt(floor2)`` (V) where the
+    spread is smaller. None with fewer than 3 valid cells: two cannot tell which one is off.
+    A current offset or a hysteresis error moves every cell's voltage alike; what one cell
+    shows alone is its own (its SOC, its model, its sensing). Such a cell teaches only its own
+    SOC (``ObserverTuning.agree_sigmas``)."""
+    lone = np.zeros(e.shape[0], dtype=np.bool_)
+    idx = np.flatnonzero(valid)
+    if idx.size < 3:
+        return lone
+    ev = e[idx]
+    med = np.median(ev)
+    spread = 1.4826 * np.median(np.abs(ev - med))
+    for c in idx:
+        dev = e[c] - med
+        lone[c] = dev * dev > agree2 * _max(spread * spread, floor2)
+    return lone
 
 
 def _update_source(
@@ -261,6 +283,7 @@ def _update_source(
         valid[c] = (ok[c] and math.isfinite(e[c]) and math.isfinite(hz[c])
                     and math.isfinite(hb[c]) and (converged[c] or forced))  # fmt: skip
         z_var[c] = r[c] / _max(hz[c] * hz[c], 1e-12)
+    lone = lone_cells(e, utun[FLOOR2], valid, utun[AGREE2])
     idx = np.flatnonzero(valid)
     n_gated, updated = 0, False
     z_new, b_new, d_new = z, b, d
@@ -304,6 +327,11 @@ def _update_source(
                 for q in range(idx.size):
                     if not (anchor[idx[q]] or reanchor):
                         Kg[n, q] = 0.0
+            for q in range(idx.size):  # a lone cell teaches its own SOC only
+                if lone[idx[q]]:
+                    for a in range(N):
+                        if a != idx[q]:
+                            Kg[a, q] = 0.0
             dx = Kg @ np.ascontiguousarray(e[idx])
             if solved and np.all(np.isfinite(dx)):
                 KPHt = Kg @ np.ascontiguousarray(PHt.T)

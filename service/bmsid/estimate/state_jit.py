@@ -120,7 +120,8 @@ def update_tuning(obs: ObserverState, pk: Packed) -> FloatArray:
     if pk.utun is None:
         tun = obs.tun
         pk.utun = np.array([tun.v_sigma_V**2, tun.r_dc_rel_sigma, tun.v_sigma_floor_V**2,
-                            tun.gate_sigmas**2, tun.learn_ocv_sigma_V])  # fmt: skip
+                            tun.gate_sigmas**2, tun.learn_ocv_sigma_V,
+                            tun.agree_sigmas**2])  # fmt: skip
     return pk.utun
 
 

@@ -519,6 +519,37 @@ def held_warnings(result: IdentifyResult, window: EvalWindow) -> list[str]:
     return lines
 
 
+#: A cell of a pack of 3 or more is warned about when its model error (RMSE over the window)
+#: is this many times the cells' median and at least ``LONE_CELL_MIN_V`` above it.
+LONE_CELL_RATIO = 4.0
+LONE_CELL_MIN_V = 0.003
+
+
+def lone_cell_warnings(result: IdentifyResult, window: EvalWindow) -> list[str]:
+    """A line per cell of a pack (3 cells or more) whose model error is far beyond the other
+    cells': one cell of a series string that the model follows that much worse than its
+    siblings has its own fault (a loose or intermittent sense wire, a bad tap, a failing
+    cell). Its parameters are then its sensing's, and the SOC observer has kept it from
+    teaching the pack's offset (``ObserverTuning.agree_sigmas``); +50 mV on every tenth
+    sample of one of 8 cells read 15.5 mV against 1.1-1.5 mV and held 34 % of the ticks, under
+    ``held_warnings``' flag."""
+    sums = result.scorer(window).acc.sums
+    rmse = np.array([sums.metrics(RunAccumulator.WINDOW, c).rmse_V
+                     for c in range(len(result.cell_names))])  # fmt: skip
+    scored = np.isfinite(rmse) & (rmse > 0)
+    if np.count_nonzero(scored) < 3:
+        return []
+    med = float(np.median(rmse[scored]))
+    return [
+        f"WARNING: {name}: model error {1e3 * rmse[c]:.2f} mV RMS, {rmse[c] / med:.1f}x the "
+        f"pack's median ({1e3 * med:.2f} mV): a fault of this cell's own (a loose or "
+        "intermittent sense wire, a bad tap, a failing cell) more than its dynamics; it did "
+        "not teach the pack's current offset where its voltage disagreed with the others'"
+        for c, name in enumerate(result.cell_names)
+        if scored[c] and rmse[c] >= LONE_CELL_RATIO * med and rmse[c] - med >= LONE_CELL_MIN_V
+    ]
+
+
 #: A discharge past the estimated empty is warned about from this share of the capacity in use.
 PAST_EMPTY_SHARE = 0.005
 
