@@ -23,9 +23,10 @@ parameters describe. Under load the offset is confounded with the parameters' er
 start values pulled it the wrong way): there it is a consider state (Schmidt-Kalman: in P, not
 updated); rests teach it. A rest long enough for the identified branches to relax is an
 *anchor*: an update with a rested cell's small error, counted, which also measures capacity
-(``capacity.py``). A gap longer than ``restart_gap_s`` (a restart after downtime) re-anchors
-from the first voltage after it. The state (SOC, h) is the coulomb-count stage's, corrected in
-place; covariance predictions accumulate between updates: a few scalar operations a tick.
+(``capacity.py``). A gap longer than ``restart_gap_s`` (a restart after downtime), or one
+that resumes under load (data lost mid-drive), re-anchors from the first voltage after it.
+The state (SOC, h) is the coulomb-count stage's, corrected in place; covariance predictions
+accumulate between updates: a few scalar operations a tick.
 """
 
 from __future__ import annotations
@@ -133,7 +134,10 @@ class ObserverState(CoulombState):
         elif self._rest_s:
             self._rest_s = 0.0
             self._anchored = np.zeros(self.n, dtype=bool)
-        gap = tick.new_segment and not tick.first and tick.dt_s >= self.tun.restart_gap_s
+        # Downtime, or data lost under load (the pack drives on as it resumes): the charge
+        # moved in the gap is unknown either way. A gap that resumes at rest was a rest.
+        gap = tick.new_segment and not tick.first and (
+            tick.dt_s >= self.tun.restart_gap_s or not resting)  # fmt: skip
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
 

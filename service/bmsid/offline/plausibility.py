@@ -944,6 +944,9 @@ def capacity_from_soc_change(
     if rest[-1]:
         ends = np.append(ends, t.size - 1)
     ends = ends[(ends > loaded[0]) & np.isfinite(v[ends])]
+    gaps = np.flatnonzero(np.diff(t) > gap_s)
+    if gaps.size:  # what moved across a gap is unknown (a current lost mid-drive, downtime)
+        ends = ends[ends <= gaps[0]]
     q = coulomb_Ah(t, i, gap_s)[ends]
     if ends.size < SOC_CHANGE_MIN_POINTS or not np.any(q):
         return None
