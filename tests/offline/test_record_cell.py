@@ -7,13 +7,14 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 import pytest
+from test_identify_cli import synthetic_columns
 from test_plausibility import part_charged_discharge
 
 from bmsid.config.cell import paper_cell
 from bmsid.config.engine import ocv_model
 from bmsid.model.simulator import simulate
 from bmsid.offline import plausibility as pl
-from bmsid.offline.record_cell import cell_from_record
+from bmsid.offline.record_cell import capacity_as_recorded, cell_from_record
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -114,3 +115,18 @@ def test_capacity_from_the_soc_change_when_no_cut_off_is_reached(capacity_Ah: fl
         )
         is None
     )
+
+
+@pytest.mark.parametrize("dead_from", [2000, 4800])
+def test_a_dead_tap_does_not_read_as_the_packs_capacity(dead_from: int) -> None:
+    """One of 3 taps reads 0 V for 10 min (at the end: the rest ends the SOC-change read uses):
+    the capacity the record implies is the other cells' (it read 26.3 Ah for ~67, and the
+    config's capacity was then said to be 2.5x the record's)."""
+    cols = synthetic_columns(5400, n_cells=3)
+    v = np.column_stack([cols[f"v_cell_0{k}"] for k in (1, 2, 3)])
+    dead = v.copy()
+    dead[dead_from : dead_from + 600, 1] = 0.0
+    got = capacity_as_recorded(cols["t_s"], cols["current_A"], dead, 30.0)
+    live = capacity_as_recorded(cols["t_s"], cols["current_A"], v[:, [0, 2]], 30.0)
+    assert got is not None and live is not None
+    assert got.capacity_Ah == pytest.approx(live.capacity_Ah)

@@ -83,10 +83,18 @@ def capacity_as_recorded(
 ) -> CapacityEstimate | None:
     """The capacity the record's own readings imply, ungated (for the time-unit check, before
     any gate whose current limit would scale with it): a cut-off or the SOC change, read on
-    ``cell``'s OCV curve (None: the assumed cell's, with ``ocv_coeffs``)."""
+    ``cell``'s OCV curve (None: the assumed cell's, with ``ocv_coeffs``). A cell that reads
+    below :data:`DEAD_TAP_V` anywhere is left out, as in :func:`cell_from_record`: one tap
+    reading 0 V for 10 min of a 4 h, 8-cell record read its pack 510 Ah (config 100) and
+    warned that the config's capacity was 0.196x the record's."""
     if cell is None:
         cell, _ = cell_config(None, None, ocv_coeffs)
-    return _read_capacity(t_s, current_A, voltages_V, ocv_model(cell), gap_s)
+    v = np.asarray(voltages_V, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    live = ~np.any(v < DEAD_TAP_V, axis=0)  # NaN is left to the reader
+    if not np.count_nonzero(live):
+        return None
+    return _read_capacity(t_s, current_A, v[:, live], ocv_model(cell), gap_s)
 
 
 def _read_capacity(
