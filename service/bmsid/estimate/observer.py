@@ -207,6 +207,8 @@ class ObserverState(CoulombState):
         # Shorter than anchor_min_rest_s (most ticks): no anchor, five array operations skipped.
         anchor: BoolArray | None = None
         if self._rest_s >= tun.anchor_min_rest_s:
+            if self.n >= 3:  # a cell's own slow branch, no longer than the pack's median one
+                tau2 = np.minimum(tau2, np.median(tau2))
             anchor = ~self._anchored & (
                 self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
             )
