@@ -33,6 +33,7 @@ from bmsid.offline.scoring import (
     IdentifyResult,
     RunScorer,
     SocReference,
+    current_dependence_warnings,
     held_warnings,
     lone_cell_warnings,
     past_empty_warnings,
@@ -232,6 +233,28 @@ def test_a_cell_far_worse_than_its_pack_is_warned_about(n_cells: int) -> None:
         return
     assert len(lines) == 1 and lines[0].startswith(
         "WARNING: a: model error 47.44 mV RMS, 47.4x the pack's median (1.00 mV)"
+    ), lines
+
+
+@pytest.mark.parametrize("peak_error_V", [0.002, 0.05])
+def test_a_model_error_that_grows_with_the_current_is_warned_about(peak_error_V: float) -> None:
+    """1 Ah cells: 300 ticks at 0.3 A and 300 at 2 A (discharge), 300 at -2 A (charge); the
+    model misses the 2 A ticks by ``peak_error_V`` (above the measured voltage when
+    discharging, below it when charging: a resistance that falls as the current grows) and
+    the others by 1 mV. Warned about from 15 mV between two bands, each band's mean said."""
+    full = _block(np.arange(900.0), n_cells=1)
+    full.current_A[:] = np.repeat([0.3, 2.0, -2.0], 300)
+    full.cells["capacity_Ah"][:] = 1.0
+    full.cells["v_meas_V"][:] = 3.0
+    err = np.where(np.abs(full.current_A) > 1.0, peak_error_V, 0.001) * np.sign(full.current_A)
+    full.cells["v_model_V"][:, 0] = 3.0 - err
+    result = IdentifyResult("hy-affrls-lpso", full, "given", {}, 0.0, 900, ["a"])
+    lines = current_dependence_warnings(result, EvalWindow(skip_fraction=0.0))
+    if peak_error_V < 0.015:
+        assert lines == []
+        return
+    assert len(lines) == 1 and lines[0].startswith(
+        "WARNING: a: the model error depends on the current (+1 mV at 0.05-0.6C, +50 mV at > 1.3C;"
     ), lines
 
 

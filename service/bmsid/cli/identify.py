@@ -79,6 +79,7 @@ from bmsid.offline.outputs import (
 )
 from bmsid.offline.record_checks import check_record
 from bmsid.offline.scoring import (
+    current_dependence_warnings,
     held_warnings,
     lone_cell_warnings,
     metrics_document,
@@ -302,6 +303,7 @@ def run(args: argparse.Namespace) -> int:
     for line in [
         *held_warnings(result, window),
         *lone_cell_warnings(result, window),
+        *current_dependence_warnings(result, window),
         *past_empty_warnings(result, window),
     ]:
         print(line)

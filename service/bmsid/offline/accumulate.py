@@ -28,6 +28,7 @@ whole trace, so a streamed run and a whole-file run give the same numbers to flo
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -51,6 +52,9 @@ PLOT_BINS = 4000
 EMPTY_SOC = 1e-4
 #: Steps between ticks longer than this (s) move no charge in the past-empty count (a gap).
 EMPTY_MAX_DT_S = 60.0
+#: Lower edges of the |current| bands (C-rate) over which the model error's dependence on the
+#: current is told (``RunAccumulator.current_dependence``): light load, a drive's mean, peaks.
+CRATE_EDGES = (0.05, 0.6, 1.3)
 #: The series the plots draw, per cell: parameters (Fig. 10) and voltages with their error (11).
 PLOT_SERIES = ("R0_ohm", "R1_ohm", "C1_F", "R2_ohm", "C2_F", "lambda_", "v_meas_V", "v_model_V",
                "error_V")  # fmt: skip
@@ -288,6 +292,10 @@ class RunAccumulator:
         self.empty_Ah = np.zeros(n_cells)
         self.empty_from_s = np.full(n_cells, np.nan)
         self._t_prev = math.nan
+        #: per |current| band (``CRATE_EDGES``) and cell over the window: the model error
+        #: times the current's sign summed (V), and the ticks
+        self.crate_sum = np.zeros((len(CRATE_EDGES), n_cells))
+        self.crate_n = np.zeros((len(CRATE_EDGES), n_cells), np.int64)
 
     def add(self, block: EstimateBlock, parts: PartMasks, score_soc: FloatArray) -> None:
         """The next block of estimates, where its parts lie and its scoring SOC (ticks, cells)."""
@@ -330,6 +338,7 @@ class RunAccumulator:
             pub = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
             self.published_on_bound[j] += int(np.count_nonzero(pub))
         self._count_empty(block, ok, err)
+        self._count_crate(block, ok & parts.window, err)
         vals = [meas if k == "v_meas_V" else meas - model if k == "error_V" else block[k]
                 for k in PLOT_SERIES]  # fmt: skip
         self.plot.add(block.t_s, np.stack(vals, axis=1))
@@ -370,6 +379,32 @@ class RunAccumulator:
         self.empty_Ah += np.sum(np.where(at, (i * dt)[:, None], 0.0), axis=0) / 3600.0
         first = np.where(at.any(axis=0), t[np.argmax(at, axis=0)], np.nan)
         self.empty_from_s = np.where(np.isnan(self.empty_from_s), first, self.empty_from_s)
+
+    def _count_crate(self, block: EstimateBlock, ok: BoolArray, err: FloatArray) -> None:
+        """The window's model error per |current| band (``current_dependence``)."""
+        i = np.asarray(block.current_A, dtype=np.float64)[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c_rate = np.abs(i) / np.asarray(block["capacity_Ah"], dtype=np.float64)
+        band = np.searchsorted(CRATE_EDGES, c_rate, side="right") - 1  # -1: below the first
+        signed = err * np.sign(i)
+        for k in range(len(CRATE_EDGES)):
+            m = ok & (band == k)
+            self.crate_sum[k] += np.sum(np.where(m, signed, 0.0), axis=0)
+            self.crate_n[k] += np.count_nonzero(m, axis=0)
+
+    def current_dependence(self, cell: int) -> list[tuple[str, float, int]]:
+        """One cell's mean model error (V) times the current's sign per |current| band
+        (``CRATE_EDGES``) over the window, with the band's label and ticks: under a resistance
+        that falls as the current grows (a cold cell's charge-transfer kinetics), the fitted
+        linear one overstates the drop at high currents (positive there) and understates it
+        at low ones."""
+        labels = [f"{a:g}-{b:g}C" for a, b in itertools.pairwise(CRATE_EDGES)]
+        labels.append(f"> {CRATE_EDGES[-1]:g}C")
+        return [
+            (labels[k], float(self.crate_sum[k, cell]) / int(self.crate_n[k, cell]),
+             int(self.crate_n[k, cell]))
+            for k in range(len(CRATE_EDGES)) if self.crate_n[k, cell]
+        ]  # fmt: skip
 
     def past_empty(self, cell: int) -> dict[str, float] | None:
         """One cell's discharge past its estimated empty: ticks, the charge moved there (Ah),
