@@ -21,11 +21,12 @@ P=$DATA/calce_inr18650-20r/ocv_points
 CALCE_OPTS=(--chemistry NMC --capacity-ah 2.0 --points --soc-anchor full)
 $BMSID fit-ocv "$P"/derived_ocvpts_25C_SP20-1_discharge_and_charge.csv \
     "$P"/derived_ocvpts_25C_SP20-3_discharge_and_charge.csv \
-    "${CALCE_OPTS[@]}" --name calce-inr18650-20r-25C --out $OUT/calce_inr18650_20r_25C.toml
+    "${CALCE_OPTS[@]}" --name calce-inr18650-20r-25C --temperature-c 25 \
+    --out $OUT/calce_inr18650_20r_25C.toml
 for T in 0 45; do
     $BMSID fit-ocv "$P"/derived_ocvpts_${T}C_SP20-1_discharge.csv \
         "$P"/derived_ocvpts_${T}C_SP20-3_discharge.csv \
-        "${CALCE_OPTS[@]}" --branch discharge --name calce-inr18650-20r-${T}C \
+        "${CALCE_OPTS[@]}" --branch discharge --name calce-inr18650-20r-${T}C --temperature-c $T \
         --hysteresis-from $OUT/calce_inr18650_20r_25C.toml --out $OUT/calce_inr18650_20r_${T}C.toml
 done
 

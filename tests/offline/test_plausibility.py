@@ -13,6 +13,7 @@ import numpy.typing as npt
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_identify_cli import synthetic_columns, write_csv
 
 from bmsid.canbus.logs import csv_to_messages, write_log
 from bmsid.canbus.mapping import default_mapping
@@ -662,3 +663,28 @@ def test_the_ocv_range_warning_uses_the_curve_soc_is_clamped_to(v_V: float, warn
     run = cast("IdentifyResult", _FirstTick(v_V))
     text = ocv_range_warning(run, cell)
     assert (text is not None) == warned, text
+
+
+@pytest.mark.parametrize(("record_C", "warned"), [(-10.0, True), (15.0, False), (35.0, False),
+                                                   (50.0, True), (None, False)])  # fmt: skip
+def test_a_record_far_from_the_ocv_tests_temperature_is_warned_about(
+    tmp_path: Path, record_C: float | None, warned: bool
+) -> None:
+    """The cell config carries its OCV test's temperature (25 degC here); identify names a
+    record more than 10 K away from it (the median of its first samples), and nothing where
+    either is unknown. The temperature survives the config's TOML round trip."""
+    cell = paper_cell()
+    cell = cell.model_copy(update={"ocv": cell.ocv.model_copy(update={"temperature_C": 25.0})})
+    cfg = tmp_path / "cell.toml"
+    save_cell_config(cell, cfg)
+    assert load_cell_config(cfg).ocv.temperature_C == 25.0
+    cols = synthetic_columns(600)
+    if record_C is None:
+        del cols["temperature_C"]
+    else:
+        cols["temperature_C"][:] = record_C
+    path = write_csv(tmp_path / "rec.csv", cols)
+    findings = pl.check_ocv_temperature(
+        read_tester_csv(path).temperature_C, load_cell_config(cfg).ocv.temperature_C
+    )
+    assert [f.code for f in findings] == (["ocv_temperature"] if warned else [])

@@ -248,6 +248,7 @@ def test_a_model_error_that_grows_with_the_current_is_warned_about(peak_error_V:
     full.cells["v_meas_V"][:] = 3.0
     err = np.where(np.abs(full.current_A) > 1.0, peak_error_V, 0.001) * np.sign(full.current_A)
     full.cells["v_model_V"][:, 0] = 3.0 - err
+    full.quality[:] = int(Quality.CONVERGED)
     result = IdentifyResult("hy-affrls-lpso", full, "given", {}, 0.0, 900, ["a"])
     lines = current_dependence_warnings(result, EvalWindow(skip_fraction=0.0))
     if peak_error_V < 0.015:

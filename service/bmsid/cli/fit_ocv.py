@@ -69,6 +69,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument(
         "--coulombic-efficiency", type=float, default=None, help="default: measured from the test"
     )
+    p.add_argument(
+        "--temperature-c",
+        type=float,
+        default=None,
+        metavar="DEGC",
+        help="the test's temperature, degC, written to the config (default: the median of the "
+        "files' temperature column; rest-point tables carry none)",
+    )
     p.add_argument("--charge-positive", action="store_true", help="the files count charge positive")
     p.add_argument("--cell", default=None, help="voltage column to use when a file has several")
     p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...", help=COLUMNS_HELP)
@@ -201,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
         hysteresis_from=args.hysteresis_from,
         ends=not args.no_ends,
         correction=not args.no_ocv_correction,
+        temperature_C=args.temperature_c,
     )
     fit = fit_ocv_files(args.inputs, spec)
     print(fit.report())

@@ -292,8 +292,9 @@ class RunAccumulator:
         self.empty_Ah = np.zeros(n_cells)
         self.empty_from_s = np.full(n_cells, np.nan)
         self._t_prev = math.nan
-        #: per |current| band (``CRATE_EDGES``) and cell over the window: the model error
-        #: times the current's sign summed (V), and the ticks
+        #: per |current| band (``CRATE_EDGES``) and cell over the window's converged ticks
+        #: (not a start's, whose error is the start values', nor a held cell's): the model
+        #: error times the current's sign summed (V), and the ticks
         self.crate_sum = np.zeros((len(CRATE_EDGES), n_cells))
         self.crate_n = np.zeros((len(CRATE_EDGES), n_cells), np.int64)
 
@@ -338,7 +339,7 @@ class RunAccumulator:
             pub = (x <= lo * (1 + ON_BOUND_REL)) | (x >= hi * (1 - ON_BOUND_REL))
             self.published_on_bound[j] += int(np.count_nonzero(pub))
         self._count_empty(block, ok, err)
-        self._count_crate(block, ok & parts.window, err)
+        self._count_crate(block, ok & parts.window & (block.quality == Quality.CONVERGED), err)
         vals = [meas if k == "v_meas_V" else meas - model if k == "error_V" else block[k]
                 for k in PLOT_SERIES]  # fmt: skip
         self.plot.add(block.t_s, np.stack(vals, axis=1))
@@ -394,7 +395,8 @@ class RunAccumulator:
 
     def current_dependence(self, cell: int) -> list[tuple[str, float, int]]:
         """One cell's mean model error (V) times the current's sign per |current| band
-        (``CRATE_EDGES``) over the window, with the band's label and ticks: under a resistance
+        (``CRATE_EDGES``) over the window's converged ticks, with the band's label and
+        ticks: under a resistance
         that falls as the current grows (a cold cell's charge-transfer kinetics), the fitted
         linear one overstates the drop at high currents (positive there) and understates it
         at low ones."""

@@ -92,6 +92,9 @@ class OcvFitSpec:
     correction : bool
         Fit the correction table beyond Eq. 4 (``ocv_correction``; low-rate tests only) and
         write it when the test resolves it; False: Eq. 4 alone.
+    temperature_C : float or None
+        The test's temperature (degC) written to the config; None: the median of the test
+        files' temperature column where they all have one (rest-point tables: not known).
     """
 
     name: str
@@ -112,6 +115,7 @@ class OcvFitSpec:
     hysteresis_from: str | None = None
     ends: bool = True
     correction: bool = True
+    temperature_C: float | None = None
 
 
 @dataclass(frozen=True)
@@ -208,18 +212,21 @@ def _read_test_file(path: str | Path, spec: OcvFitSpec) -> TesterData:
 
 def fit_test_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
-) -> tuple[OcvFitResult, float, float, list[str]]:
+) -> tuple[OcvFitResult, float, float, list[str], float | None]:
     """Fit a low-rate OCV test (one or several tester files in time order).
 
     Returns
     -------
-    result, capacity_Ah, coulombic_efficiency, info
-        The fit, the capacity (Ah) and efficiency used, and report lines on them.
+    result, capacity_Ah, coulombic_efficiency, info, temperature_C
+        The fit, the capacity (Ah) and efficiency used, report lines on them and the test's
+        temperature (degC, ``_test_temperature``).
     """
     parts: list[OcvTestPart] = []
     input_notes: list[str] = []
+    temps: list[FloatArray | None] = []
     for path in paths:
         data = _read_test_file(path, spec)
+        temps.append(data.temperature_C)
         if data.merged_repeats or data.time_restarts:
             input_notes.append(
                 f"{path}: merged {data.merged_repeats} rows with repeated timestamps (the last "
@@ -234,13 +241,14 @@ def fit_test_files(
         else:
             raise UserError(f"{path}: {data.n_cells} cell voltage columns; choose one with --cell")
         parts.append(OcvTestPart(data.t_s, data.current_A, data.cell_voltages_V[:, col]))
+    temp_C = _test_temperature(temps, spec)
     inc = incremental_points(parts, spec.capacity_Ah, spec.coulombic_efficiency)
     if inc is not None:  # pulses and rests: the rests' voltages are the points
         result = fit_rest_points(
             inc.discharge, inc.charge, trim_soc=spec.trim_soc, knots=spec.knots, ends=spec.ends
         )
         warn = capacity_warning(spec.capacity_Ah, inc.measured_capacity_Ah)
-        return result, inc.capacity_Ah, inc.eta, [*input_notes, *inc.info, *warn]
+        return result, inc.capacity_Ah, inc.eta, [*input_notes, *inc.info, *warn], temp_C
     one = one_branch_points(parts, spec.capacity_Ah, spec.gamma)
     if one is not None:  # a discharge (or charge) alone: its corrected voltage as the points
         result = fit_rest_points(
@@ -250,7 +258,7 @@ def fit_test_files(
         )  # fmt: skip
         warn = capacity_warning(spec.capacity_Ah, one.measured_capacity_Ah)
         eta = 1.0 if spec.coulombic_efficiency is None else spec.coulombic_efficiency
-        return result, one.capacity_Ah, eta, [*input_notes, *one.info, *warn]
+        return result, one.capacity_Ah, eta, [*input_notes, *one.info, *warn], temp_C
     br = extract_branches(
         parts,
         capacity_Ah=spec.capacity_Ah,
@@ -292,7 +300,19 @@ def fit_test_files(
         f"hysteresis state h run along the test with gamma = {br.gamma:g}",
         *partial_range_warning(result, spec.trim_soc),
     ]
-    return result, br.capacity_Ah, br.coulombic_efficiency, info
+    return result, br.capacity_Ah, br.coulombic_efficiency, info, temp_C
+
+
+def _test_temperature(temps: Sequence[FloatArray | None], spec: OcvFitSpec) -> float | None:
+    """The test's temperature, degC: ``spec.temperature_C``, else the median of the files'
+    temperature column (rounded to 0.1 degC) where every file has one, else None."""
+    if spec.temperature_C is not None:
+        return spec.temperature_C
+    if not temps or any(t is None for t in temps):
+        return None
+    vals = np.concatenate([t for t in temps if t is not None])
+    vals = vals[np.isfinite(vals)]
+    return round(float(np.median(vals)), 1) if vals.size else None
 
 
 def _anchor_shift(
@@ -327,8 +347,9 @@ def _hysteresis_table(path: str | None) -> tuple[FloatArray, FloatArray] | None:
 
 def fit_point_files(
     paths: Sequence[str | Path], spec: OcvFitSpec
-) -> tuple[OcvFitResult, float, float, list[str]]:
-    """Fit rest-point tables (SOC, OCV pairs per branch); returns as :func:`fit_test_files`."""
+) -> tuple[OcvFitResult, float, float, list[str], float | None]:
+    """Fit rest-point tables (SOC, OCV pairs per branch); returns as :func:`fit_test_files`
+    (the temperature: ``--temperature-c`` only, tables carry none)."""
     if spec.capacity_Ah is None:
         raise UserError("--points needs --capacity-ah (rest tables carry no charge count)")
     if spec.columns:
@@ -362,7 +383,7 @@ def fit_point_files(
         ends=spec.ends,
     )
     eta = 1.0 if spec.coulombic_efficiency is None else spec.coulombic_efficiency
-    return result, spec.capacity_Ah, eta, info
+    return result, spec.capacity_Ah, eta, info, spec.temperature_C
 
 
 def fit_ocv_files(paths: Sequence[str | Path], spec: OcvFitSpec) -> OcvFit:
@@ -374,7 +395,7 @@ def fit_ocv_files(paths: Sequence[str | Path], spec: OcvFitSpec) -> OcvFit:
         Unreadable inputs, a test without usable branches, or a fit that gives no valid config.
     """
     fit = fit_point_files if spec.points else fit_test_files
-    result, capacity, eta, info = fit(paths, spec)
+    result, capacity, eta, info, temp_C = fit(paths, spec)
     # A correction table keeps the curve increasing (checked when it is fitted): Eq. 4 alone here.
     dip = 0.0 if result.table is not None else monotonicity_violation_V(
         result.mean.coeffs, result.soc_min, result.soc_max)  # fmt: skip
@@ -390,6 +411,7 @@ def fit_ocv_files(paths: Sequence[str | Path], spec: OcvFitSpec) -> OcvFit:
             gamma=spec.gamma,
             bounds=spec.bounds,
             initial=spec.initial,
+            temperature_C=temp_C,
         )
     except ValueError as exc:
         raise UserError(f"the fit gives no valid cell config: {exc}".splitlines()[0]) from None

@@ -1709,8 +1709,10 @@ def build_cell_config(
     gamma: float = 30.0,
     bounds: ParameterBounds | None = None,
     initial: InitialParameters | None = None,
+    temperature_C: float | None = None,
 ) -> CellConfig:
-    """The cell config for a fit: Eq. 4 branches, valid SOC range, end voltages and M table."""
+    """The cell config for a fit: Eq. 4 branches, valid SOC range, end voltages and M table,
+    and the test's temperature (degC) when known."""
 
     def lst(a: FloatArray) -> list[float]:
         return [float(x) for x in a]
@@ -1730,6 +1732,7 @@ def build_cell_config(
             v_full_V=result.v_full_V,
             correction_soc=None if result.table is None else lst(result.table[0]),
             correction_V=None if result.table is None else lst(result.table[1]),
+            temperature_C=temperature_C,
         ),
         hysteresis=HysteresisTable(
             soc=lst(result.m_soc),

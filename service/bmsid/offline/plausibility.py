@@ -720,6 +720,40 @@ def check_start_relaxation(
     ]
 
 
+#: A record more than this (K) from the temperature its cell config's OCV was measured at is
+#: warned about: NMC's entropic coefficient (0.1-0.4 mV/K) moves the OCV 1-4 mV per 10 K.
+OCV_TEMPERATURE_MAX_K = 10.0
+
+
+def check_ocv_temperature(
+    temperature_C: FloatArray | None, ocv_temperature_C: float | None
+) -> list[Finding]:
+    """A warning when the record's median temperature (degC) lies more than
+    ``OCV_TEMPERATURE_MAX_K`` from the OCV test's (the cell config's ``ocv.temperature_C``);
+    nothing when either is unknown."""
+    if temperature_C is None or ocv_temperature_C is None:
+        return []
+    temp = np.asarray(temperature_C, dtype=np.float64)
+    temp = temp[np.isfinite(temp)]
+    if not temp.size:
+        return []
+    med = float(np.median(temp))
+    if abs(med - ocv_temperature_C) <= OCV_TEMPERATURE_MAX_K:
+        return []
+    return [
+        Finding(
+            "warning",
+            "ocv_temperature",
+            f"the record runs at {med:.0f} degC (median of its first samples) and the cell "
+            f"config's OCV was measured at {ocv_temperature_C:.0f} degC: the OCV moves with "
+            "temperature, so SOC read through it may be points off and its published std too "
+            "small (a PyBaMM NMC cell through its 25 degC curve: 2-5 points at -10 and 50 "
+            "degC); use a config from an OCV test at this temperature (fit-ocv, one per "
+            "temperature)",
+        )
+    ]
+
+
 def coulomb_soc(
     t_s: FloatArray,
     current_A: FloatArray,

@@ -110,4 +110,5 @@ def check_record(
             findings += plausibility.check_start_relaxation(
                 t, i, v, cell.capacity_Ah, r0, cell.soc_init.rest_current_C
             )
+        findings += plausibility.check_ocv_temperature(head.temperature_C, cell.ocv.temperature_C)
     return CheckedRecord(cell, note, findings)
