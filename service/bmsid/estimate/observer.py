@@ -43,6 +43,7 @@ from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covaria
 from bmsid.estimate.observer_ekf import IndexArray, joint_update
 from bmsid.estimate.observer_kernel import lone_cells
 from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.rest_anchor import anchors_due
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.start_relaxation import StartRelaxation, relaxation_tau_s, widened_variance
 from bmsid.estimate.state import CoulombState, _uniform, start_soc_sigma
@@ -125,7 +126,9 @@ class ObserverState(CoulombState):
         self._after_step(tick, i_abs < limit)
 
     def _after_step(self, tick: Tick, resting: bool) -> None:
-        """The start's first rest watched, the rest timed, a restart after downtime."""
+        """The start's first rest watched, the rest timed, a restart after downtime or after
+        data lost under load (the charge moved in the gap is unknown; one that resumes at rest
+        was a rest)."""
         extra_V = self._relax.feed(tick.t_s, tick.v_V, tick.ok, resting)
         if extra_V is not None and np.count_nonzero(extra_V):
             self._widen_start(extra_V)
@@ -134,10 +137,8 @@ class ObserverState(CoulombState):
         elif self._rest_s:
             self._rest_s = 0.0
             self._anchored = np.zeros(self.n, dtype=bool)
-        # Downtime, or data lost under load (the pack drives on as it resumes): the charge
-        # moved in the gap is unknown either way. A gap that resumes at rest was a rest.
-        gap = tick.new_segment and not tick.first and (
-            tick.dt_s >= self.tun.restart_gap_s or not resting)  # fmt: skip
+        long_gap = tick.dt_s >= self.tun.restart_gap_s
+        gap = tick.new_segment and not tick.first and (long_gap or not resting)
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
 
@@ -203,15 +204,8 @@ class ObserverState(CoulombState):
         error is the start values', not SOC's) for ``unconverged_wait_s`` of data."""
         tun = self.tun
         converged = converged | (self._seen_s >= tun.unconverged_wait_s)
-        self._tau_load_s = tau2 = params["tau2_s"]
-        # Shorter than anchor_min_rest_s (most ticks): no anchor, five array operations skipped.
-        anchor: BoolArray | None = None
-        if self._rest_s >= tun.anchor_min_rest_s:
-            if self.n >= 3:  # a cell's own slow branch, no longer than the pack's median one
-                tau2 = np.minimum(tau2, np.median(tau2))
-            anchor = ~self._anchored & (
-                self._rest_s >= np.maximum(tun.anchor_min_rest_s, tun.anchor_rest_taus * tau2)
-            )
+        self._tau_load_s = params["tau2_s"]
+        anchor = anchors_due(self._rest_s, self._anchored, self._tau_load_s, tun)
         any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
@@ -391,8 +385,7 @@ class ObserverState(CoulombState):
             self._widen = True
             return
         renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
-        # another map (none before it was learnt, another table): SOC and offset kept, the
-        # map starts from its prior
+        # another map (none before it was learnt, another table): the map from its prior
         renamed["P"], same = restore_covariance(self.P, obs, self.n, self._knots)
         if same:
             self.d = np.asarray(obs["d"], dtype=np.float64).copy()

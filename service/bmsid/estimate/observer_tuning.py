@@ -85,12 +85,12 @@ class ObserverTuning(BaseModel):
     a SOC error the observer has not removed yet would otherwise be learnt as resistance."""
     anchor_rest_taus: float = Field(3.0, gt=0.0)
     """A rest anchors SOC to the OCV once it has lasted this many identified slow time
-    constants (the branches have relaxed to within exp(-3) = 5 %). In a pack of 3 or more
-    cells a cell's slow time constant counts here at most as the cells' median: a capacity
-    3 % short inflates its cell's tau2 (the count's drift read as a slow relaxation) to
-    1,000-1,500 s, whose 3 tau2 outlast 50-60 min rests, so the anchor that would measure the
-    capacity never came (8 cells of 100 Ah, two rests: 5 of 8 capacities measured, none of
-    the cells 1.5-3 % short)."""
+    constants (the branches have relaxed to within exp(-3) = 5 %; ``rest_anchor.py``). In a
+    pack of 3 or more cells a cell's slow time constant counts here at most as the cells'
+    median: a capacity 3 % short inflates its cell's tau2 (the count's drift read as a slow
+    relaxation) to 1,000-1,700 s, whose 3 tau2 outlast 50-60 min rests, so the anchor that
+    would measure the capacity never came (8 cells of 70 Ah, two rests: 5 of 8 capacities
+    measured, none of the cells 1.5-3 % short)."""
     anchor_min_rest_s: float = Field(600.0, ge=0.0)
     """... and at least this long, s."""
     restart_gap_s: float = Field(600.0, gt=0.0)
