@@ -495,6 +495,19 @@ def test_a_start_still_relaxing_is_a_warning_and_a_relaxed_one_is_not() -> None:
     assert pl.check_start_relaxation(t, i, v, 2.0, 0.05) == []
 
 
+@pytest.mark.parametrize(("glitch_V", "warned"), [(0.05, True), (-0.02, True), (0.003, False)])
+def test_a_glitch_in_the_first_rested_voltage_is_a_warning(glitch_V: float, warned: bool) -> None:
+    """The second of 3 cells reads ``glitch_V`` off at the first sample of a relaxed rest: a
+    glitch from 5 mV on (the start is then fitted, not read off that voltage)."""
+    t, i, v = _opening(600.0, 1e-6, 3e-4, 1)
+    v = np.repeat(v, 3, axis=1)
+    v[0, 1] += glitch_V
+    found = pl.check_start_relaxation(t, i, v, 2.0, 0.05)
+    assert [f.code for f in found] == (["start_glitch"] if warned else [])
+    if warned:
+        assert f"(cell 2) lies {1e3 * glitch_V:+.1f} mV" in found[0].message
+
+
 @settings(max_examples=50, deadline=None)
 @given(seed=st.integers(0, 2**31), rest_s=st.floats(2.0, 300.0), noise_V=st.floats(0.0, 3e-4))
 def test_a_rested_voltage_with_noise_never_warns(seed: int, rest_s: float, noise_V: float) -> None:

@@ -658,6 +658,23 @@ RELAX_T_MIN = 5.0
 RELAX_NOISE_FLOOR_V = NOISE_FLOOR_V
 #: The leading rest is looked at over at most this long, s.
 RELAX_LOOK_S = 120.0
+#: A first rested voltage this far (V) from the median of the next ``GLITCH_NEXT`` (and 5 of
+#: their robust scatter) is a glitch, not the OCV: one reading +50 mV off at the start of an
+#: 8-cell record set its cell's SOC 4.8 points high for hours.
+GLITCH_MIN_V = 5e-3
+GLITCH_NEXT = 10
+
+
+def _first_glitch(vv: FloatArray) -> FloatArray:
+    """Per cell, how far (V) the first voltage of a rest ``vv`` (samples, cells) lies from the
+    median of the next ``GLITCH_NEXT``, where that is a glitch; 0 elsewhere."""
+    nxt = vv[1 : GLITCH_NEXT + 1]
+    if nxt.shape[0] < 3:
+        return np.zeros(vv.shape[1])
+    med = np.median(nxt, axis=0)
+    scatter = np.maximum(1.4826 * np.median(np.abs(nxt - med), axis=0), RELAX_NOISE_FLOOR_V)
+    off = vv[0] - med
+    return np.where(np.abs(off) > np.maximum(GLITCH_MIN_V, 5.0 * scatter), off, 0.0)
 
 
 def check_start_relaxation(
@@ -671,7 +688,8 @@ def check_start_relaxation(
     """A warning when SOC will be read from a first voltage that is still relaxing: the record
     opens at rest but the voltage still moves, so the cell came off a current step moments
     before and the OCV lies beyond it by the relaxation still to come (what the engine cannot
-    know from one voltage). ``voltages_V`` (samples, cells).
+    know from one voltage); or when that first voltage is a glitch (``GLITCH_MIN_V``).
+    ``voltages_V`` (samples, cells).
 
     The rest is the leading run of samples within the engine's rest limit (``rest_current_C``
     x capacity) whose current moves the voltage by at most half of ``RELAX_MIN_V`` through
@@ -688,6 +706,19 @@ def check_start_relaxation(
     ok = np.isfinite(tt) & np.isfinite(vv).all(axis=1)
     if np.count_nonzero(ok) < 3 or not np.ptp(tt[ok]) > 0:
         return []
+    glitch = _first_glitch(vv[ok])
+    if np.count_nonzero(glitch):
+        c = int(np.argmax(np.abs(glitch)))
+        return [
+            Finding(
+                "warning",
+                "start_glitch",
+                f"the record's first voltage (cell {c + 1}) lies {1e3 * glitch[c]:+.1f} mV off "
+                "the next seconds' at rest, a glitch rather than the OCV: the start SOC and the "
+                "RC branches are fitted over the first 20 min instead; give --soc0 when the "
+                "start is known",
+            )
+        ]
     tc = (tt[ok] - tt[ok][0])[:, None]
     dv = vv[ok] - vv[ok][0]
     rate, se = slope_from_sums(  # V/s per cell, least squares, as the engine's start watch
