@@ -19,6 +19,7 @@ from test_identify_cli import synthetic_columns, write_csv
 
 from bmsid.cli.main import main
 from bmsid.config.cell import paper_cell
+from bmsid.config.engine import ocv_model
 from bmsid.estimate.fields import CELL_FIELDS, FIELD_NAMES
 from bmsid.estimate.guard import WATCHED
 from bmsid.estimate.types import EstimateBlock, Quality
@@ -27,7 +28,7 @@ from bmsid.offline.accumulate import IDENTIFIED, MinMaxDecimator, StreamedMedian
 from bmsid.offline.csvio import iter_tester_csv, read_tester_csv
 from bmsid.offline.identify import IdentifySpec, RecordScan, identify_source, params_interval
 from bmsid.offline.inputs import open_input
-from bmsid.offline.outputs import OutputSpec, auto_every_s
+from bmsid.offline.outputs import OutputSpec, auto_every_s, start_fit_warning
 from bmsid.offline.scoring import (
     EvalWindow,
     IdentifyResult,
@@ -257,6 +258,34 @@ def test_a_model_error_that_grows_with_the_current_is_warned_about(peak_error_V:
     assert len(lines) == 1 and lines[0].startswith(
         "WARNING: a: the model error depends on the current (+1 mV at 0.05-0.6C, +50 mV at > 1.3C;"
     ), lines
+
+
+_STARTS = [(0.0137, "window_fit", True), (0.002, "window_fit", False), (0.0137, "given", False)]
+
+
+@pytest.mark.parametrize(("rmse_V", "method", "warned"), _STARTS)
+def test_a_start_fit_that_misses_its_window_is_warned_about(
+    rmse_V: float, method: str, warned: bool
+) -> None:
+    """The start SOC fitted over the first minutes with a 13.7 mV misfit: the line names the
+    cell, the misfit and what it is worth in SOC on the paper cell's curve at its start."""
+    full = _block(np.arange(10.0), n_cells=2)
+    full.cells["soc"][:] = 0.5
+    result = IdentifyResult("hy-affrls-lpso", full, method, {}, 0.0, 10, ["a", "b"],
+                            start_fit_rmse_V=np.array([np.nan, rmse_V]))  # fmt: skip
+    ocv = ocv_model(paper_cell())
+    line = start_fit_warning(result, ocv)
+    if not warned:
+        assert line is None
+        return
+    pts = round(100 * rmse_V / float(ocv.docv_dz(np.array([0.5]))[0]))
+    assert (
+        line is not None
+        and line.startswith(
+            "WARNING: b: the start SOC fitted over the first 20 min misses them by 13.7 mV RMS"
+        )
+        and f"about {pts} point" in line
+    ), line
 
 
 @pytest.mark.parametrize("cuts", [(), (1,), (55, 56, 70)])

@@ -46,6 +46,7 @@ from tqdm import tqdm
 
 from bmsid.cli.identify_fleet import add_fleet_options, check_options, run_fleet
 from bmsid.cli.outputs import output_dir
+from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
 from bmsid.estimate.types import VARIANTS
 from bmsid.offline import fleet, plausibility
@@ -75,6 +76,7 @@ from bmsid.offline.outputs import (
     observer_text,
     ocv_range_warning,
     soc_init_text,
+    start_fit_warning,
     summary_line,
 )
 from bmsid.offline.record_checks import check_record
@@ -286,6 +288,8 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar(scan.n_samples, args.algorithm) as bar:
         result = identify_source(source, spec, out, bar, scan)
     print(soc_init_text(result, cell.soc_init.rest_current_C * cell.capacity_Ah))
+    if (misfit := start_fit_warning(result, ocv_model(cell))) is not None:
+        print(misfit)
     warning = ocv_range_warning(result, cell)
     if warning:
         print(warning)

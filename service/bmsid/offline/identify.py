@@ -390,6 +390,8 @@ def identify_source(
         )  # fmt: skip
     if soc_fitted:
         result = replace(result, soc_init_method=WINDOW_FIT)
+    if fitted is not None:
+        result = replace(result, start_fit_rmse_V=fitted.rmse_V)
     if out is not None:
         # a kept trace is scored once here, with the bounds, as the streamed run was
         scored = scorer or RunScorer.of_trace(result.kept_trace(), spec.window, bounds)

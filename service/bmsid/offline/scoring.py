@@ -407,6 +407,9 @@ class IdentifyResult:
         Per cell, the voltage the RC branches held at the first sample (V, their sum), fitted
         over the record's first minutes where it opened under load or relaxing
         (``offline/start_soc.py``); None: the branches started empty.
+    start_fit_rmse_V : ndarray or None
+        Per cell, the RMSE (V) of that start fit over its window (NaN where none held); None:
+        no start was fitted.
     """
 
     variant: Variant
@@ -420,6 +423,7 @@ class IdentifyResult:
     input_gates: dict[str, Any] = field(default_factory=dict)
     summary: RunScorer | None = None
     start_branch_V: FloatArray | None = None
+    start_fit_rmse_V: FloatArray | None = None
 
     @property
     def n_ticks(self) -> int:

@@ -42,6 +42,8 @@ class FittedStart:
     #: False where the start SOC was given: only the branches were fitted, and the start
     #: keeps its own ``soc_init_method``
     soc_fitted: bool = True
+    #: per cell, the fit's RMSE over its window (V; NaN where no fit held)
+    rmse_V: FloatArray | None = None
 
 
 def fitted_start_soc(
@@ -92,4 +94,7 @@ def fitted_start_soc(
     # reading, which only the engine's start does): the engine's start for every cell.
     if not np.count_nonzero(fitted) or not np.all(np.isfinite(start_soc)):
         return None
-    return FittedStart(start_soc, np.where(fitted[:, None], fit.branch_V, 0.0), not known)
+    return FittedStart(
+        start_soc, np.where(fitted[:, None], fit.branch_V, 0.0), not known,
+        np.where(fitted, fit.rmse_V, np.nan),
+    )  # fmt: skip
