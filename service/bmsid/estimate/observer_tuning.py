@@ -63,7 +63,7 @@ class ObserverTuning(BaseModel):
     voltage alike, one cell off alone is that cell's own error. With +50 mV on every tenth
     sample of one cell's voltage (an intermittent sense wire; 8 cells of 100 Ah, 4 h) the
     offset read +3.51 A (truth 0) and the seven good cells' model error 1.9-7.5 mV instead of
-    1.1-1.5."""
+    1.1-1.5; with this, -0.03 A and 1.12-1.70 mV."""
     soc_walk_per_sqrt_h: float = Field(0.003, ge=0.0)
     """SOC random walk, fraction per sqrt(hour): what the model cannot know (self-discharge,
     OCV drift with temperature)."""
@@ -98,7 +98,7 @@ class ObserverTuning(BaseModel):
     first voltage after it, s; so does any gap (longer than the engine's ``gap_s``) that
     resumes under load: data lost mid-drive, whose charge the count never saw (10 min of an
     8-cell pack's drive without a current: model error 4.4 mV and an offset of -0.98 A with
-    the count taken across it as a rest)."""
+    the count taken across it as a rest, 1.96 mV and -0.17 A re-anchored)."""
     learn_hysteresis: bool = True
     """Learn the hysteresis half-gap M per SOC region as states of the filter (one correction
     per knot for the pack: its cells are one type at one temperature), the configured M(z)
