@@ -28,7 +28,12 @@ from bmsid.offline.accumulate import IDENTIFIED, MinMaxDecimator, StreamedMedian
 from bmsid.offline.csvio import iter_tester_csv, read_tester_csv
 from bmsid.offline.identify import IdentifySpec, RecordScan, identify_source, params_interval
 from bmsid.offline.inputs import open_input
-from bmsid.offline.outputs import OutputSpec, auto_every_s, start_fit_warning
+from bmsid.offline.outputs import (
+    OutputSpec,
+    auto_every_s,
+    start_fit_warning,
+    start_std_warning,
+)
 from bmsid.offline.scoring import (
     EvalWindow,
     IdentifyResult,
@@ -286,6 +291,25 @@ def test_a_start_fit_that_misses_its_window_is_warned_about(
         )
         and f"about {pts} point" in line
     ), line
+
+
+_FLAT = [(0.207, "ocv_at_rest", True), (0.011, "ocv_at_rest", False), (0.207, "given", False)]
+
+
+@pytest.mark.parametrize(("std", "method", "warned"), _FLAT)
+def test_a_start_read_off_a_flat_ocv_is_warned_about(std: float, method: str, warned: bool) -> None:
+    """The first voltage read on an LFP plateau: a start std of 21 points is said."""
+    full = _block(np.arange(10.0), n_cells=2)
+    full.cells["soc"][:] = 0.754
+    full.cells["soc_std"][:] = 0.01
+    full.cells["soc_std"][0, 1] = std
+    result = IdentifyResult("hy-affrls-lpso", full, method, {}, 0.0, 10, ["a", "b"])
+    line = start_std_warning(result)
+    assert (line is not None) == warned
+    if warned:
+        assert line is not None and line.startswith(
+            "WARNING: b: the start SOC read off the first voltage (75.4 %) is uncertain by +-21"
+        )
 
 
 @pytest.mark.parametrize("cuts", [(), (1,), (55, 56, 70)])

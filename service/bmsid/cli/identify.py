@@ -77,6 +77,7 @@ from bmsid.offline.outputs import (
     ocv_range_warning,
     soc_init_text,
     start_fit_warning,
+    start_std_warning,
     summary_line,
 )
 from bmsid.offline.record_checks import check_record
@@ -288,8 +289,9 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar(scan.n_samples, args.algorithm) as bar:
         result = identify_source(source, spec, out, bar, scan)
     print(soc_init_text(result, cell.soc_init.rest_current_C * cell.capacity_Ah))
-    if (misfit := start_fit_warning(result, ocv_model(cell))) is not None:
-        print(misfit)
+    for start_line in (start_fit_warning(result, ocv_model(cell)), start_std_warning(result)):
+        if start_line is not None:
+            print(start_line)
     warning = ocv_range_warning(result, cell)
     if warning:
         print(warning)

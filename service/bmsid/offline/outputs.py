@@ -211,6 +211,33 @@ def start_fit_warning(result: IdentifyResult, ocv: OcvModel) -> str | None:
     )
 
 
+#: A start SOC read off a voltage with a std above this (fraction) is warned about.
+START_STD_WARN = 0.05
+
+
+def start_std_warning(result: IdentifyResult) -> str | None:
+    """A line when the start SOC read off the first voltage is uncertain by more than
+    ``START_STD_WARN`` (its published ``soc_std``): on a flat OCV (an LFP plateau) the unknown
+    hysteresis state and relaxation move that SOC by points, and whatever the observer has not
+    corrected the slow branch takes (a 280 Ah LFP cell rested after a charge, at 60 %: read
+    75.4 %, std 21 points, R2 +141 %, no line)."""
+    first = result.first_tick()
+    if result.soc_init_method not in ("ocv_at_rest", "ocv_ir_corrected") or first is None:
+        return None
+    std = np.asarray(first["soc_std"][0], dtype=np.float64)
+    if not np.any(std > START_STD_WARN):
+        return None
+    c = int(np.nanargmax(std))
+    return (
+        f"WARNING: {result.cell_names[c]}: the start SOC read off the first voltage "
+        f"({100 * float(first['soc'][0][c]):.1f} %) is uncertain by +-{100 * float(std[c]):.0f}"
+        " points (the OCV is flat there: the unknown hysteresis state, after a charge or a "
+        "discharge, and any relaxation move it that far); until a long rest or the curve's "
+        "knees settle it, the slow RC branch takes what is left: give --soc0 when the start "
+        "is known"
+    )
+
+
 def observer_text(result: IdentifyResult) -> str | None:
     """One line: what the SOC observer found at the end of the record (None when off)."""
     tr = result.last_tick()
