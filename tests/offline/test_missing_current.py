@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_identify_cli import synthetic_columns, write_csv
@@ -49,7 +50,9 @@ def test_missing_currents_are_held_for_the_hold_then_dropped_however_the_record_
     assert dropped == n - sum(expect)
 
 
-def test_ten_minutes_without_a_current_mid_drive_is_a_gap_that_reanchors(tmp_path: Path) -> None:
+def test_ten_minutes_without_a_current_mid_drive_is_a_gap_that_reanchors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The paper cell on DST with the current blank for 10 min of the drive (no config): held,
     one DST value was counted for the 10 min (17.83 mV over the record against 1.22 clean);
     the rows are now dropped, the drive resumes with a re-anchor from the voltage, and the
@@ -66,6 +69,8 @@ def test_ten_minutes_without_a_current_mid_drive_is_a_gap_that_reanchors(tmp_pat
         rmse[name] = doc["rmse_V"]
     counters = doc["counters"]
     assert counters["reanchors"] == 1 and counters["gaps"] == 1, counters
+    assert counters["gaps_under_load"] == 1, counters
+    assert "WARNING: 1 gap(s) in the data resumed under load" in capsys.readouterr().out
     assert rmse["holed"] < rmse["clean"] + 2e-3, (
         f"BUG: 10 min without a current cost {1e3 * (rmse['holed'] - rmse['clean']):.2f} mV "
         f"of model error ({1e3 * rmse['holed']:.2f} against {1e3 * rmse['clean']:.2f} mV)"

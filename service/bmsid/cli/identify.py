@@ -73,6 +73,7 @@ from bmsid.offline.outputs import (
     SCORE_SOC0_HELP,
     OutputSpec,
     error_band_line,
+    gaps_under_load_warning,
     observer_text,
     ocv_range_warning,
     soc_init_text,
@@ -289,7 +290,8 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar(scan.n_samples, args.algorithm) as bar:
         result = identify_source(source, spec, out, bar, scan)
     print(soc_init_text(result, cell.soc_init.rest_current_C * cell.capacity_Ah))
-    for start_line in (start_fit_warning(result, ocv_model(cell)), start_std_warning(result)):
+    warned = start_fit_warning(result, ocv_model(cell)), start_std_warning(result)
+    for start_line in (*warned, gaps_under_load_warning(result)):
         if start_line is not None:
             print(start_line)
     warning = ocv_range_warning(result, cell)

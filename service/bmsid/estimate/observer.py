@@ -15,18 +15,18 @@ Management Systems Vol. II", ch. 3-4):
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
   M per SOC region from the data, the table its prior.
 
-Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but
-only while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved
-SOC error would be learnt as R2); the observer updates every ``update_period_s`` with a model
-error of ``v_sigma_V``, so it corrects drifts over minutes to hours, not the dynamics the
-parameters describe. Under load the offset is confounded with the parameters' errors (young
-start values pulled it the wrong way): there it is a consider state (Schmidt-Kalman: in P, not
-updated); rests teach it. A rest long enough for the identified branches to relax is an
-*anchor*: an update with a rested cell's small error, counted, which also measures capacity
-(``capacity.py``). A gap longer than ``restart_gap_s`` (a restart after downtime), or one
-that resumes under load (data lost mid-drive), re-anchors from the first voltage after it.
-The state (SOC, h) is the coulomb-count stage's, corrected in place; covariance predictions
-accumulate between updates: a few scalar operations a tick.
+Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
+while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
+would be learnt as R2); the observer updates every ``update_period_s`` with a model error of
+``v_sigma_V``, so it corrects drifts over minutes to hours, not the dynamics the parameters
+describe. Under load the offset is confounded with the parameters' errors (young start values pulled
+it the wrong way): there it is a consider state (Schmidt-Kalman: in P, not updated); rests teach it.
+A rest long enough for the identified branches to relax is an *anchor*: an update with a rested
+cell's small error, counted, which also measures capacity (``capacity.py``). A gap longer than
+``restart_gap_s`` (a restart after downtime), or one that resumes under load (data lost mid-drive),
+re-anchors from the first voltage after it. The state (SOC, h) is the coulomb-count stage's,
+corrected in place; covariance predictions accumulate between updates: a few scalar operations a
+tick.
 """
 
 from __future__ import annotations
@@ -101,8 +101,7 @@ class ObserverState(CoulombState):
         self._learn_gate, self._start_var = np.ones(n, dtype=bool), np.zeros(n)
         tau_relax_s = relaxation_tau_s(model.start("tau1_s"), model.start("tau2_s"))
         self._relax = StartRelaxation(n, tau_relax_s, tuning.anchor_min_rest_s)
-        self.counters |= {"observer_updates": 0, "observer_gated": 0, "anchors": 0, "reanchors": 0}
-        self.counters["start_relaxations"] = 0
+        self.counters |= dict.fromkeys(self._COUNTERS, 0)
         self.counters |= self.capacity.counters  # one dict: the bank reports and restores it
         self.capacity.counters = self.counters
 
@@ -126,9 +125,8 @@ class ObserverState(CoulombState):
         self._after_step(tick, i_abs < limit)
 
     def _after_step(self, tick: Tick, resting: bool) -> None:
-        """The start's first rest watched, the rest timed, a restart after downtime or after
-        data lost under load (the charge moved in the gap is unknown; one that resumes at rest
-        was a rest)."""
+        """The start's first rest watched, the rest timed, a restart after downtime or data lost
+        under load (the charge moved in the gap unknown; one that resumes at rest was a rest)."""
         extra_V = self._relax.feed(tick.t_s, tick.v_V, tick.ok, resting)
         if extra_V is not None and np.count_nonzero(extra_V):
             self._widen_start(extra_V)
@@ -139,6 +137,7 @@ class ObserverState(CoulombState):
             self._anchored = np.zeros(self.n, dtype=bool)
         long_gap = tick.dt_s >= self.tun.restart_gap_s
         gap = tick.new_segment and not tick.first and (long_gap or not resting)
+        self.counters["gaps_under_load"] += int(gap and not resting)
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
 
@@ -351,16 +350,17 @@ class ObserverState(CoulombState):
 
     # ------------------------------------------------------------------ outputs, checkpoints
     def outputs(self) -> dict[str, FloatArray]:
-        n = self.n
         return {
             "soc": self.z,
             "h": self.h,
-            "soc_std": np.sqrt(np.maximum(self.P.diagonal()[:n], 0.0)),
+            "soc_std": np.sqrt(np.maximum(self.P.diagonal()[: self.n], 0.0)),
             "capacity_Ah": self.capacity.q_Ah,
             "capacity_std_Ah": self.capacity.std_Ah,  # never written: shared between ticks
-            "current_offset_A": np.full(n, self.b),
+            "current_offset_A": np.full(self.n, self.b),
         }
 
+    _COUNTERS = ("observer_updates", "observer_gated", "anchors", "reanchors", "gaps_under_load",
+                 "start_relaxations")  # fmt: skip
     _ARRAYS = ("P", "_g", "_qz", "_learn_gate", "_q_As", "_i_load_A", "_tau_load_s", "_anchored")
     _SCALARS = ("b", "_qb", "_since_s", "_rest_s")
     _ARRAYS_MAP = ("d", "_knots")

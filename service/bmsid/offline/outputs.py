@@ -238,6 +238,21 @@ def start_std_warning(result: IdentifyResult) -> str | None:
     )
 
 
+def gaps_under_load_warning(result: IdentifyResult) -> str | None:
+    """A line when gaps in the data resumed under load (the observer's ``gaps_under_load``):
+    data lost mid-drive, or a clock that jumped, never a rest; the charge moved there is
+    unknown and SOC was re-anchored from the voltage after each (a clock set an hour ahead
+    mid-drive read as "1 gap(s) > 30 s" and nothing more)."""
+    n = result.counters.get("gaps_under_load", 0)
+    if not n:
+        return None
+    return (
+        f"WARNING: {n} gap(s) in the data resumed under load (data lost mid-drive, or a clock "
+        "that jumped): the charge moved in them is unknown, and SOC was re-anchored from the "
+        "voltage after each"
+    )
+
+
 def observer_text(result: IdentifyResult) -> str | None:
     """One line: what the SOC observer found at the end of the record (None when off)."""
     tr = result.last_tick()
