@@ -64,7 +64,11 @@ def test_unreadable_toml(tmp_path: Path) -> None:
 
 def _fake_csv(t: np.ndarray, i: np.ndarray, v: np.ndarray) -> types.SimpleNamespace:
     return types.SimpleNamespace(
-        t_s=t, current_A=i, cell_voltages_V=v, temperature_C=np.full(t.shape, 25.0)
+        t_s=t,
+        current_A=i,
+        cell_voltages_V=v,
+        temperature_C=np.full(t.shape, 25.0),
+        missing_values=int(np.count_nonzero(~np.isfinite(i)) + np.count_nonzero(~np.isfinite(v))),
     )
 
 
@@ -89,6 +93,29 @@ def test_make_log_cli(
     assert samples[3].temperatures_C is not None and samples[3].temperatures_C[0] == pytest.approx(
         25.0
     )
+
+
+def test_make_log_sends_a_blank_reading_as_not_available(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A CSV with a blank cell voltage and a blank current (which identify reads as missing)
+    was refused ("empty, NaN or non-numeric values on line(s) ..."); each is now sent as its
+    signal's not-available value: the decoder leaves the cell out of that sample and holds the
+    last current for the missing one (within its staleness, as a frame that did not come)."""
+    rows = ["t_s,current_A,v_cell_01,v_cell_02"]
+    rows += [f"{k},{1.5 if k != 4 else ''},3.{k}00,{'' if k == 7 else '3.700'}" for k in range(10)]
+    src = tmp_path / "in.csv"
+    src.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "o.log"
+    assert main(["make-log", str(src), "--out", str(out), "--t0", "1e9"]) == 0
+    assert "2 empty or NaN reading(s) sent as their signal's not-available value" in (
+        capsys.readouterr().out
+    )
+    samples = samples_from_log(out, default_mapping(), 2)
+    times = [round(s.t_s - 1e9) for s in samples]
+    assert times == list(range(10)) and samples[4].current_A == pytest.approx(1.5)
+    at7 = samples[7].cell_voltages_V
+    assert at7[0] == pytest.approx(3.7) and np.isnan(at7[1])
 
 
 def test_make_log_rate_hz_resamples(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

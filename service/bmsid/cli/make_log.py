@@ -24,7 +24,7 @@ def load_csv(path: Path) -> Any:
         csvio = importlib.import_module("bmsid.offline.csvio")
     except ModuleNotFoundError as exc:
         raise UserError("the CSV reader (bmsid.offline.csvio) is not installed") from exc
-    return csvio.read_tester_csv(path)
+    return csvio.read_tester_csv(path, missing_ok=True)  # sent as "not available"
 
 
 #: latest --t0: the year 2286, beyond any recording
@@ -74,5 +74,11 @@ def run(args: argparse.Namespace) -> int:
         write_log(args.out, messages, channel=args.channel)
     except OSError as exc:
         raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    if data.missing_values:
+        print(
+            f"{data.missing_values} empty or NaN reading(s) sent as their signal's not-available "
+            "value (bmsid's decoder reads a missing current as a stale one, a missing voltage "
+            "as a missing cell)"
+        )
     print(f"wrote {args.out}")
     return 0
