@@ -622,7 +622,7 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     first ``STARTUP_FRACTION`` of the ticks) and ``after_startup`` (the rest), ``soc_bands``
     (non-empty 10 % SOC bands), ``evaluation_window`` and ``scoring_soc`` (the SOC that decided
     the window and bands); the same per cell under ``cells``; ``start_branch_V`` per cell (V,
-    null for empty branches).
+    null for empty branches); ``start_fit_rmse_V`` per cell (V) where the start was fitted.
     """
     scorer = result.scorer(window)
     s = scorer.scores()
@@ -655,9 +655,15 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
         "n_ticks": n,
         "soc_init_method": result.soc_init_method,
         "start_branch_V": None if b is None else [float(x) for x in b],
+        "start_fit_rmse_V": _finite_list(result.start_fit_rmse_V),
         "counters": result.counters,
         "cells": cells,
     }
+
+
+def _finite_list(x: FloatArray | None) -> list[float | None] | None:
+    """JSON-ready: the values, NaN as null; None stays None."""
+    return None if x is None else [float(v) if math.isfinite(v) else None for v in x]
 
 
 #: Parameters summarised by ``parameter_medians`` and ``parameter_trajectories``.
