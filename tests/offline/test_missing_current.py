@@ -4,6 +4,7 @@ a gap, and a gap that resumes under load re-anchors SOC (``ObserverTuning.restar
 
 from __future__ import annotations
 
+import csv
 import itertools
 import json
 from pathlib import Path
@@ -75,3 +76,18 @@ def test_ten_minutes_without_a_current_mid_drive_is_a_gap_that_reanchors(
         f"BUG: 10 min without a current cost {1e3 * (rmse['holed'] - rmse['clean']):.2f} mV "
         f"of model error ({1e3 * rmse['holed']:.2f} against {1e3 * rmse['clean']:.2f} mV)"
     )
+
+
+def test_a_fleets_summary_names_the_runs_warnings(tmp_path: Path) -> None:
+    """Each input's run warnings travel to summary.csv as codes, as its record checks' do."""
+    cols = synthetic_columns(5400)
+    (tmp_path / "in").mkdir()
+    clean = write_csv(tmp_path / "in" / "clean.csv", cols)
+    cols["current_A"][1500:2100] = np.nan
+    holed = write_csv(tmp_path / "in" / "holed.csv", cols)
+    assert main(["identify", str(tmp_path / "in"), "--out", str(tmp_path / "fleet"),
+                 "--workers", "1"]) == 0  # fmt: skip
+    with (tmp_path / "fleet" / "summary.csv").open(encoding="utf-8") as fh:
+        rows = {Path(r["input"]).name: r["warnings"] for r in csv.DictReader(fh)}
+    assert "gaps_under_load" in rows[holed.name].split(";"), rows
+    assert "gaps_under_load" not in rows[clean.name].split(";"), rows

@@ -73,22 +73,15 @@ from bmsid.offline.outputs import (
     SCORE_SOC0_HELP,
     OutputSpec,
     error_band_line,
-    gaps_under_load_warning,
+    fit_warnings,
     observer_text,
     ocv_range_warning,
     soc_init_text,
-    start_fit_warning,
-    start_std_warning,
+    start_warnings,
     summary_line,
 )
 from bmsid.offline.record_checks import check_record
-from bmsid.offline.scoring import (
-    current_dependence_warnings,
-    held_warnings,
-    lone_cell_warnings,
-    metrics_document,
-    past_empty_warnings,
-)
+from bmsid.offline.scoring import metrics_document
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -290,10 +283,8 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar(scan.n_samples, args.algorithm) as bar:
         result = identify_source(source, spec, out, bar, scan)
     print(soc_init_text(result, cell.soc_init.rest_current_C * cell.capacity_Ah))
-    warned = start_fit_warning(result, ocv_model(cell)), start_std_warning(result)
-    for start_line in (*warned, gaps_under_load_warning(result)):
-        if start_line is not None:
-            print(start_line)
+    for _, start_line in start_warnings(result, ocv_model(cell)):
+        print(start_line)
     warning = ocv_range_warning(result, cell)
     if warning:
         print(warning)
@@ -308,12 +299,7 @@ def run(args: argparse.Namespace) -> int:
     print(summary_line(doc))
     if (band := error_band_line(doc)) is not None:
         print(band)
-    for line in [
-        *held_warnings(result, window),
-        *lone_cell_warnings(result, window),
-        *current_dependence_warnings(result, window),
-        *past_empty_warnings(result, window),
-    ]:
+    for _, line in fit_warnings(result, window):
         print(line)
     if (obs := observer_text(result)) is not None:
         print(obs)

@@ -36,12 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
+from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
 from bmsid.estimate import jit
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.estimate.types import Quality
 from bmsid.offline.identify import IdentifySpec, identify_file, open_spec_input, too_short
 from bmsid.offline.inputs import StreamedInput, with_score_reference
+from bmsid.offline.outputs import fit_warnings, start_warnings
 from bmsid.offline.plausibility import check_head_samples
 from bmsid.offline.record_checks import CheckedRecord, CheckOptions, check_record
 from bmsid.offline.scoring import IdentifyResult
@@ -171,7 +173,8 @@ class InputSummary:
     #: Wall and CPU time of the task in its worker, s (their ratio shows what CPU it got).
     wall_s: float = 0.0
     cpu_s: float = 0.0
-    #: Codes of the record checks' warnings (``record_checks``; the lines: its metrics.json).
+    #: Codes of the record checks' warnings (``record_checks``; the lines: its metrics.json),
+    #: then of the run's (``outputs.start_warnings``, ``outputs.fit_warnings``).
     warnings: tuple[str, ...] = ()
 
     @property
@@ -310,7 +313,9 @@ def identify_task(task: FleetTask) -> InputSummary:
         cells = cell_summaries(result, spec)
     except Exception as exc:  # any failure is this input's, reported in one line
         return failed(task.input, exc)
+    run = [*start_warnings(result, ocv_model(spec.cell)), *fit_warnings(result, spec.window)]
     warned = tuple(f.code for f in checked.findings if f.level == "warning")
+    warned += tuple(dict.fromkeys(code for code, _ in run))  # a code once, for any cell
     return InputSummary(task.input, None, result.n_samples, cells, wall, cpu, warned)
 
 

@@ -25,7 +25,14 @@ from bmsid.errors import UserError
 from bmsid.estimate.start_fit import WINDOW_S as START_WINDOW_S
 from bmsid.model.ocv import OcvModel
 from bmsid.offline.accumulate import PLOT_SERIES
-from bmsid.offline.scoring import EvalWindow, IdentifyResult
+from bmsid.offline.scoring import (
+    EvalWindow,
+    IdentifyResult,
+    current_dependence_warnings,
+    held_warnings,
+    lone_cell_warnings,
+    past_empty_warnings,
+)
 from bmsid.offline.writers import EveryMode, ParamsFormat
 
 #: Help of the ``--score-soc0`` option (``identify``, ``compare``): what the reference SOC is.
@@ -251,6 +258,30 @@ def gaps_under_load_warning(result: IdentifyResult) -> str | None:
         "that jumped): the charge moved in them is unknown, and SOC was re-anchored from the "
         "voltage after each"
     )
+
+
+#: (code, line) of a run's warning: the code for a fleet's summary.csv, the line for the console
+Warned = list[tuple[str, str]]
+
+
+def start_warnings(result: IdentifyResult, ocv: OcvModel) -> Warned:
+    """A finished run's warnings on its start and its gaps (said after the start line)."""
+    found = (
+        ("start_fit_misfit", start_fit_warning(result, ocv)),
+        ("start_uncertain", start_std_warning(result)),
+        ("gaps_under_load", gaps_under_load_warning(result)),
+    )
+    return [(code, line) for code, line in found if line is not None]
+
+
+def fit_warnings(result: IdentifyResult, window: EvalWindow) -> Warned:
+    """A finished run's warnings on its fit over ``window`` (said after its summary)."""
+    return [
+        *(("held", line) for line in held_warnings(result, window)),
+        *(("lone_cell", line) for line in lone_cell_warnings(result, window)),
+        *(("current_dependence", line) for line in current_dependence_warnings(result, window)),
+        *(("past_empty", line) for line in past_empty_warnings(result, window)),
+    ]
 
 
 def observer_text(result: IdentifyResult) -> str | None:
