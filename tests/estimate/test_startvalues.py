@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from bmsid.config.cell import paper_cell
 from bmsid.config.engine import cell_model, ocv_model
-from bmsid.estimate.startvalues import start_values_from_record, step_resistances
+from bmsid.estimate.startvalues import min_step_for, start_values_from_record, step_resistances
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.simulator import simulate
 from bmsid.profiles import dst_current
@@ -129,3 +129,25 @@ def test_a_cell_absent_from_the_record_does_not_hold_the_start_values_back() -> 
     sv = start_values_from_record(t, i, v)
     assert sv is not None and sv.R0_ohm == pytest.approx(0.05) and sv.n_steps >= 10
     assert start_values_from_record(t, i, np.full((t.size, 2), np.nan)) is None
+
+
+@pytest.mark.parametrize("deadband", [False, True])
+def test_a_rested_heads_sensor_noise_is_no_step(deadband: bool) -> None:
+    """A 100 Ah cell (R0 0.8 mOhm) rests 600 s, then drives DST; 0.05 A of current and 1 mV of
+    voltage noise (with ``deadband``, the current reads 0 below 0.2 A). A gateway started at
+    rest probed the head as it grew and took noise for steps (17 mOhm); with the excitation
+    threshold as the smallest step, the rest measures nothing and the drive's steps R0."""
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 900.0)
+    i_true = np.where(t < 600, 0.0, dst_current(t - 600, 200.0))
+    sim = simulate(t, i_true, ocv_model(paper_cell()), capacity_Ah=100.0, R0_ohm=0.8e-3,
+                   R1_ohm=0.5e-3, tau1_s=15.0, R2_ohm=0.6e-3, tau2_s=500.0, soc0=0.88)  # fmt: skip
+    i = i_true + rng.normal(0.0, 0.05, t.size)
+    if deadband:
+        i = np.where(np.abs(i) < 0.2, 0.0, i)
+    v = sim.v_V[0] + rng.normal(0.0, 1e-3, t.size)
+    step_A = min_step_for(100.0, EstimatorTuning().excitation_C)
+    for head_s in (20, 35, 60, 300, 599):
+        assert start_values_from_record(t[:head_s], i[:head_s], v[:head_s], step_A) is None
+    sv = start_values_from_record(t, i, v, step_A)
+    assert sv is not None and sv.R0_ohm == pytest.approx(0.8e-3, rel=0.1), sv

@@ -75,6 +75,7 @@ from bmsid.estimate.start_fit import WINDOW_S
 from bmsid.estimate.startvalues import (
     MIN_STEPS,
     StartValues,
+    min_step_for,
     r0_misfit,
     start_values_from_record,
 )
@@ -321,7 +322,10 @@ class BankHost:
             )
         self._first.append(block)
         seen = SampleBlock.concat(self._first)
-        found = start_values_from_record(seen.t_s, seen.current_A, seen.cell_voltages_V)
+        step_A = min_step_for(
+            float(np.min(self.bank.model.capacity_Ah)), self.bank.tuning.excitation_C
+        )
+        found = start_values_from_record(seen.t_s, seen.current_A, seen.cell_voltages_V, step_A)
         if found is None and _span_s(seen) < PROBE_LIMIT_S and len(seen) < PROBE_LIMIT_SAMPLES:
             return None
         self._first = None

@@ -41,7 +41,12 @@ from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank, cell_model
 from bmsid.estimate.cellmodel import BOUNDED, INITIAL
 from bmsid.estimate.guard import WATCHED
-from bmsid.estimate.startvalues import PROBE_S, StartValues, start_values_from_record
+from bmsid.estimate.startvalues import (
+    PROBE_S,
+    StartValues,
+    min_step_for,
+    start_values_from_record,
+)
 from bmsid.estimate.tuning import EstimatorTuning, Variant
 from bmsid.estimate.types import EstimateBlock
 from bmsid.gates import GateConfig, InputGate, gated_head
@@ -266,8 +271,9 @@ def scan_record(source: InputSource, spec: IdentifySpec) -> RecordScan:
 
 
 def probe_start_values(
-    blocks: Iterable[SampleBlock], cell: CellConfig, gate: InputGate | None = None
-) -> StartValues | None:
+    blocks: Iterable[SampleBlock], cell: CellConfig, gate: InputGate | None = None,
+    tuning: EstimatorTuning | None = None,
+) -> StartValues | None:  # fmt: skip
     """Start values measured on the record's first ``PROBE_S`` seconds, when the cell config
     leaves start values or bounds out (None when it gives both, or the record has too few
     current steps: the config's capacity rule and default bounds then apply); through ``gate``
@@ -277,7 +283,8 @@ def probe_start_values(
     b = gated_head(blocks, PROBE_S, gate)
     if b is None:
         return None
-    return start_values_from_record(b.t_s, b.current_A, b.cell_voltages_V)
+    step_A = min_step_for(cell.capacity_Ah, (tuning or EstimatorTuning()).excitation_C)
+    return start_values_from_record(b.t_s, b.current_A, b.cell_voltages_V, step_A)
 
 
 def start_values_document(
@@ -354,7 +361,7 @@ def identify_source(
         Also written when the run completed no tick (metrics are then NaN, no plots).
     """
     probe_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
-    start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate)
+    start = probe_start_values(source.blocks(spec.block_size), spec.cell, probe_gate, spec.tuning)
     # a start under load or still relaxing: its branches (and SOC, unless known) fitted over
     # the first window
     fresh_gate = input_gate(spec.cell, source.n_cells, spec.tuning, spec.gates, quiet=True)
@@ -491,7 +498,7 @@ def run_arrays(
     names = list(cell_names) if cell_names else [f"cell_{c + 1:02d}" for c in range(v.shape[1])]
     src = LoadedInput(source="<arrays>", samples=block, cell_names=names)
     gate = input_gate(cell, src.n_cells, tuning, GateConfig())
-    start = probe_start_values(src.blocks(), cell, gate)
+    start = probe_start_values(src.blocks(), cell, gate, tuning)
     return run_blocks(
         src.blocks(),
         src.n_cells,
