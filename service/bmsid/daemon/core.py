@@ -600,12 +600,18 @@ class Daemon:
         self.inputs = result.inputs
         self.soc_init = result.soc_init
         jumps = self.bank_counters.get("time_jumps_back", 0)
+        lost = self.bank_counters.get("gaps_under_load", 0)
         self._merge_bank_counters(result.counters)
         if self.bank_counters.get("time_jumps_back", 0) > jumps:
             log.warning(
                 "the sample clock went back by more than %.0f s (a replay restarted, "
                 "or the clock was set back): new estimation segment, state kept",
                 self.settings.estimator.tuning.gap_s,
+            )
+        if self.bank_counters.get("gaps_under_load", 0) > lost:  # as identify says offline
+            log.warning(
+                "a gap in the samples resumed under load (data lost mid-drive, or a clock that "
+                "jumped): the charge moved in it is unknown; SOC re-anchored from the voltage"
             )
         for est in result.estimates:
             self.latest = est
@@ -721,6 +727,7 @@ class Daemon:
             "ticks": self._since_start("ticks"),
             "swarms": self._since_start("swarms"),
             "time_jumps_back": self._since_start("time_jumps_back"),
+            **{k: self._since_start(k) for k in ("anchors", "reanchors", "gaps_under_load")},
             **{k: self._since_start(k) for k in GATE_COUNTERS},
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],
