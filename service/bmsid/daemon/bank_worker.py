@@ -68,6 +68,8 @@ from bmsid.daemon.checkpoint import (
     save_checkpoint,
     state_problem,
 )
+from bmsid.daemon.lone_cell_watch import WINDOW_S as LONE_WINDOW_S
+from bmsid.daemon.lone_cell_watch import LoneCellWatch
 from bmsid.daemon.start_refit import StartHead
 from bmsid.daemon.statedir import atomic_write, quarantine
 from bmsid.errors import UserError
@@ -298,6 +300,7 @@ class BankHost:
         if self.spec.soc0 is not None or self.spec.cell.soc_init.policy == "ocv_at_rest":
             self._head = StartHead()
         self.counters["start_refits"] = 0
+        self._lone = LoneCellWatch(self.spec.n_cells)
 
     def _fresh_bank(self) -> EstimatorBank:
         from bmsid.config.engine import build_bank  # noqa: PLC0415 (see TYPE_CHECKING)
@@ -497,6 +500,14 @@ class BankHost:
         for start in range(0, len(block), step):
             chunk = block.slice(start, start + step)
             ticks = self.bank.update_block(chunk)
+            for c, rms_V, med_V in self._lone.add(ticks):
+                log.warning(
+                    "cell %d: model error %.1f mV RMS over the last %.0f min of data, %.1fx the "
+                    "pack's median (%.2f mV): a fault of this cell's own (a loose or intermittent "
+                    "sense wire, a bad tap, a failing cell) more than its dynamics; the SOC "
+                    "observer keeps it from the pack's current offset",
+                    c, 1e3 * rms_V, LONE_WINDOW_S / 60, rms_V / med_V, 1e3 * med_V,
+                )  # fmt: skip
             rows = ticks.rows()
             if rows and not self.spec.keep_all_estimates:
                 estimates[:] = rows[-1:]
