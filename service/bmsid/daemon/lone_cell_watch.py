@@ -14,15 +14,15 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.types import EstimateBlock
-from bmsid.offline.scoring import LONE_CELL_MIN_V, LONE_CELL_RATIO
+from bmsid.offline.scoring import lone_by_rmse
 
 #: Data time (s) over which each cell's model error is judged: several drive cycles.
 WINDOW_S = 1800.0
 
 
 class LoneCellWatch:
-    """Per ``WINDOW_S`` of estimates, the cells (of 3 or more) whose model error RMS is
-    ``LONE_CELL_RATIO`` times the cells' median and ``LONE_CELL_MIN_V`` above it."""
+    """Per ``WINDOW_S`` of estimates, the cells whose model error RMS is far beyond the
+    cells' median (``offline.scoring.lone_by_rmse``, the rule ``identify`` applies)."""
 
     def __init__(self, n_cells: int) -> None:
         self.sq = np.zeros(n_cells)
@@ -45,13 +45,9 @@ class LoneCellWatch:
             self.t0 = float(block.t_s[0])
         if t_last - self.t0 < WINDOW_S:
             return []
-        seen = self.n > 0
-        rms = np.sqrt(self.sq / np.maximum(self.n, 1))
+        rms = np.where(self.n > 0, np.sqrt(self.sq / np.maximum(self.n, 1)), np.nan)
         self.sq[:], self.n[:], self.t0 = 0.0, 0, None
-        if np.count_nonzero(seen) < 3:
-            return []
-        med = float(np.median(rms[seen]))
-        lone = seen & (rms >= LONE_CELL_RATIO * med) & (rms - med >= LONE_CELL_MIN_V)
+        lone, med = lone_by_rmse(rms)
         new = np.flatnonzero(lone & ~self.flagged)
         self.flagged = lone
         return [(int(c), float(rms[c]), med) for c in new]

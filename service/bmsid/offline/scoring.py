@@ -540,18 +540,26 @@ def lone_cell_warnings(result: IdentifyResult, window: EvalWindow) -> list[str]:
     sums = result.scorer(window).acc.sums
     rmse = np.array([sums.metrics(RunAccumulator.WINDOW, c).rmse_V
                      for c in range(len(result.cell_names))])  # fmt: skip
-    scored = np.isfinite(rmse) & (rmse > 0)
-    if np.count_nonzero(scored) < 3:
-        return []
-    med = float(np.median(rmse[scored]))
+    lone, med = lone_by_rmse(rmse)
     return [
         f"WARNING: {name}: model error {1e3 * rmse[c]:.2f} mV RMS, {rmse[c] / med:.1f}x the "
         f"pack's median ({1e3 * med:.2f} mV): a fault of this cell's own (a loose or "
         "intermittent sense wire, a bad tap, a failing cell) more than its dynamics; it did "
         "not teach the pack's current offset where its voltage disagreed with the others'"
         for c, name in enumerate(result.cell_names)
-        if scored[c] and rmse[c] >= LONE_CELL_RATIO * med and rmse[c] - med >= LONE_CELL_MIN_V
+        if lone[c]
     ]
+
+
+def lone_by_rmse(rmse_V: FloatArray) -> tuple[npt.NDArray[np.bool_], float]:
+    """The cells (of 3 or more with a model error) whose RMSE (V) is ``LONE_CELL_RATIO`` times
+    the cells' median and ``LONE_CELL_MIN_V`` above it, and that median (V; NaN with fewer
+    than 3): offline over a record, live over a window (``daemon/lone_cell_watch.py``)."""
+    scored = np.isfinite(rmse_V) & (rmse_V > 0)
+    if np.count_nonzero(scored) < 3:
+        return np.zeros(rmse_V.shape, dtype=bool), math.nan
+    med = float(np.median(rmse_V[scored]))
+    return scored & (rmse_V >= LONE_CELL_RATIO * med) & (rmse_V - med >= LONE_CELL_MIN_V), med
 
 
 #: A cell whose mean model error (times the current's sign) differs by this much between two
