@@ -89,12 +89,18 @@ def capacity_as_recorded(
     warned that the config's capacity was 0.196x the record's."""
     if cell is None:
         cell, _ = cell_config(None, None, ocv_coeffs)
+    v = _live_taps(voltages_V)
+    return None if v is None else _read_capacity(t_s, current_A, v, ocv_model(cell), gap_s)
+
+
+def _live_taps(voltages_V: FloatArray) -> FloatArray | None:
+    """The voltages (samples, cells; V; (samples,) for one cell) less the cells that read below
+    :data:`DEAD_TAP_V` anywhere (NaN is left to the reader and the gates); None when none is
+    left."""
     v = np.asarray(voltages_V, dtype=np.float64)
     v = v[:, None] if v.ndim == 1 else v
-    live = ~np.any(v < DEAD_TAP_V, axis=0)  # NaN is left to the reader
-    if not np.count_nonzero(live):
-        return None
-    return _read_capacity(t_s, current_A, v[:, live], ocv_model(cell), gap_s)
+    live = ~np.any(v < DEAD_TAP_V, axis=0)
+    return v[:, live] if np.count_nonzero(live) else None
 
 
 def _read_capacity(
@@ -128,12 +134,10 @@ def cell_from_record(
     would not reproduce is no capacity (None)."""
     assumed, _ = cell_config(None, None, ocv_coeffs)
     ocv = ocv_model(assumed)
-    v = np.asarray(voltages_V, dtype=np.float64)
-    v = v[:, None] if v.ndim == 1 else v
-    live = ~np.any(v < DEAD_TAP_V, axis=0)  # NaN is left to the gates
-    if not np.count_nonzero(live):
+    live = _live_taps(voltages_V)
+    if live is None:
         return None
-    voltages_V = v[:, live]
+    voltages_V = live
     gated = assumed
     est: CapacityEstimate | None = None
     for _ in range(MAX_GATE_PASSES):
