@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from test_identify_cli import synthetic_columns, write_csv
 
 from bmsid.cli.main import main
+from bmsid.estimate.types import Quality
 from bmsid.offline.inputs import CURRENT_HOLD_S, drop_unheld_current
 from bmsid.samples import SampleBlock
 
@@ -91,3 +92,26 @@ def test_a_fleets_summary_names_the_runs_warnings(tmp_path: Path) -> None:
         rows = {Path(r["input"]).name: r["warnings"] for r in csv.DictReader(fh)}
     assert "gaps_under_load" in rows[holed.name].split(";"), rows
     assert "gaps_under_load" not in rows[clean.name].split(";"), rows
+
+
+def test_a_cell_without_voltages_for_minutes_is_said_and_its_rows_are_empty(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One of two cells blank for 10 min mid-drive (a broken tap in a tester's export): its rows
+    are no_data from gap_s on, not the held estimate published as converged, and it is said."""
+    cols = synthetic_columns(3600, n_cells=2)
+    v_col = [k for k in cols if k not in ("t_s", "current_A")][1]
+    cols[v_col][1500:2100] = np.nan
+    path = write_csv(tmp_path / "tap.csv", cols)
+    assert main(["identify", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert "WARNING: 1 time(s) a cell went longer than gap_s" in capsys.readouterr().out
+    with (tmp_path / "out" / "params.csv").open(encoding="utf-8") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["cell"] == v_col]
+    t = np.array([float(r["t_s"]) for r in rows])
+    q = np.array([int(r["quality"]) for r in rows])
+    lost = (t > 1531.0) & (t < 2100.0)
+    assert lost.sum() > 500 and t.size > 3000, (lost.sum(), t.size)
+    assert np.all(q[lost] == Quality.NO_DATA) and all(
+        r["R0_ohm"] == "" for r, x in zip(rows, lost, strict=True) if x
+    )
+    assert not np.any(q[(t < 1529.0) | (t > 2101.0)] == Quality.NO_DATA)

@@ -161,7 +161,10 @@ def test_score_soc0_equals_the_estimators_count_from_the_same_start() -> None:
     i = 70.0 * np.sin(t / 40.0)  # charge and discharge of the paper's 70 Ah cell
     cell = paper_cell()
     count_only = EstimatorTuning(observer=ObserverTuning(enabled=False))
-    res = run_arrays(t, i, np.full(n, 3.7), cell, "non-hy-affrls", count_only, soc0=0.9)
+    # a voltage that answers the current (a constant one under load is a frozen front end: the
+    # gates refuse it, and a cell without valid readings is published no_data)
+    v = 3.7 - 1.5e-3 * i
+    res = run_arrays(t, i, v, cell, "non-hy-affrls", count_only, soc0=0.9)
     ref = SocReference.from_cell(cell, 0.9).soc(res.trace)
     np.testing.assert_allclose(ref, res.trace["soc"][:, 0], rtol=0, atol=1e-12)
 

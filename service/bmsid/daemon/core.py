@@ -601,6 +601,7 @@ class Daemon:
         self.soc_init = result.soc_init
         jumps = self.bank_counters.get("time_jumps_back", 0)
         lost = self.bank_counters.get("gaps_under_load", 0)
+        cells_lost = self.bank_counters.get("readings_lost", 0)
         self._merge_bank_counters(result.counters)
         if self.bank_counters.get("time_jumps_back", 0) > jumps:
             log.warning(
@@ -612,6 +613,13 @@ class Daemon:
             log.warning(
                 "a gap in the samples resumed under load (data lost mid-drive, or a clock that "
                 "jumped): the charge moved in it is unknown; SOC re-anchored from the voltage"
+            )
+        if self.bank_counters.get("readings_lost", 0) > cells_lost:
+            log.warning(
+                "a cell has had no valid voltage for %.0f s (frames lost, or every reading "
+                "refused by [gates]; see inputs in the status): published as no_data until "
+                "its readings return",
+                self.settings.estimator.tuning.gap_s,
             )
         for est in result.estimates:
             self.latest = est
@@ -727,7 +735,10 @@ class Daemon:
             "ticks": self._since_start("ticks"),
             "swarms": self._since_start("swarms"),
             "time_jumps_back": self._since_start("time_jumps_back"),
-            **{k: self._since_start(k) for k in ("anchors", "reanchors", "gaps_under_load")},
+            **{
+                k: self._since_start(k)
+                for k in ("anchors", "reanchors", "gaps_under_load", "readings_lost")
+            },
             **{k: self._since_start(k) for k in GATE_COUNTERS},
             "can_frames_sent": self.counters["can_frames_sent"],
             "can_send_errors": self.counters["can_send_errors"],

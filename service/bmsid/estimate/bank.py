@@ -41,6 +41,7 @@ from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.fusion import FusionStage
 from bmsid.estimate.guard import PublishGuard
+from bmsid.estimate.lost_readings import ReadingWatch
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.publish_average import PublishAverage
 from bmsid.estimate.publish_kernel import TAIL, publish
@@ -133,6 +134,7 @@ class EstimatorBank:
         self._excitation_limit_A = per_cell_limit(self.tuning.excitation_C, model)
         self.guard = PublishGuard.for_model(model, self.tuning)
         self.average = PublishAverage(n, self.tuning.publish_average_tau1)
+        self.readings = ReadingWatch(n, self.tuning.gap_s)
         # copied each tick: a seventh of np.full's cost
         self._q_converged = np.full(n, _CONVERGED, dtype=np.int64)
         self._q_poorly = np.full(n, _POORLY_EXCITED, dtype=np.int64)
@@ -145,7 +147,7 @@ class EstimatorBank:
         """Event counts of every stage (samples, ticks, gaps, swarms, clamps, ...)."""
         return {
             **self.ticks.counters, **self.state.counters, **self.params.counters,
-            **self.guard.counters,
+            **self.guard.counters, **self.readings.counters,
         }  # fmt: skip
 
     @property
@@ -165,6 +167,13 @@ class EstimatorBank:
         of every tick the block completes (possibly none). Never raises on bad numbers."""
         if block.n_cells != self.n:
             raise ValueError(f"block has {block.n_cells} cells, the bank {self.n}")
+        est = self._update_block(block)
+        if est.n_ticks == 0:
+            return est
+        cells, q = self.readings.apply(est.t_s, dict(est.cells), est.quality)
+        return EstimateBlock(t_s=est.t_s, current_A=est.current_A, cells=cells, quality=q)
+
+    def _update_block(self, block: SampleBlock) -> EstimateBlock:
         if block_run.compiled():  # the block's ticks at once, ordinary ones in one compiled loop
             return block_run.update_block(self, block)
         times: list[float] = []
@@ -211,7 +220,11 @@ class EstimatorBank:
             return None
         i_meas = tick.current_A  # as measured: the observer removes its offset in the tick
         cells, q = self._run_tick(tick)
-        return Estimates(t_s=tick.t_s, current_A=i_meas, cells=cells, quality=q)
+        rows, q2 = self.readings.apply(
+            np.array([tick.t_s]), {k: v[None, :] for k, v in cells.items()}, q[None, :]
+        )
+        cells = {k: v[0] for k, v in rows.items()}
+        return Estimates(t_s=tick.t_s, current_A=i_meas, cells=cells, quality=q2[0])
 
     def reset(self, mask: npt.ArrayLike) -> None:
         """Re-initialise the masked cells (SOC by the start policy at the next tick, parameters
@@ -308,6 +321,7 @@ class EstimatorBank:
             "params": self.params.state_dict(),
             "guard": self.guard.state_dict(),
             "average": self.average.state_dict(),
+            "readings": self.readings.state_dict(),
             "counters": self.counters,
         }
 
@@ -330,8 +344,10 @@ class EstimatorBank:
             self.guard.load_state_dict(st["guard"])
         if "average" in st:  # from before the average: published raw at the next tick
             self.average.load_state_dict(st["average"])
+        if "readings" in st:  # from before the watch: its clock starts at the next reading
+            self.readings.load_state_dict(st["readings"])
         counters = st.get("counters", {})
-        for stage in (self.ticks, self.state, self.params, self.guard):
+        for stage in (self.ticks, self.state, self.params, self.guard, self.readings):
             for k in stage.counters:
                 if k in counters:
                     stage.counters[k] = int(counters[k])

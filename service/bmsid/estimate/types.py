@@ -30,8 +30,9 @@ class Quality(IntEnum):
     #: the model error stayed far beyond its running scale, or SOC left [0, 1] (or a value was not
     #: finite): the last good values are published, the cell re-initialised (``estimate/guard.py``)
     DIVERGED = 4
-    #: no valid reading of the cell since its (re)start: its SOC is unknown, every field is
-    #: null (NaN) and the cell counts in no pack aggregate (``CoulombState.no_data``)
+    #: no valid reading of the cell since its (re)start, or none for ``gap_s``: its SOC is
+    #: unknown (or unchecked), every field is null (NaN) and the cell counts in no pack
+    #: aggregate (``CoulombState.no_data``, ``lost_readings.ReadingWatch``)
     NO_DATA = 5
 
 

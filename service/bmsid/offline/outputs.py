@@ -260,6 +260,20 @@ def gaps_under_load_warning(result: IdentifyResult) -> str | None:
     )
 
 
+def readings_lost_warning(result: IdentifyResult) -> str | None:
+    """A line when a cell went ``gap_s`` without a valid voltage mid-record (the bank's
+    ``readings_lost``): its rows are ``no_data`` until a reading returns, not the held
+    estimate they were (a blank column in a tester's export, every reading of a cell refused)."""
+    n = result.counters.get("readings_lost", 0)
+    if not n:
+        return None
+    return (
+        f"WARNING: {n} time(s) a cell went longer than gap_s (30 s by default) without a valid "
+        "voltage (blank in the input, or every reading refused by the gates): its rows are "
+        "no_data (empty) until a valid reading returned"
+    )
+
+
 #: (code, line) of a run's warning: the code for a fleet's summary.csv, the line for the console
 Warned = list[tuple[str, str]]
 
@@ -270,6 +284,7 @@ def start_warnings(result: IdentifyResult, ocv: OcvModel) -> Warned:
         ("start_fit_misfit", start_fit_warning(result, ocv)),
         ("start_uncertain", start_std_warning(result)),
         ("gaps_under_load", gaps_under_load_warning(result)),
+        ("readings_lost", readings_lost_warning(result)),
     )
     return [(code, line) for code, line in found if line is not None]
 

@@ -3,8 +3,8 @@
 Topics: ``<prefix>/<pack_id>/cell/<n>`` (n = 0-based cell index, as the CAN ``CellIndex``),
 ``<prefix>/<pack_id>/pack`` and ``<prefix>/<pack_id>/status`` (retained). Every quantity carries
 its unit in the key; values that are not finite (a missing cell voltage) are ``null``. A cell of
-quality ``no_data`` (no valid reading since its start) has every field ``null``: nothing is
-invented for it, and it counts in no pack aggregate.
+quality ``no_data`` (no valid reading since its start, or for ``gap_s``) has every field
+``null``: nothing is invented for it, and it counts in no pack aggregate.
 """
 
 from __future__ import annotations
