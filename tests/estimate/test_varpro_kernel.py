@@ -148,15 +148,3 @@ def test_a_fused_bank_gives_the_same_estimates_with_either_kernel(restore_kernel
     np.testing.assert_array_equal(new["tau2_s"], ref["tau2_s"])
     for name in ("R0_ohm", "R1_ohm", "R2_ohm", "v_model_V", "soc"):
         np.testing.assert_allclose(new[name], ref[name], rtol=1e-8, atol=0.0, err_msg=name)
-
-
-@settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 3000), tau=st.floats(0.5, 5000.0))
-def test_compiled_and_reference_branch_states_agree(seed: int, n: int, tau: float) -> None:
-    """The window's unit-gain branch states (``varpro.fixed_rmse``): the loop against scipy's
-    ``lfilter``, to rounding."""
-    compiled = varpro_kernel.RC_FILTER.compiled()
-    assert compiled is not None
-    i = np.random.default_rng(seed).uniform(-300.0, 300.0, n)
-    a = float(np.exp(-1.0 / tau))
-    np.testing.assert_allclose(compiled(i, a), varpro_kernel.rc_filter(i, a), rtol=0, atol=1e-9)

@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import varpro_kernel
+from bmsid.estimate import fixed_rmse_kernel, varpro_kernel
 from bmsid.model.ecm import rc_decay
 
 FloatArray = npt.NDArray[np.float64]
@@ -113,24 +113,10 @@ def fixed_rmse(
     """Weighted window RMSE (V) of one fixed parameter set: theta (5,) physical (R0, R1, R2 ohm,
     hysteresis scale, offset V) at (tau1_s, tau2_s), only the two branch voltages at the window
     start solved for (as in :func:`fit_linear`). What a clipped swarm result really gives, to
-    compare it with the parameters in force before they are replaced."""
-    n_w = w.current_A.shape[0]
+    compare it with the parameters in force before they are replaced
+    (``fixed_rmse_kernel``)."""
     a1, a2 = float(rc_decay(w.dt_s, tau1_s)), float(rc_decay(w.dt_s, tau2_s))
-    pred = (
-        -theta[0] * w.current_A
-        - theta[1] * varpro_kernel.RC_FILTER.impl(w.current_A, a1)
-        - theta[2] * varpro_kernel.RC_FILTER.impl(w.current_A, a2)
-    )
-    if w.use_hysteresis:
-        pred = pred + theta[3] * w.hm_V
-    if w.use_offset:
-        pred = pred + theta[4]
-    r = w.y_V - pred
-    k = np.arange(n_w, dtype=np.float64)
-    B = np.stack([a1**k, a2**k], axis=1)
-    Bw = B * weights[:, None]
-    c = np.linalg.solve(B.T @ Bw + 1e-12 * np.eye(2), Bw.T @ r)
-    res = r - B @ c
-    return float(
-        np.sqrt(max(float(res @ (res * weights)), 0.0) / max(float(weights.sum()), 1e-300))
-    )
+    return fixed_rmse_kernel.KERNEL.impl(
+        w.current_A, w.y_V, w.hm_V, weights, a1, a2, np.asarray(theta, dtype=np.float64),
+        w.use_hysteresis, w.use_offset,
+    )  # fmt: skip

@@ -340,23 +340,3 @@ def _warm_fitness(kernel: Callable[..., FloatArray]) -> object:
 
 #: One swarm fitness evaluation (``swarm_kernel.STEP``): the window fit and its penalty.
 FITNESS = jit.Kernel("swarm fitness", fitness_numpy, _fitness_source, _warm_fitness)
-
-
-def _rc_filter_source(current_A: FloatArray, a: float) -> FloatArray:
-    """``model.ecm.rc_filter`` as a loop (compiled by numba): x_k = a x_(k-1) + (1 - a) i_(k-1)
-    from x_0 = 0, as the window fits' own recursion writes it."""
-    x = np.empty(current_A.shape[0])
-    s = 0.0
-    for k in range(current_A.shape[0]):
-        x[k] = s
-        s = a * s + (1.0 - a) * current_A[k]
-    return x
-
-
-def _warm_rc(kernel: Callable[[FloatArray, float], FloatArray]) -> object:
-    return kernel(np.ones(3), 0.5)
-
-
-#: The unit-gain branch states over a window (``varpro.fixed_rmse``): scipy's ``lfilter`` as the
-#: reference, so that a run on the compiled kernels never imports scipy.signal.
-RC_FILTER = jit.Kernel("rc filter", rc_filter, _rc_filter_source, _warm_rc)
