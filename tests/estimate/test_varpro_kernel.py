@@ -110,7 +110,7 @@ def test_compiled_and_reference_normal_equations_agree(
 ) -> None:
     """G, b and the last branch states on random windows and weights: equal to float
     tolerance, for any number of candidates (the kernel takes them four at a time, a short
-    group last), window (its decays change method at 16 ticks) and active columns."""
+    group last), window (its decays change method at 64 ticks) and active columns."""
     compiled = varpro_kernel.KERNEL.compiled()
     assert compiled is not None
     rng = np.random.default_rng(seed)
