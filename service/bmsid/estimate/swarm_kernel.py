@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import jit, lpso, varpro_kernel
+from bmsid.estimate import jit, lpso, varpro_kernel, varpro_sums
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -178,7 +178,8 @@ def _warm(kernel: Callable[..., BoolArray]) -> object:
 
 
 #: A tick's fits and moves of every running swarm (``FusionStage._step_swarms``); it embeds the
-#: compiled fitness (``varpro_kernel.py``).
+#: compiled fitness (``varpro_kernel.py``) and its normal equations (``varpro_sums.py``).
 STEP = jit.Kernel(
-    "swarm step", step_numpy, _step_source, _warm, depends=(str(varpro_kernel.__file__),)
-)
+    "swarm step", step_numpy, _step_source, _warm,
+    depends=(str(varpro_kernel.__file__), str(varpro_sums.__file__)),
+)  # fmt: skip

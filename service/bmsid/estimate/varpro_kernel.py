@@ -10,9 +10,10 @@ comes twice:
 * ``normal_equations_numpy``: the reference, whole-window numpy (scipy's ``lfilter`` for the
   recursions, batched matrix products);
 * a compiled kernel (numba, ``cache=True``; ``fastmath`` lets the window sums vectorise, which
-  reorders their additions): per candidate the two recursions, then each entry of G as one dot
-  product over the window, no (candidates x window x columns) array. It agrees with the
-  reference to rounding (``tests/estimate/test_varpro_kernel.py``).
+  reorders their additions; its source is ``varpro_sums.py``): the recursions of four
+  candidates at once, then each candidate's sums in a few vectorised passes over the window, no
+  (candidates x window x columns) array. It agrees with the reference to rounding
+  (``tests/estimate/test_varpro_kernel.py``).
 
 ``normal_equations`` runs the implementation ``jit.select`` chose: the compiled one where numba
 imports and compiles (seconds once, then ~0.1 s per process from numba's cache), else the
@@ -27,7 +28,9 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.estimate import jit
+from bmsid.estimate import jit, varpro_sums
+from bmsid.estimate.jit_helpers import register
+from bmsid.estimate.varpro_sums import normal_equations_source
 from bmsid.model.ecm import rc_filter
 
 FloatArray = npt.NDArray[np.float64]
@@ -73,75 +76,16 @@ def normal_equations_numpy(
     return G, b, last
 
 
-def _kernel_source(
-    current_A: FloatArray, y_V: FloatArray, hm_V: FloatArray, weights: FloatArray,
-    a1: FloatArray, a2: FloatArray, s_cols: FloatArray, use_hysteresis: bool, use_offset: bool,
-) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
-    """The same sums, columns held as rows of one (columns x window) array so that each entry
-    of G is one contiguous dot product over the window (compiled by numba)."""
-    n_w, p, n_a = current_A.shape[0], a1.shape[0], s_cols.shape[0]
-    G = np.zeros((p, n_a, n_a))
-    b = np.zeros((p, n_a))
-    last = np.zeros((p, 2))
-    rows = np.empty((n_a, n_w))
-    wy = weights * y_V
-    rows[0] = -current_A * s_cols[0]  # the candidates share every column but x1, x2, decays
-    col = 3
-    if use_hysteresis:
-        rows[col] = hm_V * s_cols[col]
-        col += 1
-    if use_offset:
-        rows[col] = s_cols[col]
-    j_dec = n_a - 2
-    for j in range(p):
-        p1, p2 = a1[j], a2[j]
-        x1 = 0.0
-        x2 = 0.0
-        d1 = 1.0
-        d2 = 1.0
-        for k in range(n_w):
-            rows[1, k] = -x1 * s_cols[1]
-            rows[2, k] = -x2 * s_cols[2]
-            rows[j_dec, k] = d1
-            rows[j_dec + 1, k] = d2
-            if k == n_w - 1:
-                last[j, 0] = x1
-                last[j, 1] = x2
-            # the state before the next sample: x_(k+1) = a x_k + (1 - a) i_k (Eq. 8)
-            x1 = p1 * x1 + (1.0 - p1) * current_A[k]
-            x2 = p2 * x2 + (1.0 - p2) * current_A[k]
-            d1 *= p1
-            d2 *= p2
-        for r in range(n_a):
-            # the columns the candidates share (current, h M, offset: not 1, 2 or the decays):
-            # their sums are the first candidate's, by the same loops
-            shared_r = j > 0 and (r == 0 or 3 <= r < j_dec)
-            if shared_r:
-                b[j, r] = b[0, r]
-            else:
-                acc_b = 0.0
-                for k in range(n_w):
-                    acc_b += rows[r, k] * wy[k]
-                b[j, r] = acc_b
-            for q in range(r, n_a):
-                if shared_r and (q == 0 or 3 <= q < j_dec):
-                    acc = G[0, r, q]
-                else:
-                    acc = 0.0
-                    for k in range(n_w):
-                        acc += rows[r, k] * weights[k] * rows[q, k]
-                G[j, r, q] = acc
-                G[j, q, r] = acc
-    return G, b, last
-
-
 def _warm(kernel: NormalEquations) -> object:
+    register()  # the source's helpers (varpro_sums.py) callable from compiled code
     one = np.ones(3)
     return kernel(one, one, one, one, one[:1] * 0.5, one[:1] * 0.9, one[:2].repeat(2), False, False)
 
 
 #: ``fastmath`` lets the window sums vectorise (it reorders their additions)
-KERNEL = jit.Kernel("window fits", normal_equations_numpy, _kernel_source, _warm, fastmath=True)
+KERNEL = jit.Kernel(
+    "window fits", normal_equations_numpy, normal_equations_source, _warm, fastmath=True
+)
 
 
 def normal_equations(
@@ -338,5 +282,9 @@ def _warm_fitness(kernel: Callable[..., FloatArray]) -> object:
                   1.5)  # fmt: skip
 
 
-#: One swarm fitness evaluation (``swarm_kernel.STEP``): the window fit and its penalty.
-FITNESS = jit.Kernel("swarm fitness", fitness_numpy, _fitness_source, _warm_fitness)
+#: One swarm fitness evaluation (``swarm_kernel.STEP``): the window fit and its penalty. It
+#: embeds the compiled normal equations, whose source is another file.
+FITNESS = jit.Kernel(
+    "swarm fitness", fitness_numpy, _fitness_source, _warm_fitness,
+    depends=(str(varpro_sums.__file__),),
+)  # fmt: skip
