@@ -194,15 +194,12 @@ class FusionStage:
 
     # ------------------------------------------------------------------ swarms
     def _run_swarms(self, t: float) -> None:
-        tun, sched = self.tuning, self.schedule
+        sched = self.schedule
         due = sched.due(t)
         if due:
             for c in due if self._window_has_steps() else ():
-                # Learnable data in the window, s: ticks in the OCV knees or without a voltage
-                # carry no weight in the fits, so they do not count towards min_window_s.
-                span = self.buffer.n_valid(c) * self._period_s
                 excited = self._excited if isinstance(self._excited, bool) else self._excited[c]
-                if span >= tun.min_window_s and excited:
+                if excited and sched.has_data(c, t, self.buffer, self._period_s):
                     self._start_swarm(c)
         if sched.n_running():
             self._step_swarms()
@@ -270,11 +267,11 @@ class FusionStage:
         return w, valid
 
     def _tau_box(self, c: int) -> tuple[FloatArray, FloatArray]:
-        """(lo, hi) of (tau1, tau2) of cell ``c``, s."""
-        m = self.model
-        lo1, hi1 = m.bound("tau1_s")
-        lo2, hi2 = m.bound("tau2_s")
-        return np.array([lo1[c], lo2[c]]), np.array([hi1[c], hi2[c]])
+        """(lo, hi) of (tau1, tau2) of cell ``c``, s: tau2 within ``tau2_span_ratio`` of the
+        learnable data in the window."""
+        (lo1, hi1), (lo2, hi2) = self.model.bound("tau1_s"), self.model.bound("tau2_s")
+        span = self.tuning.tau2_span_ratio * self.buffer.n_valid(c)[0] * self._period_s
+        return np.array([lo1[c], lo2[c]]), np.array([hi1[c], max(lo2[c], min(hi2[c], span))])
 
     def _start_swarm(self, c: int) -> None:
         tun, sched = self.tuning, self.schedule

@@ -150,9 +150,13 @@ class WindowBuffer:
     def clear(self) -> None:
         self.count = 0
 
-    def n_valid(self, c: int) -> int:
-        """Buffered ticks with a valid (learnable) voltage of cell ``c``."""
-        return int(self.valid[c, self.order()].sum())
+    def n_valid(self, c: int, last: float = math.inf) -> tuple[int, int]:
+        """Buffered ticks with a valid (learnable) voltage of cell ``c``: all, and among the
+        ``last`` pushed (all of them where more were pushed than are held)."""
+        order = self.order()
+        valid = self.valid[c, order]
+        recent = valid[order.shape[0] - int(last) :] if last < order.shape[0] else valid
+        return int(valid.sum()), int(recent.sum())
 
     def n_steps(self, window_s: float, dt_s: float, min_step_A: float) -> int:
         """Current changes of at least ``min_step_A`` within the last ``window_s``."""
@@ -217,6 +221,8 @@ class SwarmSchedule:
         self._first_due_s = 0.0
         self.next_swarm = np.zeros(n_cells)
         self.swarm_count = np.zeros(n_cells, dtype=np.int64)
+        #: when each cell's last swarm started in this segment, s (NaN: none yet)
+        self.last_start_s = np.full(n_cells, math.nan)
         self.running = running
 
     @property
@@ -234,6 +240,21 @@ class SwarmSchedule:
         """Histories restart at ``t_s``: running swarms end, the first is due after min_window."""
         self.running.active[:] = False
         self.next_swarm = t_s + self.min_window_s + self.phase * self.period_s
+        self.last_start_s[:] = math.nan
+
+    def has_data(self, c: int, t_s: float, buffer: WindowBuffer, dt_s: float) -> bool:
+        """Whether cell ``c``'s due swarm starts at ``t_s`` (noted when it does): its window
+        holds ``min_window_s`` of learnable ticks (period ``dt_s``: ticks in the OCV knees,
+        without a voltage or while SOC is too uncertain to learn from weigh nothing), as much
+        of them new since its last swarm. Refitting the same ticks only wanders where they say
+        nothing: with the observer's learn gate shut after a rested start, swarms refitted the
+        first 360 s of a DST every 600 s and tau2 went 2,090 -> 7,207 s (truth 600), 28 mV."""
+        last = self.last_start_s[c]
+        since = math.inf if math.isnan(last) else round((t_s - last) / dt_s)
+        if min(buffer.n_valid(c, since)) * dt_s < self.min_window_s:
+            return False
+        self.last_start_s[c] = t_s
+        return True
 
     def due(self, t_s: float) -> list[int]:
         """Cells whose swarm is due at ``t_s`` (and not running); their next time moves on by
@@ -253,10 +274,15 @@ class SwarmSchedule:
 
     def state_dict(self) -> dict[str, Any]:
         """Running swarms are not saved: after a restore they start again at their next time."""
-        return {"next_swarm": self.next_swarm.copy(), "swarm_count": self.swarm_count.copy()}
+        return {
+            "next_swarm": self.next_swarm.copy(), "swarm_count": self.swarm_count.copy(),
+            "last_start_s": self.last_start_s.copy(),
+        }  # fmt: skip
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        for k in ("next_swarm", "swarm_count"):
+        for k in ("next_swarm", "swarm_count", "last_start_s"):
+            if k not in st:  # from before ``last_start_s``: none yet
+                continue
             cur = getattr(self, k)
             arr = np.asarray(st[k], dtype=cur.dtype)
             if arr.shape != cur.shape:
