@@ -141,7 +141,9 @@ def pchip_slopes(x: FloatArray, y: FloatArray) -> FloatArray:
     same = delta[:-1] * delta[1:] > 0
     dl = np.where(same, delta[:-1], 1.0)
     dr = np.where(same, delta[1:], 1.0)
-    d[1:-1] = np.where(same, (w1 + w2) / (w1 / dl + w2 / dr), 0.0)
+    # a secant near 0 (subnormal) overflows w / d to inf: the harmonic mean's limit, 0
+    with np.errstate(over="ignore"):
+        d[1:-1] = np.where(same, (w1 + w2) / (w1 / dl + w2 / dr), 0.0)
     for at, h0, h1, m0, m1 in ((0, h[0], h[1], delta[0], delta[1]),
                                (-1, h[-1], h[-2], delta[-1], delta[-2])):  # fmt: skip
         e = ((2.0 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
