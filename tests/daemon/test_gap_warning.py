@@ -22,7 +22,7 @@ from bmsid.estimate.types import Quality
 CELL = Path(__file__).resolve().parents[2] / "configs" / "cells" / "calce_inr18650_20r_25C.toml"
 N_CELLS = 4
 T0_S = 1_700_000_000.0
-SAID = "a gap in the samples resumed under load"
+SAID = "a gap in the samples (over 30 s) resumed under load"
 
 
 def _log(path: Path, gap: tuple[float, float] | None, cell_lost: bool = False) -> None:

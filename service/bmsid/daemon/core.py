@@ -61,6 +61,19 @@ from bmsid.samples import Sample, SampleBlock
 
 log = logging.getLogger(__name__)
 
+#: Bank events the daemon says in one WARNING line each time their counter moves (``%.0f``:
+#: ``gap_s``), as ``bmsid identify`` says them offline.
+_SAID_ONCE = {
+    "time_jumps_back": "the sample clock went back by more than %.0f s (a replay restarted, or "
+    "the clock was set back): new estimation segment, state kept",
+    "gaps_under_load": "a gap in the samples (over %.0f s) resumed under load (data lost "
+    "mid-drive, or a clock that jumped): the charge moved in it is unknown; SOC re-anchored "
+    "from the voltage",
+    "readings_lost": "a cell has had no valid voltage for %.0f s (frames lost, or every reading "
+    "refused by [gates]; see inputs in the status): published as no_data until its readings "
+    "return",
+}
+
 CAN_ERR_BUSOFF = 0x40
 LAG_INTERVAL_S = 0.05
 #: samples held while the bank is behind (the reader waits beyond that)
@@ -599,28 +612,11 @@ class Daemon:
         self.seq = result.seq
         self.inputs = result.inputs
         self.soc_init = result.soc_init
-        jumps = self.bank_counters.get("time_jumps_back", 0)
-        lost = self.bank_counters.get("gaps_under_load", 0)
-        cells_lost = self.bank_counters.get("readings_lost", 0)
+        before = {k: self.bank_counters.get(k, 0) for k in _SAID_ONCE}
         self._merge_bank_counters(result.counters)
-        if self.bank_counters.get("time_jumps_back", 0) > jumps:
-            log.warning(
-                "the sample clock went back by more than %.0f s (a replay restarted, "
-                "or the clock was set back): new estimation segment, state kept",
-                self.settings.estimator.tuning.gap_s,
-            )
-        if self.bank_counters.get("gaps_under_load", 0) > lost:  # as identify says offline
-            log.warning(
-                "a gap in the samples resumed under load (data lost mid-drive, or a clock that "
-                "jumped): the charge moved in it is unknown; SOC re-anchored from the voltage"
-            )
-        if self.bank_counters.get("readings_lost", 0) > cells_lost:
-            log.warning(
-                "a cell has had no valid voltage for %.0f s (frames lost, or every reading "
-                "refused by [gates]; see inputs in the status): published as no_data until "
-                "its readings return",
-                self.settings.estimator.tuning.gap_s,
-            )
+        for name, line in _SAID_ONCE.items():  # one line each time a counter moves
+            if self.bank_counters.get(name, 0) > before[name]:
+                log.warning(line, self.settings.estimator.tuning.gap_s)
         for est in result.estimates:
             self.latest = est
             if self.on_estimates is not None:

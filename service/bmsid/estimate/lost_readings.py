@@ -18,10 +18,9 @@ from typing import Any
 import numpy as np
 
 from bmsid.estimate.stage import BoolArray, FloatArray
+from bmsid.estimate.state import without_data
 from bmsid.estimate.statedict import load_arrays
-from bmsid.estimate.types import IntArray, Quality
-
-_NO_DATA = int(Quality.NO_DATA)
+from bmsid.estimate.types import IntArray
 
 
 class ReadingWatch:
@@ -54,10 +53,7 @@ class ReadingWatch:
         started = lost & ~np.vstack([self.lost[None, :], lost[:-1]])
         self.counters["readings_lost"] += int(started.sum())
         self.last_valid_t_s, self.lost = last_t[-1].copy(), lost[-1].copy()
-        if not lost.any():
-            return cells, quality
-        out = {k: np.where(lost, np.nan, v) for k, v in cells.items()}
-        return out, np.where(lost, _NO_DATA, quality)
+        return without_data(cells, quality, lost) if lost.any() else (cells, quality)
 
     def state_dict(self) -> dict[str, Any]:
         return {"last_valid_t_s": self.last_valid_t_s.copy(), "lost": self.lost.copy()}
