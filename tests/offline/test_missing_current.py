@@ -115,3 +115,23 @@ def test_a_cell_without_voltages_for_minutes_is_said_and_its_rows_are_empty(
         r["R0_ohm"] == "" for r, x in zip(rows, lost, strict=True) if x
     )
     assert not np.any(q[(t < 1529.0) | (t > 2101.0)] == Quality.NO_DATA)
+
+
+def test_a_drive_cycle_sampled_slower_than_its_changes_is_said(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The paper cell's DST logged every 10 s: the current changes at most samples, and what it
+    did between them is not seen (R0 +7.5 %, R0+R1+R2 +30 %, nothing said before); at 1 s not."""
+    cols = synthetic_columns(3600)
+    coarse = write_csv(tmp_path / "coarse.csv", {k: v[::10] for k, v in cols.items()})
+    fine = write_csv(tmp_path / "fine.csv", cols)
+    said = {}
+    for path in (coarse, fine):
+        assert main(["identify", str(path), "--out", str(tmp_path / path.stem)]) == 0
+        said[path.stem] = "WARNING: samples every 10 s, and the current changes at" in (
+            capsys.readouterr().out
+        )
+        checks = json.loads((tmp_path / path.stem / "metrics.json").read_text(encoding="utf-8"))
+        codes = [f["code"] for f in checks["input_checks"]["findings"]]
+        assert ("coarse_sampling" in codes) == (path is coarse), codes
+    assert said == {"coarse": True, "fine": False}

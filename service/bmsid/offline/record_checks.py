@@ -61,6 +61,8 @@ def check_record(
     capacity, the current sign, excitation, a start still relaxing (``plausibility``)."""
     t, i, v = head.t_s, head.current_A, head.cell_voltages_V
     findings = plausibility.check_time_unit(t, i, cell.capacity_Ah, opts.time_fix(), tuning.gap_s)
+    if not plausibility.first_error(findings):
+        findings += plausibility.check_sample_period(t, i, tuning.id_period_s)
     note = None
     record_chemistry = None
     pseudo_text: str | None = None
