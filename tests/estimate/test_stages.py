@@ -99,14 +99,11 @@ def test_format1_checkpoint_is_migrated_and_continues_as_the_old_engine(variant:
     and what that bank estimated for the next 150 (tests/estimate/data/README.md)."""
     ck = load_checkpoint(DATA / f"bank_v1_{variant}.npz", CheckpointKey("v1test", 2, "x"))
     assert ck is not None and "format" not in ck.state
-    # the old engine identified a hysteresis scale (the default until issue 11's M work),
-    # carried the window fit's covariance after a swarm and bounded tau2 by its box alone
+    # the old engine identified a hysteresis scale (the default until issue 11's M work) and
+    # carried the window fit's covariance after a swarm
     old = FAST_COULOMB.model_copy(
-        update={
-            "identify_hysteresis_scale": True, "swarm_rls_restart": False,
-            "tau2_span_ratio": 1e9,
-        }
-    )  # fmt: skip
+        update={"identify_hysteresis_scale": True, "swarm_rls_restart": False}
+    )
     bank = build_bank(RUN.cell, 2, variant, old, soc0=0.5)
     bank.load_state_dict(ck.state)
     got = bank.update_block(BLOCK.slice(250, 400))

@@ -267,11 +267,9 @@ class FusionStage:
         return w, valid
 
     def _tau_box(self, c: int) -> tuple[FloatArray, FloatArray]:
-        """(lo, hi) of (tau1, tau2) of cell ``c``, s: tau2 within ``tau2_span_ratio`` of the
-        learnable data in the window."""
+        """(lo, hi) of (tau1, tau2) of cell ``c``, s."""
         (lo1, hi1), (lo2, hi2) = self.model.bound("tau1_s"), self.model.bound("tau2_s")
-        span = self.tuning.tau2_span_ratio * self.buffer.n_valid(c)[0] * self._period_s
-        return np.array([lo1[c], lo2[c]]), np.array([hi1[c], max(lo2[c], min(hi2[c], span))])
+        return np.array([lo1[c], lo2[c]]), np.array([hi1[c], hi2[c]])
 
     def _start_swarm(self, c: int) -> None:
         tun, sched = self.tuning, self.schedule

@@ -108,17 +108,6 @@ class EstimatorTuning(BaseModel):
     test's 30-minute window 4 at most: at 10 (before) the swarm never ran on HPPC and tau1,
     tau2 stayed at their start values (known-truth HPPC: RMSE 3.49 -> 1.54 mV at 4; the
     synthetic, measured, physics-based and 3-day tables unchanged)."""
-    tau2_span_ratio: float = Field(3.0, gt=0.0)
-    """A swarm's slow time constant is at most this many times the learnable data in its
-    window (s): over a shorter span only R2 / tau2 is determined, and the longer tau2 of an
-    equal fit extrapolates worst. With the observer's learn gate shut after a rested start the
-    first swarms had 360 s of a DST and took tau2 2,090-7,207 s (truth 600; 2.1-8.2 mV on 2 of
-    8 seeds with 1 mV quantisation instead of 0.8); at 3 every seed 0.77-1.26 mV. At 2 the
-    first swarms of each day's drive (a few hundred learnable seconds after a rest) held tau2
-    near the 3-day records' 600 s truth and below it (`m-tilt` R0+R1+R2 9.8 -> 16.4 % on day
-    3, `clean` 1.8 -> 5.3 %); at 4 the hysteresis map of 3 days at 10 s ticks learnt 14.7 mV at
-    20 % SOC where the table says 15.0 and the truth 20.4 (15.5 at 3); at 6 two quantised runs
-    1.70-1.78 mV. Once the 1,800 s window is full the bound is 5,400 s."""
     swarm_reject_ratio: float = Field(2.0, gt=1.0)
     """A finished swarm is not applied when its result, as applied (linear part clipped to the
     bounds), fits the window more than this many times worse (RMS) than the parameters in
