@@ -55,10 +55,10 @@ def test_n_valid_counts_the_buffer_and_its_newest_pushes(
     for ok in pushes:
         buf.push(1.0, np.zeros(1), np.zeros(1), np.array([ok]))
     held = pushes[-size:]
-    total, recent = buf.n_valid(0, since)
+    total, recent = buf.n_valid(0), buf.n_valid(0, since)
     assert total == sum(held)
     assert recent == (sum(held[len(held) - since :]) if since < len(held) else sum(held))
-    assert buf.n_valid(0) == (total, total)
+    assert buf.n_valid(0, 10**9) == total
 
 
 def test_a_swarm_waits_for_new_learnable_data() -> None:

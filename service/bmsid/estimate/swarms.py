@@ -150,13 +150,13 @@ class WindowBuffer:
     def clear(self) -> None:
         self.count = 0
 
-    def n_valid(self, c: int, last: float = math.inf) -> tuple[int, int]:
-        """Buffered ticks with a valid (learnable) voltage of cell ``c``: all, and among the
-        ``last`` pushed (all of them where more were pushed than are held)."""
+    def n_valid(self, c: int, last: float = math.inf) -> int:
+        """Buffered ticks with a valid (learnable) voltage of cell ``c`` among the ``last``
+        pushed (all held ones by default, or where more were pushed than are held)."""
         order = self.order()
-        valid = self.valid[c, order]
-        recent = valid[order.shape[0] - int(last) :] if last < order.shape[0] else valid
-        return int(valid.sum()), int(recent.sum())
+        if last < order.shape[0]:
+            order = order[order.shape[0] - int(last) :]
+        return int(self.valid[c, order].sum())
 
     def n_steps(self, window_s: float, dt_s: float, min_step_A: float) -> int:
         """Current changes of at least ``min_step_A`` within the last ``window_s``."""
@@ -251,7 +251,8 @@ class SwarmSchedule:
         first 360 s of a DST every 600 s and tau2 went 2,090 -> 7,207 s (truth 600), 28 mV."""
         last = self.last_start_s[c]
         since = math.inf if math.isnan(last) else round((t_s - last) / dt_s)
-        if min(buffer.n_valid(c, since)) * dt_s < self.min_window_s:
+        # the new ticks are among the held ones: enough new is enough in all
+        if buffer.n_valid(c, since) * dt_s < self.min_window_s:
             return False
         self.last_start_s[c] = t_s
         return True
