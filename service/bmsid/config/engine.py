@@ -90,9 +90,11 @@ def build_bank(
     n_stagger: int | None = None,
     start: StartValues | None = None,
     branch0_V: FloatArray | None = None,
+    h0: FloatArray | None = None,
 ) -> EstimatorBank:
     """A new estimator bank of ``n_cells`` cells of type ``cell`` (see ``EstimatorBank``);
     ``start``: start values measured on the record (see ``cell_model``); ``branch0_V``: the
-    branches' voltages at the first sample (V, (n_cells, 2)), None for empty ones."""
+    branches' voltages at the first sample (V, (n_cells, 2)), None for empty ones; ``h0``: the
+    hysteresis state a start at ``soc0`` takes (None: 0)."""
     model = cell_model(cell, n_cells, start, tuning)
-    return EstimatorBank(model, variant, tuning, soc0, cell_ids, n_stagger, branch0_V)
+    return EstimatorBank(model, variant, tuning, soc0, cell_ids, n_stagger, branch0_V, h0)

@@ -552,7 +552,8 @@ class BankHost:
             return
         soc0 = fitted.soc0 if fitted.soc_fitted else s.soc0
         bank = build_bank(s.cell, s.n_cells, s.variant, s.tuning, soc0=soc0,
-                          start=self.start_values, branch0_V=fitted.branch_V)  # fmt: skip
+                          start=self.start_values, branch0_V=fitted.branch_V,
+                          h0=fitted.h0)  # fmt: skip
         step = 64 * samples_per_tick(head.t_s, s.tuning.id_period_s)
         for start in range(0, len(head), step):
             bank.update_block(head.slice(start, start + step))
@@ -560,6 +561,8 @@ class BankHost:
                 self._beat_t = now
                 self.beat()
         opened = {"ocv_ir_corrected": "under load"}.get(self.bank.soc_init_method, "relaxing")
+        if fitted.h0 is not None and np.any(fitted.h0):  # a rested start whose h the window showed
+            opened = f"at rest, hysteresis state {float(np.mean(fitted.h0)):+.2f} (mean)"
         what = "start SOC fitted"
         if fitted.soc_fitted:
             bank.state.soc_init_method = WINDOW_FIT

@@ -93,6 +93,8 @@ class EstimatorBank:
         branch0_V: the RC branches' voltages at the first sample (V, (n_cells, 2), the drops
             ``R1 x1``, ``R2 x2`` of Eq. 9), as a start fit over the record's first minutes
             finds them under load (``offline/start_soc.py``); None: empty branches (a rest).
+        h0: the hysteresis state (in [-1, 1], per cell) a start at ``soc0`` takes, as a start
+            fit over a rested record's first minutes finds it; None (or no ``soc0``): 0.
         cell_ids: global index of each cell (seeds its swarm and staggers its schedule), default
             0..n_cells-1; ``n_stagger`` is the number of cells the schedule is spread over.
     """
@@ -106,6 +108,7 @@ class EstimatorBank:
         cell_ids: npt.ArrayLike | None = None,
         n_stagger: int | None = None,
         branch0_V: FloatArray | None = None,
+        h0: FloatArray | None = None,
     ) -> None:
         if variant not in VARIANT_STAGES:
             raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}")
@@ -124,6 +127,8 @@ class EstimatorBank:
             if tun.observer.enabled
             else CoulombState(model, soc0, tun.knee_slope_factor)
         )
+        if h0 is not None and soc0 is not None:  # a fitted start's h pairs with its SOC
+            self.state.h0 = np.clip(np.broadcast_to(np.nan_to_num(h0), (n,)), -1.0, 1.0)
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
         #: per cell, the voltage the RC branches started holding (V, their sum); None: empty
         self.start_branch_V: FloatArray | None = None

@@ -35,6 +35,7 @@ the fit is used only where the first voltage is known to mislead.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +55,14 @@ WINDOW_S = 1200.0
 #: flat in log tau); the slow branch at most half the window: a slower one is a level there,
 #: which the SOC column is too (at 45 C BJDST it took tau2 = 2,151 s and 2.4 SOC points).
 GRID_POINTS = 10
+#: Points of each time constant's finer grid between the best point's neighbours (odd: the
+#: best point itself is one of them).
+ZOOM_POINTS = 9
+#: A rested start's fitted h0 is kept only where the window's RMSE with h = 0 is this many
+#: times the fit's: the start state explains at least as much of the misfit as the fit
+#: leaves (known-truth DST, h0 = +-1: 1.57-7.6; 0: 1.00; CALCE NMC starts, whose half-gap is
+#: 3-5 mV: 0.88-1.20 except the 45 C starts from 80 %, 1.53-2.02 with h0 = -1).
+H0_GAIN_MIN = math.sqrt(2.0)
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
 #: Valid voltages a cell needs in the window (ten per column fitted).
@@ -75,12 +84,15 @@ class StartFit:
     rmse_V: FloatArray
     window_s: float
     branch_V: FloatArray
+    #: per cell, the hysteresis state at the first sample (in [-1, 1]): fitted on a rested
+    #: start (``rested``), else 0, as the engine starts it
+    h0: FloatArray
 
 
 def fit_start_soc(
     t_s: FloatArray, current_A: FloatArray, voltages_V: FloatArray, model: CellModel,
     soc_guess: FloatArray, window_s: float = WINDOW_S, tuning: EstimatorTuning | None = None,
-    soc_known: bool = False,
+    soc_known: bool = False, rested: bool = False,
 ) -> StartFit:  # fmt: skip
     """The start SOC of each cell fitted over the first ``window_s`` of the record (module
     docstring), from ``soc_guess`` (the first voltage's reading); with ``soc_known`` the
@@ -104,20 +116,20 @@ def fit_start_soc(
     soc0 = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
     branch = np.full((n, 2), np.nan)
+    h_start = np.zeros(n)
     if t.shape[0] < MIN_SAMPLES or t[-1] - t[0] < 0.5 * window_s:
-        return StartFit(soc0, rmse, window_s, branch)
+        return StartFit(soc0, rmse, window_s, branch, h_start)
     dt = np.maximum(np.diff(t), 0.0)
     i_held = np.where(dt > tun.gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
     for c in range(n):
         lo1, hi1 = (float(b[c]) for b in model.bound("tau1_s"))
         lo2, hi2 = (float(b[c]) for b in model.bound("tau2_s"))
-        tau1 = np.geomspace(lo1, hi1, GRID_POINTS)
-        tau2 = np.geomspace(lo2, max(min(hi2, 0.5 * window_s), lo2), GRID_POINTS)
-        x1, x2 = _branch_states(i_held, dt, tau1), _branch_states(i_held, dt, tau2)
-        d1 = np.exp(-(t - t[0])[None, :] / tau1[:, None])
-        d2 = np.exp(-(t - t[0])[None, :] / tau2[:, None])
-        pairs = tau2[None, :] >= tun.tau_ratio_min * tau1[:, None]
+        grid = _Grid.of(
+            np.geomspace(lo1, hi1, GRID_POINTS),
+            np.geomspace(lo2, max(min(hi2, 0.5 * window_s), lo2), GRID_POINTS),
+            i_held, dt, t, tun.tau_ratio_min,
+        )  # fmt: skip
         z0 = float(soc_guess[c])
         if not np.isfinite(z0):
             continue
@@ -125,25 +137,71 @@ def fit_start_soc(
         q_As = float(model.capacity_As[c])
         if np.count_nonzero(ok) < MIN_SAMPLES or np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
             continue  # a dead tap, a cell that came in late, or too little charge moved
-        h = _hysteresis(i_held, dt, model, c)
-        fit = None
+        h_free = _hysteresis(i_held, dt, model, c)  # h from 0; h0 adds h0 * decay
+        decay = _hysteresis(i_held, dt, model, c, 1.0) - h_free
+        v_rest = float(model.ocv.ocv(np.array([z0]))[0])  # a rested start: OCV(z0) + M h0
+        h0, fit, plain = 0.0, None, None
         for _ in range(MAX_ITER):
             z = z0 - charge_As / q_As
             zc, _ = model.ocv.clamp(z)
-            y = v[:, c] - model.ocv.ocv(zc) - model.ocv.hysteresis_M(zc) * h
-            slope = None if soc_known else model.ocv.docv_dz(zc)[ok]
-            fit = _best_fit(y[ok], -i[ok], x1[:, ok], x2[:, ok], slope, d1[:, ok], d2[:, ok],
-                            pairs)  # fmt: skip
-            if fit is None or abs(fit[1]) > MAX_DZ:
-                fit = None
+            m = model.ocv.hysteresis_M(zc)
+            y = v[:, c] - model.ocv.ocv(zc) - m * (h_free + h0 * decay)
+            slope = model.ocv.docv_dz(zc)
+            if soc_known:
+                col = None
+            elif rested:  # along the start's family: dz0/dh0 = -M / OCV' at the first sample
+                col = (m * decay - slope * m[0] / slope[0])[ok]
+            else:
+                col = slope[ok]
+            if not rested:
+                fit = _best_fit(y[ok], -i[ok], col, grid.at(ok))
+            else:  # refined: h0 takes up what the coarse grid's step leaves (-0.5 for 0)
+                fit = _refined_fit(y[ok], -i[ok], col, grid, ok, i_held, dt, t, tun.tau_ratio_min)
+                if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
+                    plain = _refined_fit(y[ok], -i[ok], None, grid, ok, i_held, dt, t,
+                                         tun.tau_ratio_min) or (math.nan,)  # fmt: skip
+            if fit is None:
                 break
-            z0 += fit[1]
-            if abs(fit[1]) < 1e-4:
+            if rested:
+                step = float(np.clip(h0 + fit[1], -1.0, 1.0)) - h0
+                h0 += step
+                z0 = _rested_soc(model, v_rest, h0, z0)
+            else:
+                if abs(fit[1]) > MAX_DZ:
+                    fit = None
+                    break
+                step = fit[1]
+                z0 += step
+            if abs(step) < 1e-4:
                 break
+        if rested and fit is not None and not (plain and plain[0] >= H0_GAIN_MIN * fit[0]):
+            fit = None  # h0 explains too little of the window: the model's error, not h
         if fit is not None and abs(z0 - float(soc_guess[c])) <= MAX_DZ:
-            soc0[c], rmse[c] = z0, fit[0]
+            soc0[c], rmse[c], h_start[c] = z0, fit[0], h0
             branch[c] = -fit[2], -fit[3]
-    return StartFit(soc0, rmse, window_s, branch)
+    return StartFit(soc0, rmse, window_s, branch, h_start)
+
+
+def _refined_fit(
+    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, grid: _Grid,
+    ok: npt.NDArray[np.bool_], i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float,
+) -> tuple[float, float, float, float, int, int] | None:  # fmt: skip
+    """``_best_fit`` over the grid, then over a finer one between its best point's neighbours."""
+    fit = _best_fit(y, minus_i, col, grid.at(ok))
+    if fit is None:
+        return None
+    fine = grid.around(fit[4], fit[5], i_held, dt, t, ratio)
+    return min(fit, _best_fit(y, minus_i, col, fine.at(ok)) or fit)
+
+
+def _rested_soc(model: CellModel, v_rest_V: float, h0: float, z0: float) -> float:
+    """The SOC whose OCV with the hysteresis state ``h0`` is ``v_rest_V`` (V): a few fixed-point
+    steps from ``z0`` (M varies slowly with SOC)."""
+    z = np.array([z0])
+    for _ in range(4):
+        zc, _ = model.ocv.clamp(z)
+        z = model.ocv.soc_from_ocv(np.array([v_rest_V - float(model.ocv.hysteresis_M(zc)[0]) * h0]))
+    return float(z[0])
 
 
 def _held(current_A: FloatArray) -> FloatArray:
@@ -162,30 +220,76 @@ def _branch_states(i_held: FloatArray, dt: FloatArray, taus: FloatArray) -> Floa
     return x
 
 
-def _hysteresis(i_held: FloatArray, dt: FloatArray, model: CellModel, c: int) -> FloatArray:
-    """h over the window from 0 (Eq. 5-6), as the engine starts it."""
+def _hysteresis(
+    i_held: FloatArray, dt: FloatArray, model: CellModel, c: int, h0: float = 0.0
+) -> FloatArray:
+    """h over the window from ``h0`` (Eq. 5-6; 0: as the engine starts it)."""
     kappa = hysteresis_kappa(model.gamma[c], model.capacity_As[c], model.efficiency[c], i_held)
-    h = np.zeros(dt.shape[0] + 1)
+    h = np.full(dt.shape[0] + 1, h0)
     for k in range(dt.shape[0]):
         h[k + 1] = float(hysteresis_step(h[k], i_held[k], dt[k], kappa[k]))
     return h
 
 
+@dataclass(frozen=True)
+class _Grid:
+    """A grid of time constants (s) and the branch columns over the window: unit-gain ZOH
+    states ``x`` (taus, samples) and start decays ``d``; ``pairs`` keeps tau2 >= ratio tau1."""
+
+    tau1: FloatArray
+    tau2: FloatArray
+    x1: FloatArray
+    x2: FloatArray
+    d1: FloatArray
+    d2: FloatArray
+    pairs: npt.NDArray[np.bool_]
+
+    @classmethod
+    def of(
+        cls, tau1: FloatArray, tau2: FloatArray, i_held: FloatArray, dt: FloatArray,
+        t: FloatArray, ratio: float,
+    ) -> _Grid:  # fmt: skip
+        since = (t - t[0])[None, :]
+        return cls(
+            tau1, tau2, _branch_states(i_held, dt, tau1), _branch_states(i_held, dt, tau2),
+            np.exp(-since / tau1[:, None]), np.exp(-since / tau2[:, None]),
+            tau2[None, :] >= ratio * tau1[:, None],
+        )  # fmt: skip
+
+    def at(self, ok: npt.NDArray[np.bool_]) -> _Grid:
+        """The columns at the samples ``ok``."""
+        return _Grid(self.tau1, self.tau2, self.x1[:, ok], self.x2[:, ok], self.d1[:, ok],
+                     self.d2[:, ok], self.pairs)  # fmt: skip
+
+    def around(
+        self, j1: int, j2: int, i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float
+    ) -> _Grid:
+        """A finer grid between the neighbours of the point (j1, j2): on the paper cell the
+        coarse grid's step let a rested start's h0 take up its misfit (-0.5 for 0). Not for
+        the loaded starts: entered mid-DST at 1,500 s it split the branches' 27.5 mV as
+        23.8 (the coarse grid: within 2 mV)."""
+
+        def between(tau: FloatArray, j: int) -> FloatArray:
+            return np.geomspace(tau[max(j - 1, 0)], tau[min(j + 1, tau.shape[0] - 1)], ZOOM_POINTS)
+
+        return _Grid.of(between(self.tau1, j1), between(self.tau2, j2), i_held, dt, t, ratio)
+
+
 def _best_fit(
-    y: FloatArray, minus_i: FloatArray, x1: FloatArray, x2: FloatArray,
-    slope: FloatArray | None, d1: FloatArray, d2: FloatArray, pairs: npt.NDArray[np.bool_],
-) -> tuple[float, float, float, float] | None:  # fmt: skip
-    """(RMSE V, dz, c1 V, c2 V) of the best physical (R0, R1, R2 > 0) solve over the
-    time-constant grid's ``pairs``; without ``slope`` SOC is known (dz 0, not fitted)."""
-    best: tuple[float, float, float, float] | None = None
-    for j1, j2 in zip(*np.nonzero(pairs), strict=True):
-        cols = [minus_i, -x1[j1], -x2[j2]] + ([] if slope is None else [slope])
-        A = np.column_stack([*cols, d1[j1], d2[j2]])
+    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, g: _Grid
+) -> tuple[float, float, float, float, int, int] | None:
+    """(RMSE V, the extra column's coefficient, c1 V, c2 V, j1, j2) of the best physical (R0, R1,
+    R2 > 0) solve over the grid's ``pairs``; ``col`` is dz's (SOC) or h0's, None where SOC is
+    known (coefficient 0, not fitted)."""
+    best: tuple[float, float, float, float, int, int] | None = None
+    for j1, j2 in zip(*np.nonzero(g.pairs), strict=True):
+        cols = [minus_i, -g.x1[j1], -g.x2[j2]] + ([] if col is None else [col])
+        A = np.column_stack([*cols, g.d1[j1], g.d2[j2]])
         th, *_ = np.linalg.lstsq(A, y, rcond=None)
         if not (th[0] > 0 and th[1] > 0 and th[2] > 0 and np.all(np.isfinite(th))):
             continue
         rmse = float(np.sqrt(np.mean((y - A @ th) ** 2)))
         if best is None or rmse < best[0]:
-            dz = 0.0 if slope is None else float(th[3])
-            best = (rmse, dz, float(th[-2]), float(th[-1]))
+            coef = 0.0 if col is None else float(th[3])
+            best = (rmse, coef, float(th[-2]), float(th[-1]), int(j1), int(j2))
     return best

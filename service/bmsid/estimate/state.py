@@ -103,6 +103,9 @@ class CoulombState:
         self.counters: dict[str, int] = {}
         self.z = np.full(self.n, 0.5)
         self.h = np.zeros(self.n)
+        #: per cell, the hysteresis state a start at ``soc0`` takes (a start fit's, which
+        #: pairs with its SOC: ``offline/start_soc.py``); 0 else, what a voltage cannot tell
+        self.h0 = np.zeros(self.n)
         self.soc_init_method = "pending"
         # One float per constant when every cell shares it (the usual pack): the per-tick
         # arithmetic then stays on Python scalars, as cheap as before per-cell arrays existed.
@@ -179,7 +182,7 @@ class CoulombState:
             rest = starts_at_rest(tick.current_A, self.model)
             method = "ocv_at_rest" if rest else "ocv_ir_corrected"
         self.z = np.where(cells, z, self.z)
-        self.h = np.where(cells, 0.0, self.h)
+        self.h = np.where(cells, self.h0 if method == "given" else 0.0, self.h)
         if cells.all() or self.soc_init_method == "pending":
             self.soc_init_method = method
         self._pending = self._pending & ~cells

@@ -175,6 +175,7 @@ def run_blocks(
     gates: GateConfig | None = None,
     scorer: RunScorer | None = None,
     branch0_V: FloatArray | None = None,
+    h0: FloatArray | None = None,
 ) -> IdentifyResult:
     """Feed sample blocks in order, through the plausibility gates, to a new bank of
     ``n_cells`` cells.
@@ -185,7 +186,7 @@ def run_blocks(
         The recording in time order (s, A with + = discharge, V).
     n_cells : int
         Voltage columns of every block.
-    cell, variant, tuning, soc0, branch0_V
+    cell, variant, tuning, soc0, branch0_V, h0
         The bank's setup (see :func:`~bmsid.config.engine.build_bank`).
     progress : callable or None
         Called with the samples of each block once the bank has eaten it.
@@ -209,7 +210,9 @@ def run_blocks(
         ``runtime_s`` counts the gates' and the bank's time only (no reading, writing or
         progress); ``input_gates`` what the gates refused.
     """
-    bank = build_bank(cell, n_cells, variant, tuning, soc0=soc0, start=start, branch0_V=branch0_V)
+    bank = build_bank(
+        cell, n_cells, variant, tuning, soc0=soc0, start=start, branch0_V=branch0_V, h0=h0
+    )
     gate = input_gate(cell, n_cells, tuning, gates or GateConfig())
     parts: list[EstimateBlock] = []
     n = 0
@@ -393,7 +396,7 @@ def identify_source(
         result = run_blocks(
             source.blocks(spec.block_size), source.n_cells, spec.cell, spec.variant, spec.tuning,
             soc0, progress, source.cell_names, sink, start, spec.gates, scorer,
-            None if fitted is None else fitted.branch_V,
+            None if fitted is None else fitted.branch_V, None if fitted is None else fitted.h0,
         )  # fmt: skip
     if soc_fitted:
         result = replace(result, soc_init_method=WINDOW_FIT)

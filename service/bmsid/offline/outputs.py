@@ -171,7 +171,8 @@ def soc_init_text(result: IdentifyResult, rest_limit_A: float | None = None) -> 
         "(a current flowed; the SOC observer refines it)",
         "config": "the config's soc0 (soc_init.policy fixed)",
         "window_fit": f"fitted with the model over the record's first {START_WINDOW_S / 60:.0f} "
-        "min (it opens under load or still relaxing, which the first voltage misreads; the SOC "
+        "min (it opens under load or still relaxing, which the first voltage misreads, or at "
+        "rest after a charge or discharge whose hysteresis state the window shows; the SOC "
         "observer refines it)",
         "pending": "none: no cell carried a valid voltage",
     }.get(result.soc_init_method, result.soc_init_method)

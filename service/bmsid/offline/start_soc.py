@@ -1,10 +1,12 @@
 """The start SOC of a record whose first voltage misleads (``estimate/start_fit.py``), offline.
 
 Used when no ``--soc0`` is given and the cell config reads SOC from the first voltage
-(``soc_init.policy = "ocv_at_rest"``), only where that voltage is known to mislead: the record
+(``soc_init.policy = "ocv_at_rest"``), where that voltage is known to mislead: the record
 opens under load (the engine IR-corrects it with R0 alone) or at rest with the voltage still
-moving (``plausibility.check_start_relaxation``). A start at rest and relaxed keeps the first
-voltage's reading, which is the better one there.
+moving (``plausibility.check_start_relaxation``). A start at rest and relaxed reads OCV + M h0
+with h0 unknown (-1 after a discharge, +1 after a charge): its h0 is fitted along the first
+voltage's SOC-h0 line and kept only where it explains the window clearly better than h = 0
+(``start_fit.H0_GAIN_MIN``); else it keeps the first voltage's reading, the better one there.
 """
 
 from __future__ import annotations
@@ -44,6 +46,9 @@ class FittedStart:
     soc_fitted: bool = True
     #: per cell, the fit's RMSE over its window (V; NaN where no fit held)
     rmse_V: FloatArray | None = None
+    #: per cell, the hysteresis state at the first sample ([-1, 1]): fitted on a rested start
+    #: (which the first voltage cannot tell from SOC), else 0, as the engine starts it
+    h0: FloatArray | None = None
 
 
 def fitted_start_soc(
@@ -80,13 +85,14 @@ def fitted_start_soc(
     relaxing = check_start_relaxation(
         b.t_s, b.current_A, b.cell_voltages_V, capacity, r0, si.rest_current_C
     )
-    if not (loaded or relaxing):
-        return None
     known = soc0 is not None
+    rested = not (loaded or relaxing)
+    if rested and known:
+        return None
     guess = np.full(b.n_cells, soc0, dtype=np.float64) if known else first.cells["soc"][0]
     fit = fit_start_soc(
         b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess, tuning=bank.tuning,
-        soc_known=known,
+        soc_known=known, rested=rested,
     )  # fmt: skip
     fitted = np.isfinite(fit.soc0)
     start_soc = np.where(fitted, fit.soc0, guess)
@@ -96,5 +102,5 @@ def fitted_start_soc(
         return None
     return FittedStart(
         start_soc, np.where(fitted[:, None], fit.branch_V, 0.0), not known,
-        np.where(fitted, fit.rmse_V, np.nan),
+        np.where(fitted, fit.rmse_V, np.nan), np.where(fitted, fit.h0, 0.0),
     )  # fmt: skip
