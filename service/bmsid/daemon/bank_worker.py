@@ -546,8 +546,9 @@ class BankHost:
         fitted = fitted_start_soc([head], s.cell, s.tuning, self.start_values, soc0=s.soc0)
         if fitted is None:
             log.info(
-                "start kept after %.0f s (%s): the first voltage was at rest and relaxed, "
-                "or no start fit held", WINDOW_S, self.bank.soc_init_method,
+                "start kept after %.0f s (%s): the first voltage was at rest, relaxed and "
+                "showed no hysteresis state, or no start fit held", WINDOW_S,
+                self.bank.soc_init_method,
             )  # fmt: skip
             return
         soc0 = fitted.soc0 if fitted.soc_fitted else s.soc0

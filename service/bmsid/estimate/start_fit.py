@@ -30,7 +30,18 @@ Measured (``bench/starts_real.py``): the four polarised 25 C starts read 77.6 / 
 43.9 % from their first voltages for 80 / 80 / 50 / 50 %; fitted over 20 min, 80.5 / 81.8 /
 49.8 / 50.2 %. On starts that are at rest and relaxed the first voltage is better (0 C DST
 from 50 %: 55.0 % read, 52.0 % fitted, 54.8 % true: the 0 C model's error biases the fit), so
-the fit is used only where the first voltage is known to mislead.
+the dz fit is used only where the first voltage is known to mislead.
+
+A rested start's first voltage is OCV(z0) + M(z0) h0 with h0 unknown: -1 after a discharge, +1
+after a charge, which the engine's start (h = 0) reads as 1.5-3 SOC points on the paper cell
+(M 15 mV), and a discharge without a rest then carries that into R2 (R0 + R1 + R2 -27 % from
+45 %). With ``rested`` the extra column is h0 along that voltage's line (z0 follows it,
+``dz0/dh0 = -M / OCV'``; h_k = h_free,k + h0 decay_k, Eq. 5-6 being affine in h): after a
+discharge starts, h goes to -1 whatever h0 was, so the window shows it. Kept only where it
+explains the window clearly better than h = 0 (``H0_GAIN_MIN``): the model's own error (a
+cold cell, a small half-gap) is no hysteresis. Where SOC is given (``--soc0``) h stays 0: an
+h0 column at a known SOC was tried, and took +1 on a CALCE 45 C start from 50 % after a
+discharge.
 """
 
 from __future__ import annotations
@@ -96,15 +107,19 @@ def fit_start_soc(
 ) -> StartFit:  # fmt: skip
     """The start SOC of each cell fitted over the first ``window_s`` of the record (module
     docstring), from ``soc_guess`` (the first voltage's reading); with ``soc_known`` the
-    guess is the SOC (given by the user) and only the branches are fitted (no dz column).
+    guess is the SOC (given by the user) and only the branches are fitted (no dz column);
+    with ``rested`` (a start at rest and relaxed, SOC not known) h0 is fitted instead of dz,
+    z0 following it along the first voltage's line, and ``StartFit.h0`` returns it (no fit
+    where it is not worth ``H0_GAIN_MIN``).
     Samples (s, A with + = discharge, V (samples, cells)); NaN voltages are left out, and so
     are samples with a NaN
     current (the branches and the count hold the current before through them); a step longer
     than ``tuning.gap_s`` carries no current (a rest, as the engine assumes over a gap); the
     grid keeps tau2 >= ``tuning.tau_ratio_min`` tau1 (None: the defaults). NaN where
     the window is too short, moves SOC too little, or the fit is unphysical (a negative
-    resistance). The fit starts h at 0, as the engine does: on the paper cell entered mid-DST,
-    where h had gone towards -1, it reads ~1 SOC point low (a start-h column was tried: 1.4)."""
+    resistance). A loaded start's fit starts h at 0, as the engine does: on the paper cell
+    entered mid-DST, where h had gone towards -1, it reads ~1 SOC point low (a start-h column
+    beside dz was tried: 1.4; under load the two columns are nearly one)."""
     tun = tuning or EstimatorTuning()
     t = np.asarray(t_s, dtype=np.float64)
     keep = t <= t[0] + window_s
@@ -155,11 +170,12 @@ def fit_start_soc(
                 col = slope[ok]
             if not rested:
                 fit = _best_fit(y[ok], -i[ok], col, grid.at(ok))
-            else:  # refined: h0 takes up what the coarse grid's step leaves (-0.5 for 0)
-                fit = _refined_fit(y[ok], -i[ok], col, grid, ok, i_held, dt, t, tun.tau_ratio_min)
+            else:  # refined: h0 takes up what the coarse grid's step leaves (-0.5 for 0);
+                # relaxed, so the branches start empty (no decay columns: fewer to trade with h0)
+                args = (grid, ok, i_held, dt, t, tun.tau_ratio_min, False)
+                fit = _refined_fit(y[ok], -i[ok], col, *args)
                 if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
-                    plain = _refined_fit(y[ok], -i[ok], None, grid, ok, i_held, dt, t,
-                                         tun.tau_ratio_min) or (math.nan,)  # fmt: skip
+                    plain = _refined_fit(y[ok], -i[ok], None, *args) or (math.nan,)
             if fit is None:
                 break
             if rested:
@@ -185,13 +201,14 @@ def fit_start_soc(
 def _refined_fit(
     y: FloatArray, minus_i: FloatArray, col: FloatArray | None, grid: _Grid,
     ok: npt.NDArray[np.bool_], i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float,
+    decays: bool = True,
 ) -> tuple[float, float, float, float, int, int] | None:  # fmt: skip
     """``_best_fit`` over the grid, then over a finer one between its best point's neighbours."""
-    fit = _best_fit(y, minus_i, col, grid.at(ok))
+    fit = _best_fit(y, minus_i, col, grid.at(ok), decays)
     if fit is None:
         return None
     fine = grid.around(fit[4], fit[5], i_held, dt, t, ratio)
-    return min(fit, _best_fit(y, minus_i, col, fine.at(ok)) or fit)
+    return min(fit, _best_fit(y, minus_i, col, fine.at(ok), decays) or fit)
 
 
 def _rested_soc(model: CellModel, v_rest_V: float, h0: float, z0: float) -> float:
@@ -276,20 +293,21 @@ class _Grid:
 
 
 def _best_fit(
-    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, g: _Grid
+    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, g: _Grid, decays: bool = True
 ) -> tuple[float, float, float, float, int, int] | None:
     """(RMSE V, the extra column's coefficient, c1 V, c2 V, j1, j2) of the best physical (R0, R1,
     R2 > 0) solve over the grid's ``pairs``; ``col`` is dz's (SOC) or h0's, None where SOC is
-    known (coefficient 0, not fitted)."""
+    known (coefficient 0, not fitted); without ``decays`` the branches start empty (c 0)."""
     best: tuple[float, float, float, float, int, int] | None = None
     for j1, j2 in zip(*np.nonzero(g.pairs), strict=True):
         cols = [minus_i, -g.x1[j1], -g.x2[j2]] + ([] if col is None else [col])
-        A = np.column_stack([*cols, g.d1[j1], g.d2[j2]])
+        A = np.column_stack([*cols, g.d1[j1], g.d2[j2]] if decays else cols)
         th, *_ = np.linalg.lstsq(A, y, rcond=None)
         if not (th[0] > 0 and th[1] > 0 and th[2] > 0 and np.all(np.isfinite(th))):
             continue
         rmse = float(np.sqrt(np.mean((y - A @ th) ** 2)))
         if best is None or rmse < best[0]:
             coef = 0.0 if col is None else float(th[3])
-            best = (rmse, coef, float(th[-2]), float(th[-1]), int(j1), int(j2))
+            c1, c2 = (float(th[-2]), float(th[-1])) if decays else (0.0, 0.0)
+            best = (rmse, coef, c1, c2, int(j1), int(j2))
     return best
