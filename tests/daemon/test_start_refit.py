@@ -89,6 +89,29 @@ def test_a_rested_start_and_a_restore_keep_their_start(tmp_path: Path) -> None:
     assert restored._head is None
 
 
+def test_a_rested_start_after_a_discharge_gets_its_hysteresis_state_live(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A gateway that starts at rest after a discharge (h0 = -1, which its first voltage cannot
+    show): it publishes from that voltage at once (1.5 SOC points low), then refits (SOC, h0)
+    over the first window as ``identify`` does, and continues from there."""
+    run = paper_dst_case(5000, soc0=0.7, h0=-1.0, r0_spread=np.linspace(1.0, 1.3, N_CELLS))
+    block = SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
+    host = _host(tmp_path, run)
+    with caplog.at_level(logging.INFO, logger="bmsid.daemon.bank_worker"):
+        assert _feed(host, block) == WINDOW_FIT
+    assert host.counters["start_refits"] == 1
+    assert "(it opened at rest, hysteresis state -0.9" in caplog.text  # -0.90: 1 mV noise
+    fitted = fitted_start_soc([block], run.cell, host.spec.tuning, None)
+    assert fitted is not None and fitted.h0 is not None
+    np.testing.assert_allclose(fitted.h0, -1.0, atol=0.15)
+    ref = build_bank(run.cell, N_CELLS, "hy-affrls-lpso", host.spec.tuning, soc0=fitted.soc0,
+                     branch0_V=fitted.branch_V, h0=fitted.h0)  # fmt: skip
+    ref.update_block(block)
+    np.testing.assert_allclose(host.bank.state.z, ref.state.z, rtol=0, atol=1e-12)
+    assert np.all(np.abs(host.bank.state.z - run.soc_true[-1]) < 0.006)  # before: 0.015-0.016
+
+
 def test_a_configured_soc0_entered_under_load_keeps_it_and_fits_the_branches(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
