@@ -71,8 +71,9 @@ GRID_POINTS = 10
 ZOOM_POINTS = 9
 #: A rested start's fitted h0 is kept only where the window's RMSE with h = 0 is this many
 #: times the fit's: the start state explains at least as much of the misfit as the fit
-#: leaves (known-truth DST, h0 = +-1: 1.57-7.6; 0: 1.00; CALCE NMC starts, whose half-gap is
-#: 3-5 mV: 0.88-1.20 except the 45 C starts from 80 %, 1.53-2.02 with h0 = -1).
+#: leaves (known-truth DST, h0 = +-1: 1.56-7.7, 0: 1.00; CALCE NMC, half-gap 3-5 mV: the 45 C
+#: starts from 80 % after the cycler's discharge 1.45-2.05 with h0 = -1, the other rested
+#: starts short of it, their h0 anywhere in [-1, 1]).
 H0_GAIN_MIN = math.sqrt(2.0)
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
