@@ -18,7 +18,7 @@ from bmsid.offline.outputs import soc_init_text
 from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
 from bmsid.profiles import dst_current
 from bmsid.samples import SampleBlock
-from bmsid.synthetic import TRUTH, paper_dst_case
+from bmsid.synthetic import TRUTH, SyntheticRun, paper_dst_case
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -27,6 +27,16 @@ def _mid_drive(start_s: int, n_cells: int = 1) -> tuple[object, slice]:
     spread = np.linspace(1.0, 1.3, n_cells)
     run = paper_dst_case(start_s + 3000, soc0=0.9, r0_spread=spread)
     return run, slice(start_s, None)
+
+
+def _csv(path: Path, run: SyntheticRun, part: slice) -> Path:
+    """``run``'s samples ``part`` as a one-cell tester CSV, its time from 0."""
+    write_tester_csv(
+        TesterData(t_s=run.t_s[part] - run.t_s[part][0], current_A=run.current_A[part],
+                   cell_voltages_V=run.voltages_V[part], cell_names=["voltage_V"]),
+        path,
+    )  # fmt: skip
+    return path
 
 
 def test_a_start_mid_drive_is_fitted_to_its_true_soc_from_a_wrong_guess() -> None:
@@ -63,12 +73,7 @@ def test_identify_fits_a_loaded_start_and_keeps_a_rested_one(tmp_path: Path) -> 
     truth = float(run.soc_true[k][0])
     cases = {"loaded": k, "rested": slice(0, None)}  # paper_dst_case opens with a rest
     for name, part in cases.items():
-        path = tmp_path / f"{name}.csv"
-        write_tester_csv(
-            TesterData(t_s=run.t_s[part] - run.t_s[part][0], current_A=run.current_A[part],
-                       cell_voltages_V=run.voltages_V[part], cell_names=["voltage_V"]),
-            path,
-        )  # fmt: skip
+        path = _csv(tmp_path / f"{name}.csv", run, part)
         res = identify_file(path, IdentifySpec(cell=run.cell, variant="hy-affrls-lpso"))
         first = res.first_tick()
         assert first is not None
@@ -195,7 +200,7 @@ def test_a_config_fixed_start_soc_gets_no_fit() -> None:
     assert fitted_start_soc([block], run.cell, None, None) is not None
 
 
-def _rested(soc0: float, h0: float) -> tuple[object, SampleBlock]:
+def _rested(soc0: float, h0: float) -> tuple[SyntheticRun, SampleBlock]:
     run = paper_dst_case(soc0=soc0, h0=h0, v_noise_V=0.5e-3)
     return run, SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
 
@@ -223,12 +228,7 @@ def test_identify_from_a_rest_after_a_discharge_keeps_soc_and_dc_resistance(
     h started at 0: SOC 3.0 points low all through, R0 + R1 + R2 -27 %: the slow branch took
     the OCV error)."""
     run, _ = _rested(0.45, -1.0)
-    path = tmp_path / "rested.csv"
-    write_tester_csv(
-        TesterData(t_s=run.t_s, current_A=run.current_A, cell_voltages_V=run.voltages_V,
-                   cell_names=["voltage_V"]),
-        path,
-    )  # fmt: skip
+    path = _csv(tmp_path / "rested.csv", run, slice(None))
     res = identify_file(path, IdentifySpec(cell=run.cell, variant="hy-affrls-lpso"))
     assert res.soc_init_method == WINDOW_FIT
     trace = res.trace
