@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from bmsid.config.cell import SocInit
+from bmsid.config.cell import SocInit, load_cell_config
 from bmsid.config.engine import build_bank, ocv_model
 from bmsid.estimate.start_fit import fit_start_soc
 from bmsid.model.simulator import SimResult, simulate
@@ -239,3 +239,29 @@ def test_identify_from_a_rest_after_a_discharge_keeps_soc_and_dc_resistance(
     r_dc = trace["R0_ohm"] + trace["R1_ohm"] + trace["R2_ohm"]
     truth = TRUTH["R0_ohm"] + TRUTH["R1_ohm"] + TRUTH["R2_ohm"]
     assert np.median(np.abs(r_dc[half, 0] / truth - 1.0)) < 0.03
+
+
+def test_an_lfp_start_at_rest_is_read_through_its_hysteresis_state() -> None:
+    """LFP (the shipped A123 config's curve and half-gap, known-truth 2RC model): its flat middle
+    (1 mV per SOC point) turns the 15 mV half-gap into 11-19 SOC points, which the first voltage
+    read with h = 0 carried through the discharge (from 50 % after a charge: 22.7 points off,
+    R0 + R1 + R2 18 times its value). The fitted (SOC, h0) start: within 0.5 point, after a
+    discharge too (where h = 0 has no physical fit at all), and SOC stays within 0.5 point."""
+    cell = load_cell_config(Path(__file__).resolve().parents[2] / "configs/cells/a123_lfp_25C.toml")
+    truth = {"R0_ohm": 0.012, "R1_ohm": 0.006, "tau1_s": 25.0, "R2_ohm": 0.008, "tau2_s": 500.0}
+    n = int(0.45 * cell.capacity_Ah * 3600 / 1.5)
+    t = np.arange(n, dtype=np.float64)
+    i = dst_current(t, 4.0)
+    for h0 in (-1.0, 1.0):
+        sim = simulate(t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah,
+                       gamma=cell.hysteresis.gamma, soc0=0.5, h0=h0, **truth)  # fmt: skip
+        rng = np.random.default_rng(1)
+        v = sim.v_V.T + rng.normal(0.0, 0.5e-3, (n, 1))
+        block = SampleBlock.from_arrays(t, i + rng.normal(0.0, 0.01, n), v)
+        fit = fitted_start_soc([block], cell, None, None)
+        assert fit is not None and fit.h0 is not None, h0
+        assert abs(fit.h0[0] - h0) < 0.1 and abs(fit.soc0[0] - 0.5) < 0.005, (h0, fit)
+        bank = build_bank(cell, 1, "hy-affrls-lpso", soc0=fit.soc0, branch0_V=fit.branch_V,
+                          h0=fit.h0)  # fmt: skip
+        est = bank.update_block(block)
+        assert np.max(np.abs(est["soc"][:, 0] - sim.soc[: est.n_ticks])) < 0.005, h0

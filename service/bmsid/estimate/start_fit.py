@@ -191,8 +191,10 @@ def fit_start_soc(
                 z0 += step
             if abs(step) < 1e-4:
                 break
-        if rested and fit is not None and not (plain and plain[0] >= H0_GAIN_MIN * fit[0]):
-            fit = None  # h0 explains too little of the window: the model's error, not h
+        # h0 explains too little of the window: the model's error, not h (where h = 0 has no
+        # physical fit at all, NaN, h0 is kept: LFP after a discharge, its curve flat)
+        if rested and fit is not None and plain is not None and plain[0] < H0_GAIN_MIN * fit[0]:
+            fit = None
         if fit is not None and abs(z0 - float(soc_guess[c])) <= MAX_DZ:
             soc0[c], rmse[c], h_start[c] = z0, fit[0], h0
             branch[c] = -fit[2], -fit[3]
