@@ -5,17 +5,20 @@ the fitted start exactly as an offline run of the same record does."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from bmsid.config.engine import build_bank
-from bmsid.daemon import start_refit
+from bmsid.daemon import bank_worker, start_refit
 from bmsid.daemon.bank_worker import BankHost, BankSpec
 from bmsid.daemon.checkpoint import CheckpointKey
 from bmsid.daemon.start_refit import StartHead
 from bmsid.estimate.start_fit import WINDOW_S
+from bmsid.offline import start_soc
 from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import SyntheticRun, paper_dst_case
@@ -41,6 +44,20 @@ def _host(tmp_path: Path, run: SyntheticRun, **kw: object) -> BankHost:
     host = BankHost(BankSpec(**(base | kw)))  # type: ignore[arg-type]
     host.start()
     return host
+
+
+def _counting(fit: Callable[..., Any], beats: list[int]) -> Callable[..., Any]:
+    """``fit`` whose ``each_cell`` callback also marks ``beats`` with -1 (a beat from the fit)."""
+
+    def counted(*args: Any, each_cell: Callable[[], None] | None = None, **kw: Any) -> Any:
+        def mark() -> None:
+            beats.append(-1)
+            if each_cell is not None:
+                each_cell()
+
+        return fit(*args, each_cell=mark, **kw)
+
+    return counted
 
 
 def _feed(host: BankHost, block: SampleBlock, batch: int = 97) -> str:
@@ -90,17 +107,23 @@ def test_a_rested_start_and_a_restore_keep_their_start(tmp_path: Path) -> None:
 
 
 def test_a_rested_start_after_a_discharge_gets_its_hysteresis_state_live(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A gateway that starts at rest after a discharge (h0 = -1, which its first voltage cannot
     show): it publishes from that voltage at once (1.5 SOC points low), then refits (SOC, h0)
-    over the first window as ``identify`` does, and continues from there."""
+    over the first window as ``identify`` does, and continues from there. The fit beats the
+    watchdog's heartbeat between cells (a large pack's fit takes seconds)."""
     run = paper_dst_case(5000, soc0=0.7, h0=-1.0, r0_spread=np.linspace(1.0, 1.3, N_CELLS))
     block = SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
     host = _host(tmp_path, run)
+    beats: list[int] = []
+    host.beat = lambda: beats.append(host.counters["start_refits"])
+    monkeypatch.setattr(bank_worker, "HEARTBEAT_S", 0.0)
+    monkeypatch.setattr(start_soc, "fit_start_soc", _counting(start_soc.fit_start_soc, beats))
     with caplog.at_level(logging.INFO, logger="bmsid.daemon.bank_worker"):
         assert _feed(host, block) == WINDOW_FIT
     assert host.counters["start_refits"] == 1
+    assert beats.count(-1) == N_CELLS - 1  # one between each two cells' fits
     assert "(it opened at rest, hysteresis state -0.9" in caplog.text  # -0.90: 1 mV noise
     fitted = fitted_start_soc([block], run.cell, host.spec.tuning, None)
     assert fitted is not None and fitted.h0 is not None

@@ -7,10 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bmsid.config.cell import SocInit, load_cell_config
 from bmsid.config.engine import build_bank, ocv_model
-from bmsid.estimate.start_fit import fit_start_soc
+from bmsid.estimate.start_fit import _branch_states, fit_start_soc
 from bmsid.model.simulator import SimResult, simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_file
@@ -265,3 +267,23 @@ def test_an_lfp_start_at_rest_is_read_through_its_hysteresis_state() -> None:
                           h0=fit.h0)  # fmt: skip
         est = bank.update_block(block)
         assert np.max(np.abs(est["soc"][:, 0] - sim.soc[: est.n_ticks])) < 0.005, h0
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.floats(-200.0, 200.0), min_size=2, max_size=300),
+    st.floats(0.05, 30.0),
+    st.lists(st.floats(0.5, 5000.0), min_size=1, max_size=12),
+)
+def test_branch_states_of_an_even_record_are_the_zoh_recursion(
+    current: list[float], dt_s: float, taus: list[float]
+) -> None:
+    """The filter an evenly sampled record takes is Eq. 8's recursion, to rounding."""
+    i, tau = np.array(current), np.array(taus)
+    dt = np.full(i.shape[0], dt_s)
+    x = _branch_states(i, dt, tau)
+    a = np.exp(-dt_s / tau)
+    ref = np.zeros((tau.shape[0], i.shape[0] + 1))
+    for k in range(i.shape[0]):
+        ref[:, k + 1] = a * ref[:, k] + (1.0 - a) * i[k]
+    np.testing.assert_allclose(x, ref, rtol=1e-9, atol=1e-9)

@@ -521,13 +521,17 @@ class BankHost:
             # Alone in a process it would only give the core away (6 s a day of 1 s ticks).
             if self.shares_gil:
                 time.sleep(0)
-            if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
-                self._beat_t = now
-                self.beat()
+            self._beat_due()
         if head is not None:
             self._head = None
             self._refit_start(head)
         return self._result(estimates, messages)
+
+    def _beat_due(self) -> None:
+        """A heartbeat if ``HEARTBEAT_S`` passed since the last: a long call is not a stuck one."""
+        if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
+            self._beat_t = now
+            self.beat()
 
     def _result(self, estimates: list[Estimates], messages: list[OutMessage]) -> BatchResult:
         return BatchResult(
@@ -543,7 +547,9 @@ class BankHost:
         from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc  # noqa: PLC0415
 
         s = self.spec
-        fitted = fitted_start_soc([head], s.cell, s.tuning, self.start_values, soc0=s.soc0)
+        # a cell's fit is ~0.1 s here, a 96-cell pack's seconds more on a gateway's core
+        fitted = fitted_start_soc([head], s.cell, s.tuning, self.start_values, soc0=s.soc0,
+                                  each_cell=self._beat_due)  # fmt: skip
         if fitted is None:
             log.info(
                 "start kept after %.0f s (%s): the first voltage was at rest, relaxed and "
@@ -558,9 +564,7 @@ class BankHost:
         step = 64 * samples_per_tick(head.t_s, s.tuning.id_period_s)
         for start in range(0, len(head), step):
             bank.update_block(head.slice(start, start + step))
-            if (now := time.monotonic()) - self._beat_t >= HEARTBEAT_S:
-                self._beat_t = now
-                self.beat()
+            self._beat_due()
         opened = {"ocv_ir_corrected": "under load"}.get(self.bank.soc_init_method, "relaxing")
         if fitted.h0 is not None and np.any(fitted.h0):  # a rested start whose h the window showed
             opened = f"at rest, hysteresis state {float(np.mean(fitted.h0)):+.2f} (mean)"

@@ -11,7 +11,7 @@ voltage's SOC-h0 line and kept only where it explains the window clearly better 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,10 +54,11 @@ class FittedStart:
 def fitted_start_soc(
     blocks: Iterable[SampleBlock], cell: CellConfig, tuning: EstimatorTuning | None,
     start: StartValues | None, gate: InputGate | None = None,
-    soc0: float | FloatArray | None = None,
+    soc0: float | FloatArray | None = None, each_cell: Callable[[], None] | None = None,
 ) -> FittedStart | None:  # fmt: skip
     """Per cell, the start SOC and branch voltages fitted over the record's first ``WINDOW_S``
-    (through ``gate``, fresh plausibility gates, when given), or None where the first voltage
+    (through ``gate``, fresh plausibility gates, when given; ``each_cell`` called after each
+    cell's fit: the daemon's heartbeat), or None where the first voltage
     is to be trusted or no fit holds (cells without one keep their first voltage's reading).
     A known start SOC (``soc0``: ``--soc0``, the daemon's configured one) is kept as it is
     and only the branches are fitted; a cell config's fixed ``soc0`` is a standing guess, not
@@ -92,7 +93,7 @@ def fitted_start_soc(
     guess = np.full(b.n_cells, soc0, dtype=np.float64) if known else first.cells["soc"][0]
     fit = fit_start_soc(
         b.t_s, b.current_A, b.cell_voltages_V, bank.model, guess, tuning=bank.tuning,
-        soc_known=known, rested=rested,
+        soc_known=known, rested=rested, each_cell=each_cell,
     )  # fmt: skip
     fitted = np.isfinite(fit.soc0)
     start_soc = np.where(fitted, fit.soc0, guess)
