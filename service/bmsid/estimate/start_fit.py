@@ -52,7 +52,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import lfilter
 
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.tuning import EstimatorTuning
@@ -240,6 +239,9 @@ def _branch_states(i_held: FloatArray, dt: FloatArray, taus: FloatArray) -> Floa
     Evenly sampled (the usual record): one IIR filter per time constant (a rested start's
     refined grids made this loop most of a 96-cell pack's start fit)."""
     if dt.shape[0] and np.all(dt == dt[0]):
+        # here, not at the top: the daemon's own process imports WINDOW_S and keeps scipy out
+        from scipy.signal import lfilter  # noqa: PLC0415
+
         u = np.append(i_held, 0.0)  # x_(k+1) = a x_k + (1 - a) i_k as y_n of lfilter
         return np.stack([lfilter([0.0, 1.0 - a], [1.0, -a], u) for a in np.exp(-dt[0] / taus)])
     a = np.exp(-dt[None, :] / taus[:, None])
