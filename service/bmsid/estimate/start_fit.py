@@ -139,16 +139,20 @@ def fit_start_soc(
     dt = np.maximum(np.diff(t), 0.0)
     i_held = np.where(dt > tun.gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
+    grids: dict[tuple[float, ...], _Grid] = {}
+    paths: dict[tuple[float, ...], tuple[FloatArray, FloatArray]] = {}
     for c in range(n):
         if each_cell is not None and c:
             each_cell()
-        lo1, hi1 = (float(b[c]) for b in model.bound("tau1_s"))
-        lo2, hi2 = (float(b[c]) for b in model.bound("tau2_s"))
-        grid = _Grid.of(
-            np.geomspace(lo1, hi1, GRID_POINTS),
-            np.geomspace(lo2, max(min(hi2, 0.5 * window_s), lo2), GRID_POINTS),
-            i_held, dt, t, tun.tau_ratio_min,
-        )  # fmt: skip
+        bounds = tuple(float(b[c]) for name in ("tau1_s", "tau2_s") for b in model.bound(name))
+        if bounds not in grids:  # one current for every cell: a pack's cells share a grid
+            lo1, hi1, lo2, hi2 = bounds
+            grids[bounds] = _Grid.of(
+                np.geomspace(lo1, hi1, GRID_POINTS),
+                np.geomspace(lo2, max(min(hi2, 0.5 * window_s), lo2), GRID_POINTS),
+                i_held, dt, t, tun.tau_ratio_min,
+            )  # fmt: skip
+        grid = grids[bounds]
         z0 = float(soc_guess[c])
         if not np.isfinite(z0):
             continue
@@ -156,8 +160,11 @@ def fit_start_soc(
         q_As = float(model.capacity_As[c])
         if np.count_nonzero(ok) < MIN_SAMPLES or np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
             continue  # a dead tap, a cell that came in late, or too little charge moved
-        h_free = _hysteresis(i_held, dt, model, c)  # h from 0; h0 adds h0 * decay
-        decay = _hysteresis(i_held, dt, model, c, 1.0) - h_free
+        rate = (float(model.gamma[c]), float(model.capacity_As[c]), float(model.efficiency[c]))
+        if rate not in paths:  # h from 0, and what h0 adds: h0 * decay
+            h_free = _hysteresis(i_held, dt, model, c)
+            paths[rate] = h_free, _hysteresis(i_held, dt, model, c, 1.0) - h_free
+        h_free, decay = paths[rate]
         v_rest = float(model.ocv.ocv(np.array([z0]))[0])  # a rested start: OCV(z0) + M h0
         h0, fit, plain = 0.0, None, None
         for _ in range(MAX_ITER):
@@ -312,16 +319,24 @@ def _best_fit(
     """(RMSE V, the extra column's coefficient, c1 V, c2 V, j1, j2) of the best physical (R0, R1,
     R2 > 0) solve over the grid's ``pairs``; ``col`` is dz's (SOC) or h0's, None where SOC is
     known (coefficient 0, not fitted); without ``decays`` the branches start empty (c 0)."""
-    best: tuple[float, float, float, float, int, int] | None = None
-    for j1, j2 in zip(*np.nonzero(g.pairs), strict=True):
-        cols = [minus_i, -g.x1[j1], -g.x2[j2]] + ([] if col is None else [col])
-        A = np.column_stack([*cols, g.d1[j1], g.d2[j2]] if decays else cols)
-        th, *_ = np.linalg.lstsq(A, y, rcond=None)
-        if not (th[0] > 0 and th[1] > 0 and th[2] > 0 and np.all(np.isfinite(th))):
-            continue
-        rmse = float(np.sqrt(np.mean((y - A @ th) ** 2)))
-        if best is None or rmse < best[0]:
-            coef = 0.0 if col is None else float(th[3])
-            c1, c2 = (float(th[-2]), float(th[-1])) if decays else (0.0, 0.0)
-            best = (rmse, coef, c1, c2, int(j1), int(j2))
-    return best
+    j1, j2 = np.nonzero(g.pairs)
+    n_p, n = j1.shape[0], y.shape[0]
+    cols = [np.broadcast_to(minus_i, (n_p, n)), -g.x1[j1], -g.x2[j2]]
+    cols += [] if col is None else [np.broadcast_to(col, (n_p, n))]
+    cols += [g.d1[j1], g.d2[j2]] if decays else []
+    A = np.stack(cols, axis=2)  # every pair's least squares at once: (pairs, samples, columns)
+    try:
+        q, r = np.linalg.qr(A)
+        th = np.linalg.solve(r, np.einsum("pnk,n->pk", q, y)[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # a pair's columns dependent: each by the minimum-norm solve
+        th = np.stack([np.linalg.lstsq(a, y, rcond=None)[0] for a in A])
+    with np.errstate(all="ignore"):  # a near-singular pair's inf: not physical, dropped below
+        rmse = np.sqrt(np.mean((y - np.einsum("pnk,pk->pn", A, th)) ** 2, axis=1))
+    ok = (th[:, 0] > 0) & (th[:, 1] > 0) & (th[:, 2] > 0) & np.isfinite(th).all(axis=1)
+    ok &= np.isfinite(rmse)
+    if not ok.any():
+        return None
+    b = int(np.flatnonzero(ok)[np.argmin(rmse[ok])])  # the first of equal ones, as in pair order
+    coef = 0.0 if col is None else float(th[b, 3])
+    c1, c2 = (float(th[b, -2]), float(th[b, -1])) if decays else (0.0, 0.0)
+    return float(rmse[b]), coef, c1, c2, int(j1[b]), int(j2[b])
