@@ -233,6 +233,9 @@ def test_identify_from_a_rest_after_a_discharge_keeps_soc_and_dc_resistance(
     path = _csv(tmp_path / "rested.csv", run, slice(None))
     res = identify_file(path, IdentifySpec(cell=run.cell, variant="hy-affrls-lpso"))
     assert res.soc_init_method == WINDOW_FIT
+    assert res.start_h is not None and abs(res.start_h[0] + 1.0) < 0.1
+    text = soc_init_text(res)
+    assert "hysteresis state -1.00" in text and "RC branches" not in text, text
     trace = res.trace
     assert trace is not None
     half = slice(trace.n_ticks // 2, None)

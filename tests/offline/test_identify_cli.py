@@ -105,6 +105,7 @@ def test_identify_writes_params_metrics_and_plots(lpso_run: Path) -> None:
         assert sum(b["n_samples"] for b in part["soc_bands"]) == 2400
     assert doc["scoring_soc"]["source"] == "estimator"
     assert doc["soc_init_method"] == "ocv_at_rest"
+    assert doc["start_h"] is None  # a rested start whose window shows no hysteresis state
     # The model is the generator with 1 mV noise: the fusion must track it closely, start-up
     # included.
     assert doc["overall"]["rmse_V"] < 3e-3

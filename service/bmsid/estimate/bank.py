@@ -127,8 +127,11 @@ class EstimatorBank:
             if tun.observer.enabled
             else CoulombState(model, soc0, tun.knee_slope_factor)
         )
+        #: per cell, the hysteresis state a fitted start set (in [-1, 1]); None: 0
+        self.start_h: FloatArray | None = None
         if h0 is not None and soc0 is not None:  # a fitted start's h pairs with its SOC
             self.state.h0 = np.clip(np.broadcast_to(np.nan_to_num(h0), (n,)), -1.0, 1.0)
+            self.start_h = self.state.h0.copy() if np.any(self.state.h0) else None
         self.params: ParameterStage = VARIANT_STAGES[variant](setup)
         #: per cell, the voltage the RC branches started holding (V, their sum); None: empty
         self.start_branch_V: FloatArray | None = None

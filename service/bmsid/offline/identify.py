@@ -244,6 +244,7 @@ def run_blocks(
         input_gates=gate.state.report(),
         summary=scorer,
         start_branch_V=bank.start_branch_V,
+        start_h=bank.start_h,
     )
 
 

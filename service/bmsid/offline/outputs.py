@@ -177,7 +177,7 @@ def soc_init_text(result: IdentifyResult, rest_limit_A: float | None = None) -> 
         "pending": "none: no cell carried a valid voltage",
     }.get(result.soc_init_method, result.soc_init_method)
     b = result.start_branch_V
-    if b is not None:  # under load or relaxing: what the RC branches held at the start
+    if b is not None and np.any(b):  # under load or relaxing: what the RC branches held
         volts = ", ".join(f"{1e3 * u:.1f} mV" for u in b[:4]) + (" ..." if b.size > 4 else "")
         also = (
             ""
@@ -185,6 +185,9 @@ def soc_init_text(result: IdentifyResult, rest_limit_A: float | None = None) -> 
             else f" (fitted over the first {START_WINDOW_S / 60:.0f} min)"
         )
         how += f"; RC branches from {volts}{also}"
+    if (h := result.start_h) is not None:  # at rest after a charge or discharge
+        states = ", ".join(f"{x:+.2f}" for x in h[:4]) + (" ..." if h.size > 4 else "")
+        how += f"; hysteresis state {states} (-1 after a discharge, +1 after a charge)"
     return f"initial SOC {socs}: {how}"
 
 

@@ -410,6 +410,9 @@ class IdentifyResult:
     start_fit_rmse_V : ndarray or None
         Per cell, the RMSE (V) of that start fit over its window (NaN where none held); None:
         no start was fitted.
+    start_h : ndarray or None
+        Per cell, the hysteresis state the bank started at, fitted where the record opened at
+        rest after a charge or discharge (-1 after a discharge); None: 0, the engine's start.
     """
 
     variant: Variant
@@ -424,6 +427,7 @@ class IdentifyResult:
     summary: RunScorer | None = None
     start_branch_V: FloatArray | None = None
     start_fit_rmse_V: FloatArray | None = None
+    start_h: FloatArray | None = None
 
     @property
     def n_ticks(self) -> int:
@@ -630,7 +634,8 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     first ``STARTUP_FRACTION`` of the ticks) and ``after_startup`` (the rest), ``soc_bands``
     (non-empty 10 % SOC bands), ``evaluation_window`` and ``scoring_soc`` (the SOC that decided
     the window and bands); the same per cell under ``cells``; ``start_branch_V`` per cell (V,
-    null for empty branches); ``start_fit_rmse_V`` per cell (V) where the start was fitted.
+    null for empty branches); ``start_fit_rmse_V`` per cell (V) where the start was fitted;
+    ``start_h`` per cell (null: 0, the engine's start).
     """
     scorer = result.scorer(window)
     s = scorer.scores()
@@ -664,6 +669,7 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
         "soc_init_method": result.soc_init_method,
         "start_branch_V": None if b is None else [float(x) for x in b],
         "start_fit_rmse_V": _finite_list(result.start_fit_rmse_V),
+        "start_h": _finite_list(result.start_h),
         "counters": result.counters,
         "cells": cells,
     }
