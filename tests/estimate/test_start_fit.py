@@ -7,11 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bmsid.config.cell import SocInit, load_cell_config
 from bmsid.config.engine import build_bank, ocv_model
+from bmsid.estimate import start_fit
 from bmsid.estimate.start_fit import _branch_states, fit_start_soc
 from bmsid.model.simulator import SimResult, simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
@@ -290,3 +292,15 @@ def test_branch_states_of_an_even_record_are_the_zoh_recursion(
     for k in range(i.shape[0]):
         ref[:, k + 1] = a * ref[:, k] + (1.0 - a) * i[k]
     np.testing.assert_allclose(x, ref, rtol=1e-9, atol=1e-9)
+
+
+def test_the_pairs_solved_in_chunks_give_the_same_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fast record's window holds many samples: its tau pairs are solved a chunk at a time
+    (``SOLVE_BYTES``), with the same result as all at once."""
+    run, block = _rested(0.45, -1.0)
+    whole = fitted_start_soc([block], run.cell, None, None)
+    monkeypatch.setattr(start_fit, "SOLVE_BYTES", 1)  # one pair a solve
+    chunked = fitted_start_soc([block], run.cell, None, None)
+    assert whole is not None and chunked is not None
+    np.testing.assert_allclose(chunked.soc0, whole.soc0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(chunked.h0), np.asarray(whole.h0), rtol=0, atol=1e-12)

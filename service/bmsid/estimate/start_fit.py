@@ -76,6 +76,8 @@ ZOOM_POINTS = 9
 #: starts from 80 % after the cycler's discharge 1.45-2.05 with h0 = -1, the other rested
 #: starts short of it, their h0 anywhere in [-1, 1]).
 H0_GAIN_MIN = math.sqrt(2.0)
+#: Bytes of least-squares columns solved at once (the time-constant pairs in chunks).
+SOLVE_BYTES = 16_000_000
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
 #: Valid voltages a cell needs in the window (ten per column fitted).
@@ -321,17 +323,13 @@ def _best_fit(
     known (coefficient 0, not fitted); without ``decays`` the branches start empty (c 0)."""
     j1, j2 = np.nonzero(g.pairs)
     n_p, n = j1.shape[0], y.shape[0]
-    cols = [np.broadcast_to(minus_i, (n_p, n)), -g.x1[j1], -g.x2[j2]]
-    cols += [] if col is None else [np.broadcast_to(col, (n_p, n))]
-    cols += [g.d1[j1], g.d2[j2]] if decays else []
-    A = np.stack(cols, axis=2)  # every pair's least squares at once: (pairs, samples, columns)
-    try:
-        q, r = np.linalg.qr(A)
-        th = np.linalg.solve(r, np.einsum("pnk,n->pk", q, y)[..., None])[..., 0]
-    except np.linalg.LinAlgError:  # a pair's columns dependent: each by the minimum-norm solve
-        th = np.stack([np.linalg.lstsq(a, y, rcond=None)[0] for a in A])
-    with np.errstate(all="ignore"):  # a near-singular pair's inf: not physical, dropped below
-        rmse = np.sqrt(np.mean((y - np.einsum("pnk,pk->pn", A, th)) ** 2, axis=1))
+    # pairs at once, in chunks of at most SOLVE_BYTES of columns (a 100 Hz record's window:
+    # 120,000 samples, 29 MB a pair)
+    step = max(1, SOLVE_BYTES // (8 * n * (6 if decays else 4)))
+    parts = [_solve_pairs(y, minus_i, col, g, j1[a : a + step], j2[a : a + step], decays)
+             for a in range(0, n_p, step)]  # fmt: skip
+    th = np.concatenate([p[0] for p in parts])
+    rmse = np.concatenate([p[1] for p in parts])
     ok = (th[:, 0] > 0) & (th[:, 1] > 0) & (th[:, 2] > 0) & np.isfinite(th).all(axis=1)
     ok &= np.isfinite(rmse)
     if not ok.any():
@@ -340,3 +338,23 @@ def _best_fit(
     coef = 0.0 if col is None else float(th[b, 3])
     c1, c2 = (float(th[b, -2]), float(th[b, -1])) if decays else (0.0, 0.0)
     return float(rmse[b]), coef, c1, c2, int(j1[b]), int(j2[b])
+
+
+def _solve_pairs(
+    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, g: _Grid,
+    j1: npt.NDArray[np.intp], j2: npt.NDArray[np.intp], decays: bool,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
+    """Each pair's least-squares coefficients (pairs, columns) and RMSE (V): one batched QR."""
+    n_p, n = j1.shape[0], y.shape[0]
+    cols = [np.broadcast_to(minus_i, (n_p, n)), -g.x1[j1], -g.x2[j2]]
+    cols += [] if col is None else [np.broadcast_to(col, (n_p, n))]
+    cols += [g.d1[j1], g.d2[j2]] if decays else []
+    A = np.stack(cols, axis=2)  # (pairs, samples, columns)
+    try:
+        q, r = np.linalg.qr(A)
+        th = np.linalg.solve(r, np.einsum("pnk,n->pk", q, y)[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # a pair's columns dependent: each by the minimum-norm solve
+        th = np.stack([np.linalg.lstsq(a, y, rcond=None)[0] for a in A])
+    with np.errstate(all="ignore"):  # a near-singular pair's inf: not physical, dropped after
+        rmse = np.sqrt(np.mean((y - np.einsum("pnk,pk->pn", A, th)) ** 2, axis=1))
+    return th, rmse
