@@ -304,3 +304,23 @@ def test_the_pairs_solved_in_chunks_give_the_same_start(monkeypatch: pytest.Monk
     assert whole is not None and chunked is not None
     np.testing.assert_allclose(chunked.soc0, whole.soc0, rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(chunked.h0), np.asarray(whole.h0), rtol=0, atol=1e-12)
+
+
+def test_a_cell_whose_window_shows_no_h0_takes_its_packs() -> None:
+    """Cells in series share one history: a cell whose noisy tap (5 mV) hides its h0 takes the
+    median of the others' along its own first voltage's line; where most cells show none, none
+    keeps a fit (the engine's start, as before)."""
+    run = paper_dst_case(soc0=0.7, h0=-1.0, v_noise_V=0.5e-3, r0_spread=np.ones(3))
+    v = run.voltages_V.copy()
+    v[:, 2] += np.random.default_rng(5).normal(0.0, 5e-3, v.shape[0])
+    fit = fitted_start_soc([SampleBlock.from_arrays(run.t_s, run.current_A, v)], run.cell, None,
+                           None)  # fmt: skip
+    assert fit is not None and fit.h0 is not None and fit.rmse_V is not None
+    assert np.isnan(fit.rmse_V[2]) and np.all(np.isfinite(fit.rmse_V[:2]))  # not its own fit
+    np.testing.assert_allclose(fit.h0, -1.0, atol=0.1)
+    assert fit.h0[2] == np.median(fit.h0[:2])
+    np.testing.assert_allclose(fit.soc0[:2], 0.7, atol=0.002)
+    assert abs(fit.soc0[2] - 0.7) < 0.006  # its first voltage read 1.5 points low, +-5 mV
+    v[:, 1] += np.random.default_rng(6).normal(0.0, 5e-3, v.shape[0])  # now two of three
+    block = SampleBlock.from_arrays(run.t_s, run.current_A, v)
+    assert fitted_start_soc([block], run.cell, None, None) is None

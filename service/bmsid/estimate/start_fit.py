@@ -210,7 +210,26 @@ def fit_start_soc(
         if fit is not None and abs(z0 - float(soc_guess[c])) <= MAX_DZ:
             soc0[c], rmse[c], h_start[c] = z0, fit[0], h0
             branch[c] = -fit[2], -fit[3]
+    if rested:
+        _shared_history(model, np.asarray(soc_guess, dtype=np.float64), soc0, h_start, branch)
     return StartFit(soc0, rmse, window_s, branch, h_start)
+
+
+def _shared_history(
+    model: CellModel, guess: FloatArray, soc0: FloatArray, h0: FloatArray, branch: FloatArray
+) -> None:
+    """Cells in series share one current history, so one h0: where most cells with a first
+    voltage fitted theirs, the others take the median along their own first voltage's line;
+    where fewer did, none keeps its fit (the start is the engine's). In place."""
+    read = np.isfinite(guess)
+    fitted = np.isfinite(soc0) & read
+    if 2 * np.count_nonzero(fitted) <= np.count_nonzero(read):
+        soc0[:], h0[:], branch[:] = np.nan, 0.0, np.nan
+        return
+    h = float(np.median(h0[fitted]))
+    for c in np.flatnonzero(read & ~fitted):
+        v_rest = float(model.ocv.ocv(guess[c : c + 1])[0])
+        soc0[c], h0[c], branch[c] = _rested_soc(model, v_rest, h, float(guess[c])), h, 0.0
 
 
 def _refined_fit(
