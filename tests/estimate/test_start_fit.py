@@ -13,8 +13,9 @@ from hypothesis import strategies as st
 
 from bmsid.config.cell import SocInit, load_cell_config
 from bmsid.config.engine import build_bank, ocv_model
-from bmsid.estimate import start_fit
-from bmsid.estimate.start_fit import _branch_states, fit_start_soc
+from bmsid.estimate import tau_grid
+from bmsid.estimate.start_fit import fit_start_soc
+from bmsid.estimate.tau_grid import branch_states
 from bmsid.model.simulator import SimResult, simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_file
@@ -286,7 +287,7 @@ def test_branch_states_of_an_even_record_are_the_zoh_recursion(
     """The filter an evenly sampled record takes is Eq. 8's recursion, to rounding."""
     i, tau = np.array(current), np.array(taus)
     dt = np.full(i.shape[0], dt_s)
-    x = _branch_states(i, dt, tau)
+    x = branch_states(i, dt, tau)
     a = np.exp(-dt_s / tau)
     ref = np.zeros((tau.shape[0], i.shape[0] + 1))
     for k in range(i.shape[0]):
@@ -299,7 +300,7 @@ def test_the_pairs_solved_in_chunks_give_the_same_start(monkeypatch: pytest.Monk
     (``SOLVE_BYTES``), with the same result as all at once."""
     run, block = _rested(0.45, -1.0)
     whole = fitted_start_soc([block], run.cell, None, None)
-    monkeypatch.setattr(start_fit, "SOLVE_BYTES", 1)  # one pair a solve
+    monkeypatch.setattr(tau_grid, "SOLVE_BYTES", 1)  # one pair a solve
     chunked = fitted_start_soc([block], run.cell, None, None)
     assert whole is not None and chunked is not None
     np.testing.assert_allclose(chunked.soc0, whole.soc0, rtol=0, atol=1e-12)

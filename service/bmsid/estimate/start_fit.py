@@ -17,9 +17,9 @@ linearised in dz is
 (z_k coulomb-counted from z0 (Eq. 2), h_k by Eq. 5-6 from 0, x_j the unit-gain ZOH branch
 states of Eq. 8, c_j the branch voltages at the window start), linear in (R0, R1, R2, dz, c1,
 c2) for fixed time constants: a grid over (tau1, tau2) and a least-squares solve for each, the
-best kept, re-linearised until dz settles. The relaxation and the load are explained by the
-branches; what they cannot explain, a level that follows the OCV slope, is SOC. Where SOC is
-known (given by the user) the dz column is left out. Pure numpy.
+best kept (``tau_grid.py``), re-linearised until dz settles. The relaxation and the load are
+explained by the branches; what they cannot explain, a level that follows the OCV slope, is SOC.
+Where SOC is known (given by the user) the dz column is left out. Pure numpy.
 
 The engine starts its branches at the fitted ``-c_j`` (``EstimatorBank(branch0_V=...)``), not
 empty: a bank that meets a loaded first voltage with empty branches reads their voltage as a
@@ -49,11 +49,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.tau_grid import Fit, TauGrid, best_fit, refined_fit
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.ecm import hysteresis_kappa, hysteresis_step
 
@@ -67,17 +69,12 @@ WINDOW_S = 1200.0
 #: flat in log tau); the slow branch at most half the window: a slower one is a level there,
 #: which the SOC column is too (at 45 C BJDST it took tau2 = 2,151 s and 2.4 SOC points).
 GRID_POINTS = 10
-#: Points of each time constant's finer grid between the best point's neighbours (odd: the
-#: best point itself is one of them).
-ZOOM_POINTS = 9
 #: A rested start's fitted h0 is kept only where the window's RMSE with h = 0 is this many
 #: times the fit's: the start state explains at least as much of the misfit as the fit
 #: leaves (known-truth DST, h0 = +-1: 1.56-7.7, 0: 1.00; CALCE NMC, half-gap 3-5 mV: the 45 C
 #: starts from 80 % after the cycler's discharge 1.45-2.05 with h0 = -1, the other rested
 #: starts short of it, their h0 anywhere in [-1, 1]).
 H0_GAIN_MIN = math.sqrt(2.0)
-#: Bytes of least-squares columns solved at once (the time-constant pairs in chunks).
-SOLVE_BYTES = 16_000_000
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
 #: Valid voltages a cell needs in the window (ten per column fitted).
@@ -141,7 +138,7 @@ def fit_start_soc(
     dt = np.maximum(np.diff(t), 0.0)
     i_held = np.where(dt > tun.gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
-    grids: dict[tuple[float, ...], _Grid] = {}
+    grids: dict[tuple[float, ...], TauGrid] = {}
     paths: dict[tuple[float, ...], tuple[FloatArray, FloatArray]] = {}
     for c in range(n):
         if each_cell is not None and c:
@@ -149,7 +146,7 @@ def fit_start_soc(
         bounds = tuple(float(b[c]) for name in ("tau1_s", "tau2_s") for b in model.bound(name))
         if bounds not in grids:  # one current for every cell: a pack's cells share a grid
             lo1, hi1, lo2, hi2 = bounds
-            grids[bounds] = _Grid.of(
+            grids[bounds] = TauGrid.of(
                 np.geomspace(lo1, hi1, GRID_POINTS),
                 np.geomspace(lo2, max(min(hi2, 0.5 * window_s), lo2), GRID_POINTS),
                 i_held, dt, t, tun.tau_ratio_min,
@@ -167,49 +164,15 @@ def fit_start_soc(
             h_free = _hysteresis(i_held, dt, model, c)
             paths[rate] = h_free, _hysteresis(i_held, dt, model, c, 1.0) - h_free
         h_free, decay = paths[rate]
-        v_rest = float(model.ocv.ocv(np.array([z0]))[0])  # a rested start: OCV(z0) + M h0
-        h0, fit, plain = 0.0, None, None
-        for _ in range(MAX_ITER):
-            z = z0 - charge_As / q_As
-            zc, _ = model.ocv.clamp(z)
-            m = model.ocv.hysteresis_M(zc)
-            y = v[:, c] - model.ocv.ocv(zc) - m * (h_free + h0 * decay)
-            slope = model.ocv.docv_dz(zc)
-            if soc_known:
-                col = None
-            elif rested:  # along the start's family: dz0/dh0 = -M / OCV' at the first sample
-                col = (m * decay - slope * m[0] / slope[0])[ok]
-            else:
-                col = slope[ok]
-            if not rested:
-                fit = _best_fit(y[ok], -i[ok], col, grid.at(ok))
-            else:  # refined: h0 takes up what the coarse grid's step leaves (-0.5 for 0);
-                # relaxed, so the branches start empty (no decay columns: fewer to trade with h0)
-                args = (grid, ok, i_held, dt, t, tun.tau_ratio_min, False)
-                fit = _refined_fit(y[ok], -i[ok], col, *args)
-                if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
-                    plain = _refined_fit(y[ok], -i[ok], None, *args) or (math.nan,)
-            if fit is None:
-                break
-            if rested:
-                step = float(np.clip(h0 + fit[1], -1.0, 1.0)) - h0
-                h0 += step
-                z0 = _rested_soc(model, v_rest, h0, z0)
-            else:
-                if abs(fit[1]) > MAX_DZ:
-                    fit = None
-                    break
-                step = fit[1]
-                z0 += step
-            if abs(step) < 1e-4:
-                break
-        # h0 explains too little of the window: the model's error, not h (where h = 0 has no
-        # physical fit at all, NaN, h0 is kept: LFP after a discharge, its curve flat)
-        if rested and fit is not None and plain is not None and plain[0] < H0_GAIN_MIN * fit[0]:
-            fit = None
-        if fit is not None and abs(z0 - float(soc_guess[c])) <= MAX_DZ:
-            soc0[c], rmse[c], h_start[c] = z0, fit[0], h0
-            branch[c] = -fit[2], -fit[3]
+        cell = _CellWindow(v[:, c], ok, i, charge_As / q_As, h_free, decay)
+        if rested:
+            args = (grid, ok, i_held, dt, t, tun.tau_ratio_min, False)
+            res = _fit_h0(model, cell, z0, args)
+        else:
+            res = _fit_dz(model, cell, z0, grid.at(ok), soc_known)
+        if res is not None and abs(res[0] - float(soc_guess[c])) <= MAX_DZ:
+            soc0[c], h_start[c], fit = res
+            rmse[c], branch[c] = fit[0], (-fit[2], -fit[3])
     if rested:
         _shared_history(model, np.asarray(soc_guess, dtype=np.float64), soc0, h_start, branch)
     return StartFit(soc0, rmse, window_s, branch, h_start)
@@ -232,17 +195,72 @@ def _shared_history(
         soc0[c], h0[c], branch[c] = _rested_soc(model, v_rest, h, float(guess[c])), h, 0.0
 
 
-def _refined_fit(
-    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, grid: _Grid,
-    ok: npt.NDArray[np.bool_], i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float,
-    decays: bool = True,
-) -> tuple[float, float, float, float, int, int] | None:  # fmt: skip
-    """``_best_fit`` over the grid, then over a finer one between its best point's neighbours."""
-    fit = _best_fit(y, minus_i, col, grid.at(ok), decays)
-    if fit is None:
+@dataclass(frozen=True)
+class _CellWindow:
+    """One cell's window: its voltages (V), the samples fitted, the held current (A), the
+    charge counted from the start (fraction of its capacity), and h from 0 with what h0 adds
+    (``h_free + h0 decay``, Eq. 5-6)."""
+
+    v_V: FloatArray
+    ok: npt.NDArray[np.bool_]
+    current_A: FloatArray
+    charge: FloatArray
+    h_free: FloatArray
+    decay: FloatArray
+
+    def residual(self, model: CellModel, z0: float, h0: float) -> tuple[FloatArray, ...]:
+        """Eq. 9's left side ``v - OCV(z) - M(z) h`` from (z0, h0), M(z) and OCV'(z)."""
+        zc, _ = model.ocv.clamp(z0 - self.charge)
+        m = model.ocv.hysteresis_M(zc)
+        y = self.v_V - model.ocv.ocv(zc) - m * (self.h_free + h0 * self.decay)
+        return y, m, model.ocv.docv_dz(zc)
+
+
+def _fit_dz(
+    model: CellModel, w: _CellWindow, z0: float, grid: TauGrid, soc_known: bool
+) -> tuple[float, float, Fit] | None:
+    """(z0, 0, fit) of a loaded or relaxing start: dz re-linearised until it settles (none
+    where SOC is known: the branches only)."""
+    fit = None
+    for _ in range(MAX_ITER):
+        y, _, slope = w.residual(model, z0, 0.0)
+        col = None if soc_known else slope[w.ok]
+        fit = best_fit(y[w.ok], -w.current_A[w.ok], col, grid)
+        if fit is None or abs(fit[1]) > MAX_DZ:
+            return None
+        z0 += fit[1]
+        if abs(fit[1]) < 1e-4:
+            break
+    return None if fit is None else (z0, 0.0, fit)
+
+
+def _fit_h0(
+    model: CellModel, w: _CellWindow, z0: float, args: tuple[Any, ...]
+) -> tuple[float, float, Fit] | None:
+    """(z0, h0, fit) of a rested start: h0 along the first voltage's line (module docstring),
+    on refined grids (h0 takes up what the coarse grid's step leaves: -0.5 for 0), the branches
+    empty (relaxed: no decay columns, fewer to trade with h0; ``args`` ends in False). None
+    where h0 explains too little: the window's RMSE with h = 0 under ``H0_GAIN_MIN`` x the
+    fit's (the model's error, not h), unless h = 0 has no physical fit at all (LFP after a
+    discharge, its curve flat)."""
+    v_rest = float(model.ocv.ocv(np.array([z0]))[0])  # OCV(z0) + M h0 at the first sample
+    h0, fit, plain = 0.0, None, None
+    for _ in range(MAX_ITER):
+        y, m, slope = w.residual(model, z0, h0)
+        col = (m * w.decay - slope * m[0] / slope[0])[w.ok]  # dz0/dh0 = -M / OCV'
+        fit = refined_fit(y[w.ok], -w.current_A[w.ok], col, *args)
+        if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
+            plain = refined_fit(y[w.ok], -w.current_A[w.ok], None, *args) or (math.nan,)
+        if fit is None:
+            return None
+        step = float(np.clip(h0 + fit[1], -1.0, 1.0)) - h0
+        h0 += step
+        z0 = _rested_soc(model, v_rest, h0, z0)
+        if abs(step) < 1e-4:
+            break
+    if fit is None or plain is None or plain[0] < H0_GAIN_MIN * fit[0]:
         return None
-    fine = grid.around(fit[4], fit[5], i_held, dt, t, ratio)
-    return min(fit, _best_fit(y, minus_i, col, fine.at(ok), decays) or fit)
+    return z0, h0, fit
 
 
 def _rested_soc(model: CellModel, v_rest_V: float, h0: float, z0: float) -> float:
@@ -262,23 +280,6 @@ def _held(current_A: FloatArray) -> FloatArray:
     return np.where(last >= 0, current_A[np.maximum(last, 0)], 0.0)
 
 
-def _branch_states(i_held: FloatArray, dt: FloatArray, taus: FloatArray) -> FloatArray:
-    """Unit-gain ZOH branch states (Eq. 8) for each time constant: (taus, samples), from 0.
-    Evenly sampled (the usual record): one IIR filter per time constant (a rested start's
-    refined grids made this loop most of a 96-cell pack's start fit)."""
-    if dt.shape[0] and np.all(dt == dt[0]):
-        # here, not at the top: the daemon's own process imports WINDOW_S and keeps scipy out
-        from scipy.signal import lfilter  # noqa: PLC0415
-
-        u = np.append(i_held, 0.0)  # x_(k+1) = a x_k + (1 - a) i_k as y_n of lfilter
-        return np.stack([lfilter([0.0, 1.0 - a], [1.0, -a], u) for a in np.exp(-dt[0] / taus)])
-    a = np.exp(-dt[None, :] / taus[:, None])
-    x = np.zeros((taus.shape[0], dt.shape[0] + 1))
-    for k in range(dt.shape[0]):
-        x[:, k + 1] = a[:, k] * x[:, k] + (1.0 - a[:, k]) * i_held[k]
-    return x
-
-
 def _hysteresis(
     i_held: FloatArray, dt: FloatArray, model: CellModel, c: int, h0: float = 0.0
 ) -> FloatArray:
@@ -288,92 +289,3 @@ def _hysteresis(
     for k in range(dt.shape[0]):
         h[k + 1] = float(hysteresis_step(h[k], i_held[k], dt[k], kappa[k]))
     return h
-
-
-@dataclass(frozen=True)
-class _Grid:
-    """A grid of time constants (s) and the branch columns over the window: unit-gain ZOH
-    states ``x`` (taus, samples) and start decays ``d``; ``pairs`` keeps tau2 >= ratio tau1."""
-
-    tau1: FloatArray
-    tau2: FloatArray
-    x1: FloatArray
-    x2: FloatArray
-    d1: FloatArray
-    d2: FloatArray
-    pairs: npt.NDArray[np.bool_]
-
-    @classmethod
-    def of(
-        cls, tau1: FloatArray, tau2: FloatArray, i_held: FloatArray, dt: FloatArray,
-        t: FloatArray, ratio: float,
-    ) -> _Grid:  # fmt: skip
-        since = (t - t[0])[None, :]
-        return cls(
-            tau1, tau2, _branch_states(i_held, dt, tau1), _branch_states(i_held, dt, tau2),
-            np.exp(-since / tau1[:, None]), np.exp(-since / tau2[:, None]),
-            tau2[None, :] >= ratio * tau1[:, None],
-        )  # fmt: skip
-
-    def at(self, ok: npt.NDArray[np.bool_]) -> _Grid:
-        """The columns at the samples ``ok``."""
-        return _Grid(self.tau1, self.tau2, self.x1[:, ok], self.x2[:, ok], self.d1[:, ok],
-                     self.d2[:, ok], self.pairs)  # fmt: skip
-
-    def around(
-        self, j1: int, j2: int, i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float
-    ) -> _Grid:
-        """A finer grid between the neighbours of the point (j1, j2): on the paper cell the
-        coarse grid's step let a rested start's h0 take up its misfit (-0.5 for 0). Not for
-        the loaded starts: entered mid-DST at 1,500 s it split the branches' 27.5 mV as
-        23.8 (the coarse grid: within 2 mV)."""
-
-        def between(tau: FloatArray, j: int) -> FloatArray:
-            return np.geomspace(tau[max(j - 1, 0)], tau[min(j + 1, tau.shape[0] - 1)], ZOOM_POINTS)
-
-        return _Grid.of(between(self.tau1, j1), between(self.tau2, j2), i_held, dt, t, ratio)
-
-
-def _best_fit(
-    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, g: _Grid, decays: bool = True
-) -> tuple[float, float, float, float, int, int] | None:
-    """(RMSE V, the extra column's coefficient, c1 V, c2 V, j1, j2) of the best physical (R0, R1,
-    R2 > 0) solve over the grid's ``pairs``; ``col`` is dz's (SOC) or h0's, None where SOC is
-    known (coefficient 0, not fitted); without ``decays`` the branches start empty (c 0)."""
-    j1, j2 = np.nonzero(g.pairs)
-    n_p, n = j1.shape[0], y.shape[0]
-    # pairs at once, in chunks of at most SOLVE_BYTES of columns (a 100 Hz record's window:
-    # 120,000 samples, 29 MB a pair)
-    step = max(1, SOLVE_BYTES // (8 * n * (6 if decays else 4)))
-    parts = [_solve_pairs(y, minus_i, col, g, j1[a : a + step], j2[a : a + step], decays)
-             for a in range(0, n_p, step)]  # fmt: skip
-    th = np.concatenate([p[0] for p in parts])
-    rmse = np.concatenate([p[1] for p in parts])
-    ok = (th[:, 0] > 0) & (th[:, 1] > 0) & (th[:, 2] > 0) & np.isfinite(th).all(axis=1)
-    ok &= np.isfinite(rmse)
-    if not ok.any():
-        return None
-    b = int(np.flatnonzero(ok)[np.argmin(rmse[ok])])  # the first of equal ones, as in pair order
-    coef = 0.0 if col is None else float(th[b, 3])
-    c1, c2 = (float(th[b, -2]), float(th[b, -1])) if decays else (0.0, 0.0)
-    return float(rmse[b]), coef, c1, c2, int(j1[b]), int(j2[b])
-
-
-def _solve_pairs(
-    y: FloatArray, minus_i: FloatArray, col: FloatArray | None, g: _Grid,
-    j1: npt.NDArray[np.intp], j2: npt.NDArray[np.intp], decays: bool,
-) -> tuple[FloatArray, FloatArray]:  # fmt: skip
-    """Each pair's least-squares coefficients (pairs, columns) and RMSE (V): one batched QR."""
-    n_p, n = j1.shape[0], y.shape[0]
-    cols = [np.broadcast_to(minus_i, (n_p, n)), -g.x1[j1], -g.x2[j2]]
-    cols += [] if col is None else [np.broadcast_to(col, (n_p, n))]
-    cols += [g.d1[j1], g.d2[j2]] if decays else []
-    A = np.stack(cols, axis=2)  # (pairs, samples, columns)
-    try:
-        q, r = np.linalg.qr(A)
-        th = np.linalg.solve(r, np.einsum("pnk,n->pk", q, y)[..., None])[..., 0]
-    except np.linalg.LinAlgError:  # a pair's columns dependent: each by the minimum-norm solve
-        th = np.stack([np.linalg.lstsq(a, y, rcond=None)[0] for a in A])
-    with np.errstate(all="ignore"):  # a near-singular pair's inf: not physical, dropped after
-        rmse = np.sqrt(np.mean((y - np.einsum("pnk,pk->pn", A, th)) ** 2, axis=1))
-    return th, rmse
