@@ -3,6 +3,7 @@ under load or still relaxing, which the first voltage misreads)."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -325,3 +326,18 @@ def test_a_cell_whose_window_shows_no_h0_takes_its_packs() -> None:
     v[:, 1] += np.random.default_rng(6).normal(0.0, 5e-3, v.shape[0])  # now two of three
     block = SampleBlock.from_arrays(run.t_s, run.current_A, v)
     assert fitted_start_soc([block], run.cell, None, None) is None
+
+
+def test_a_flat_point_of_the_curve_gets_no_h0_fit_and_no_warning(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Where the OCV's slope at the start is 0 (a table's flat point) the first voltage's line
+    has no SOC direction: no fit, quietly (no division by zero)."""
+    run, _ = _rested(0.7, -1.0)
+    model = build_bank(run.cell, 1, "hy-affrls").model
+    monkeypatch.setattr(type(model.ocv), "docv_dz", lambda self, z: np.zeros_like(z))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = fit_start_soc(run.t_s, run.current_A, run.voltages_V, model, np.array([0.69]),
+                            rested=True)  # fmt: skip
+    assert np.isnan(fit.soc0).all() and fit.h0[0] == 0.0

@@ -247,6 +247,8 @@ def _fit_h0(
     h0, fit, plain = 0.0, None, None
     for _ in range(MAX_ITER):
         y, m, slope = w.residual(model, z0, h0)
+        if not (math.isfinite(slope[0]) and slope[0] != 0.0):
+            return None  # a flat point of the curve (a PCHIP table's extremum): no SOC line
         col = (m * w.decay - slope * m[0] / slope[0])[w.ok]  # dz0/dh0 = -M / OCV'
         fit = refined_fit(y[w.ok], -w.current_A[w.ok], col, *args)
         if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
