@@ -169,3 +169,19 @@ def test_a_fast_bus_keeps_the_first_voltage_start_and_says_so(
     assert all(g is None for g in got)
     assert not head.open and not head.blocks
     assert "start SOC not refitted" in caplog.text
+
+
+def test_the_head_after_a_long_rest_spans_the_window_from_the_load() -> None:
+    """A gateway that boots on a parked car: it keeps the rest and closes its head 20 min after
+    the load (from a minute before it), not after 20 min of rest that show nothing."""
+    t = np.arange(3 * 3600, dtype=np.float64)
+    i = np.where(t < 7200.0, 0.1, 30.0)  # 0.1 A of auxiliary load: within the rest limit
+    block = SampleBlock.from_arrays(t, i, np.full((t.shape[0], 1), 3.7))
+    head = StartHead(rest_limit_A=0.7)
+    got = [head.add(block.slice(a, a + 100)) for a in range(0, len(block), 100)]
+    done = [g for g in got if g is not None]
+    assert len(done) == 1 and not head.open
+    assert done[0].t_s[-1] == pytest.approx(7200.0 - 60.0 + WINDOW_S, abs=100.0)
+    quick = StartHead(rest_limit_A=0.7)  # a load within the first 10 min: the first 20 min
+    got = [quick.add(block.slice(a, a + 100)) for a in range(6600, len(block), 100)]
+    assert next(g for g in got if g is not None).t_s[-1] == pytest.approx(6600 + WINDOW_S, abs=100)

@@ -21,7 +21,7 @@ from bmsid.model.simulator import SimResult, simulate
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_file
 from bmsid.offline.outputs import soc_init_text
-from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc
+from bmsid.offline.start_soc import WINDOW_FIT, fitted_start_soc, start_head
 from bmsid.profiles import dst_current
 from bmsid.samples import SampleBlock
 from bmsid.synthetic import TRUTH, SyntheticRun, paper_dst_case
@@ -341,3 +341,31 @@ def test_a_flat_point_of_the_curve_gets_no_h0_fit_and_no_warning(
         fit = fit_start_soc(run.t_s, run.current_A, run.voltages_V, model, np.array([0.69]),
                             rested=True)  # fmt: skip
     assert np.isnan(fit.soc0).all() and fit.h0[0] == 0.0
+
+
+def _after_a_rest(rest_s: int, soc0: float, h0: float) -> tuple[FloatArray, FloatArray, SimResult]:
+    """The paper cell's DST after ``rest_s`` of rest (1 s samples; 0.5 mV, 50 mA noise)."""
+    cell = paper_dst_case(10).cell
+    t = np.arange(rest_s + 3000, dtype=np.float64)
+    i = np.where(t < rest_s, 0.0, dst_current(t - rest_s, 140.0))
+    truth = {k: TRUTH[k] for k in ("R0_ohm", "R1_ohm", "tau1_s", "R2_ohm", "tau2_s")}
+    sim = simulate(t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah,
+                   gamma=cell.hysteresis.gamma, soc0=soc0, h0=h0, **truth)  # fmt: skip
+    rng = np.random.default_rng(3)
+    return t, i + rng.normal(0.0, 0.05, t.shape[0]), sim
+
+
+def test_a_long_rest_first_moves_the_window_to_the_load() -> None:
+    """A car parked for half an hour, then driven (the 3-day records open so): the first 20 min
+    are all rest and showed nothing; the window now starts a minute before the load, and h0
+    and SOC come out as at once (h0 = -1 after a discharge: SOC within 0.2 point)."""
+    cell = paper_dst_case(10).cell
+    for rest_s in (0, 1800, 5 * 3600):
+        t, i, sim = _after_a_rest(rest_s, 0.7, -1.0)
+        v = sim.v_V.T + np.random.default_rng(4).normal(0.0, 0.5e-3, (t.shape[0], 1))
+        block = SampleBlock.from_arrays(t, i, v)
+        head = start_head([block.slice(a, a + 600) for a in range(0, len(block), 600)], 0.7)
+        assert head is not None and head.t_s[-1] >= rest_s - 60 + 1200 - 1, rest_s
+        fit = fitted_start_soc([block], cell, None, None)
+        assert fit is not None and fit.h0 is not None, rest_s
+        assert abs(fit.h0[0] + 1.0) < 0.1 and abs(fit.soc0[0] - 0.7) < 0.002, (rest_s, fit)

@@ -298,7 +298,8 @@ class BankHost:
         self._probing = self.spec.cell.initial is None or self.spec.cell.bounds is None
         # a fresh start: its first window refits it (the SOC too, unless configured)
         if self.spec.soc0 is not None or self.spec.cell.soc_init.policy == "ocv_at_rest":
-            self._head = StartHead()
+            cell = self.spec.cell
+            self._head = StartHead(cell.soc_init.rest_current_C * cell.capacity_Ah)
         self.counters["start_refits"] = 0
         self._lone = LoneCellWatch(self.spec.n_cells)
 

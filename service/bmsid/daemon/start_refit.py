@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from bmsid.estimate.start_fit import WINDOW_S
+from bmsid.estimate.start_fit import MAX_LEADING_REST_S, WINDOW_S, first_load_s, window_start
 from bmsid.samples import SampleBlock
 
 log = logging.getLogger(__name__)
@@ -34,21 +34,31 @@ MAX_HEAD_CELL_SAMPLES = 4_000_000
 
 @dataclass
 class StartHead:
-    """The samples a fresh bank was fed, until they span ``WINDOW_S`` (see the module doc)."""
+    """The samples a fresh bank was fed, until they span its start window (see the module doc;
+    after a leading rest longer than half of ``WINDOW_S``, ``WINDOW_S`` from just before the
+    load: ``start_fit.window_start``)."""
 
+    #: the rest limit, A (|I| at most this is rest: the cell's soc_init.rest_current_C x Ah)
+    rest_limit_A: float = 0.0
     blocks: list[SampleBlock] = field(default_factory=list)
     cell_samples: int = 0
     #: False once the window is complete or given up: nothing more is kept
     open: bool = True
+    #: when the first load came, s (None: not yet)
+    load_s: float | None = None
 
     def add(self, block: SampleBlock) -> SampleBlock | None:
-        """Keep ``block``; the whole head once the kept samples span ``WINDOW_S``, else None."""
+        """Keep ``block``; the whole head once the kept samples span the window, else None."""
         if not self.open or not len(block):
             return None
         self.blocks.append(block)
         self.cell_samples += len(block) * block.n_cells
-        span = float(block.t_s[-1] - self.blocks[0].t_s[0])
-        if span >= WINDOW_S:
+        if self.load_s is None:
+            self.load_s = first_load_s(block.t_s, block.current_A, self.rest_limit_A)
+        first, last = float(self.blocks[0].t_s[0]), float(block.t_s[-1])
+        span = last - first
+        start = window_start(first, self.load_s, last)
+        if last >= (first + MAX_LEADING_REST_S if start is None else start) + WINDOW_S:
             self.open = False
             head = SampleBlock.concat(self.blocks)
             self.blocks = []

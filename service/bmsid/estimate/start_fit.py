@@ -75,6 +75,13 @@ GRID_POINTS = 10
 #: starts from 80 % after the cycler's discharge 1.45-2.05 with h0 = -1, the other rested
 #: starts short of it, their h0 anywhere in [-1, 1]).
 H0_GAIN_MIN = math.sqrt(2.0)
+#: A rested record whose load starts later than this into the window (fraction of it) is fitted
+#: from ``LEAD_S`` before the load instead (a car parked, then driven: its first 20 min all rest).
+LATE_LOAD = 0.5
+#: Rest kept before the load in a window moved to it, s.
+LEAD_S = 60.0
+#: Longest leading rest read for a window after it, s (a night parked).
+MAX_LEADING_REST_S = 12 * 3600.0
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
 #: Valid voltages a cell needs in the window (ten per column fitted).
@@ -123,12 +130,23 @@ def fit_start_soc(
     beside dz was tried: 1.4; under load the two columns are nearly one)."""
     tun = tuning or EstimatorTuning()
     t = np.asarray(t_s, dtype=np.float64)
-    keep = t <= t[0] + window_s
+    guess = np.asarray(soc_guess, dtype=np.float64)
+    start = t[0]
+    if rested:  # a long rest first: the window from just before the load
+        rest_A = float(np.min(model.soc_start.rest_current_C * model.capacity_Ah))
+        load = first_load_s(t, np.asarray(current_A, dtype=np.float64), rest_A)
+        start = window_start(float(t[0]), load, float(t[-1]), window_s) or float(t[0])
+    keep = t <= start + window_s
     i_raw = np.asarray(current_A, dtype=np.float64)[keep]
     t, i = t[keep], _held(i_raw)
     i_read = np.isfinite(i_raw)  # a sample without its current has no R0 term: not fitted
     v = np.asarray(voltages_V, dtype=np.float64).reshape(keep.shape[0], -1)[keep]
     n = v.shape[1]
+    # the charge the rest before the window moved (A s; its small currents), which SOC keeps
+    dt_all = np.maximum(np.diff(t), 0.0)
+    w0 = int(np.searchsorted(t, start))
+    before_As = float(np.sum((np.where(dt_all > tun.gap_s, 0.0, i[:-1]) * dt_all)[:w0]))
+    t, i, i_read, v = t[w0:], i[w0:], i_read[w0:], v[w0:]
     soc0 = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
     branch = np.full((n, 2), np.nan)
@@ -152,11 +170,11 @@ def fit_start_soc(
                 i_held, dt, t, tun.tau_ratio_min,
             )  # fmt: skip
         grid = grids[bounds]
-        z0 = float(soc_guess[c])
+        q_As = float(model.capacity_As[c])
+        z0 = float(guess[c]) - before_As / q_As  # at the window's start
         if not np.isfinite(z0):
             continue
         ok = np.isfinite(v[:, c]) & i_read
-        q_As = float(model.capacity_As[c])
         if np.count_nonzero(ok) < MIN_SAMPLES or np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
             continue  # a dead tap, a cell that came in late, or too little charge moved
         rate = (float(model.gamma[c]), float(model.capacity_As[c]), float(model.efficiency[c]))
@@ -170,12 +188,31 @@ def fit_start_soc(
             res = _fit_h0(model, cell, z0, args)
         else:
             res = _fit_dz(model, cell, z0, grid.at(ok), soc_known)
-        if res is not None and abs(res[0] - float(soc_guess[c])) <= MAX_DZ:
-            soc0[c], h_start[c], fit = res
+        if res is not None and abs(res[0] + before_As / q_As - float(guess[c])) <= MAX_DZ:
+            soc0[c], h_start[c], fit = res[0] + before_As / q_As, res[1], res[2]
             rmse[c], branch[c] = fit[0], (-fit[2], -fit[3])
     if rested:
-        _shared_history(model, np.asarray(soc_guess, dtype=np.float64), soc0, h_start, branch)
+        _shared_history(model, guess, soc0, h_start, branch)
     return StartFit(soc0, rmse, window_s, branch, h_start)
+
+
+def first_load_s(t_s: FloatArray, current_A: FloatArray, rest_limit_A: float) -> float | None:
+    """Time (s) of the first sample whose |current| exceeds ``rest_limit_A`` (A; NaN: rest),
+    None if none does."""
+    busy = np.flatnonzero(np.abs(np.nan_to_num(current_A)) > rest_limit_A)
+    return float(t_s[busy[0]]) if busy.size else None
+
+
+def window_start(
+    first_s: float, load_s: float | None, last_s: float, window_s: float = WINDOW_S
+) -> float | None:
+    """Where the fitted window starts (s), for samples from ``first_s`` to ``last_s`` whose load
+    starts at ``load_s`` (None: not yet): the first sample, unless the record rests for more
+    than ``LATE_LOAD`` of the window first: then ``LEAD_S`` before the load. None while the
+    rest so far is longer than that and no load has come."""
+    if load_s is not None:
+        return first_s if load_s - first_s <= LATE_LOAD * window_s else load_s - LEAD_S
+    return first_s if last_s - first_s <= LATE_LOAD * window_s else None
 
 
 def _shared_history(

@@ -19,11 +19,17 @@ import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank
-from bmsid.estimate.start_fit import WINDOW_S, fit_start_soc
+from bmsid.estimate.start_fit import (
+    MAX_LEADING_REST_S,
+    WINDOW_S,
+    first_load_s,
+    fit_start_soc,
+    window_start,
+)
 from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.state import starts_at_rest
 from bmsid.estimate.tuning import EstimatorTuning
-from bmsid.gates import InputGate, gated_head
+from bmsid.gates import InputGate
 from bmsid.offline.plausibility import check_start_relaxation
 from bmsid.samples import SampleBlock
 
@@ -72,7 +78,7 @@ def fitted_start_soc(
     si = cell.soc_init
     if soc0 is None and si.policy != "ocv_at_rest":
         return None
-    b = gated_head(blocks, WINDOW_S, gate)
+    b = start_head(blocks, cell.soc_init.rest_current_C * cell.capacity_Ah, gate)
     if b is None:
         return None
     bank = build_bank(cell, b.n_cells, "hy-affrls", tuning, soc0=soc0, start=start)
@@ -105,3 +111,25 @@ def fitted_start_soc(
         start_soc, np.where(fitted[:, None], fit.branch_V, 0.0), not known,
         np.where(fitted, fit.rmse_V, np.nan), np.where(fitted, fit.h0, 0.0),
     )  # fmt: skip
+
+
+def start_head(
+    blocks: Iterable[SampleBlock], rest_limit_A: float, gate: InputGate | None = None
+) -> SampleBlock | None:
+    """The record's samples up to the end of its start window (through ``gate``, fresh gates,
+    when given): its first ``WINDOW_S``, or ``WINDOW_S`` from just before the load where a rest
+    longer than half of that comes first (``start_fit.window_start``; at most
+    ``MAX_LEADING_REST_S`` of it read). None for a record without blocks."""
+    head: list[SampleBlock] = []
+    load: float | None = None
+    for block in blocks:
+        head.append(block if gate is None else gate.apply(block))
+        if not len(block):
+            continue
+        if load is None:
+            load = first_load_s(head[-1].t_s, head[-1].current_A, rest_limit_A)
+        first, last = next(float(h.t_s[0]) for h in head if len(h)), float(block.t_s[-1])
+        start = window_start(first, load, last)
+        if last >= (first + MAX_LEADING_REST_S if start is None else start) + WINDOW_S:
+            break
+    return SampleBlock.concat(head) if head else None
