@@ -66,7 +66,8 @@ class StartHead:
         if self.cell_samples > MAX_HEAD_CELL_SAMPLES:
             log.warning(
                 "start SOC not refitted: %d cell-samples in the first %.0f s are more than the "
-                "%d kept for it (a fast bus); SOC goes on from the first voltage and the observer",
+                "%d kept for it (a fast bus, or a long rest before the load); SOC goes on from "
+                "the first voltage and the observer",
                 self.cell_samples, span, MAX_HEAD_CELL_SAMPLES,
             )  # fmt: skip
             self.open = False
