@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from bmsid.estimate.start_fit import MAX_LEADING_REST_S, WINDOW_S, first_load_s, window_start
+from bmsid.estimate.start_fit import first_load_s, head_end_s
 from bmsid.samples import SampleBlock
 
 log = logging.getLogger(__name__)
@@ -56,9 +56,7 @@ class StartHead:
         if self.load_s is None:
             self.load_s = first_load_s(block.t_s, block.current_A, self.rest_limit_A)
         first, last = float(self.blocks[0].t_s[0]), float(block.t_s[-1])
-        span = last - first
-        start = window_start(first, self.load_s, last)
-        if last >= (first + MAX_LEADING_REST_S if start is None else start) + WINDOW_S:
+        if last >= head_end_s(first, self.load_s, last):
             self.open = False
             head = SampleBlock.concat(self.blocks)
             self.blocks = []
@@ -68,7 +66,7 @@ class StartHead:
                 "start SOC not refitted: %d cell-samples in the first %.0f s are more than the "
                 "%d kept for it (a fast bus, or a long rest before the load); SOC goes on from "
                 "the first voltage and the observer",
-                self.cell_samples, span, MAX_HEAD_CELL_SAMPLES,
+                self.cell_samples, last - first, MAX_HEAD_CELL_SAMPLES,
             )  # fmt: skip
             self.open = False
             self.blocks = []

@@ -215,6 +215,13 @@ def window_start(
     return first_s if last_s - first_s <= LATE_LOAD * window_s else None
 
 
+def head_end_s(first_s: float, load_s: float | None, last_s: float) -> float:
+    """The time (s) the samples kept for the start fit must reach (``window_start`` + its
+    window; after ``MAX_LEADING_REST_S`` of rest without a load, the fit is given up there)."""
+    start = window_start(first_s, load_s, last_s)
+    return (first_s + MAX_LEADING_REST_S if start is None else start) + WINDOW_S
+
+
 def _shared_history(
     model: CellModel, guess: FloatArray, soc0: FloatArray, h0: FloatArray, branch: FloatArray
 ) -> None:

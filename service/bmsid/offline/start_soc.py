@@ -19,13 +19,7 @@ import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank
-from bmsid.estimate.start_fit import (
-    MAX_LEADING_REST_S,
-    WINDOW_S,
-    first_load_s,
-    fit_start_soc,
-    window_start,
-)
+from bmsid.estimate.start_fit import first_load_s, fit_start_soc, head_end_s
 from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.state import starts_at_rest
 from bmsid.estimate.tuning import EstimatorTuning
@@ -128,8 +122,7 @@ def start_head(
             continue
         if load is None:
             load = first_load_s(head[-1].t_s, head[-1].current_A, rest_limit_A)
-        first, last = next(float(h.t_s[0]) for h in head if len(h)), float(block.t_s[-1])
-        start = window_start(first, load, last)
-        if last >= (first + MAX_LEADING_REST_S if start is None else start) + WINDOW_S:
+        last = float(block.t_s[-1])
+        if last >= head_end_s(next(float(h.t_s[0]) for h in head if len(h)), load, last):
             break
     return SampleBlock.concat(head) if head else None
