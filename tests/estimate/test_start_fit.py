@@ -18,6 +18,7 @@ from bmsid.estimate import tau_grid
 from bmsid.estimate.start_fit import fit_start_soc
 from bmsid.estimate.tau_grid import branch_states
 from bmsid.model.simulator import SimResult, simulate
+from bmsid.offline import start_soc
 from bmsid.offline.csvio import TesterData, write_tester_csv
 from bmsid.offline.identify import IdentifySpec, identify_file
 from bmsid.offline.outputs import soc_init_text
@@ -369,3 +370,17 @@ def test_a_long_rest_first_moves_the_window_to_the_load() -> None:
         fit = fitted_start_soc([block], cell, None, None)
         assert fit is not None and fit.h0 is not None, rest_s
         assert abs(fit.h0[0] + 1.0) < 0.1 and abs(fit.soc0[0] - 0.7) < 0.002, (rest_s, fit)
+
+
+def test_the_head_after_a_long_rest_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past the first window a long rest is read only up to ``MAX_HEAD_CELL_SAMPLES`` (a large,
+    fast pack parked for hours); the first window itself always whole."""
+    t, i, sim = _after_a_rest(5 * 3600, 0.7, -1.0)
+    block = SampleBlock.from_arrays(t, i, sim.v_V.T)
+    parts = [block.slice(a, a + 300) for a in range(0, len(block), 300)]
+    monkeypatch.setattr(start_soc, "MAX_HEAD_CELL_SAMPLES", 1500)
+    head = start_head(parts, 0.7)
+    assert head is not None and head.t_s[-1] == pytest.approx(1500.0, abs=300.0)
+    monkeypatch.setattr(start_soc, "MAX_HEAD_CELL_SAMPLES", 10**9)
+    head = start_head(parts, 0.7)
+    assert head is not None and head.t_s[-1] >= 5 * 3600 - 60 + 1200 - 1

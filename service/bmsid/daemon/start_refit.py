@@ -23,13 +23,10 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from bmsid.estimate.start_fit import first_load_s, head_end_s
+from bmsid.estimate.start_fit import MAX_HEAD_CELL_SAMPLES, first_load_s, head_end_s
 from bmsid.samples import SampleBlock
 
 log = logging.getLogger(__name__)
-
-#: Cell-samples kept at most for the refit (8 bytes each).
-MAX_HEAD_CELL_SAMPLES = 4_000_000
 
 
 @dataclass

@@ -82,6 +82,9 @@ LATE_LOAD = 0.5
 LEAD_S = 60.0
 #: Longest leading rest read for a window after it, s (a night parked).
 MAX_LEADING_REST_S = 12 * 3600.0
+#: Cell-samples kept at most for a start window (8 bytes each: 32 MB; 1,200 s of 96 cells at
+#: 30 Hz): the daemon's head (``daemon/start_refit.py``), and offline a long leading rest's.
+MAX_HEAD_CELL_SAMPLES = 4_000_000
 #: Re-linearisations at most (dz settles to 1e-4 in two or three).
 MAX_ITER = 5
 #: Valid voltages a cell needs in the window (ten per column fitted).

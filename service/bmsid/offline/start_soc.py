@@ -19,7 +19,13 @@ import numpy.typing as npt
 
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import build_bank
-from bmsid.estimate.start_fit import first_load_s, fit_start_soc, head_end_s
+from bmsid.estimate.start_fit import (
+    MAX_HEAD_CELL_SAMPLES,
+    WINDOW_S,
+    first_load_s,
+    fit_start_soc,
+    head_end_s,
+)
 from bmsid.estimate.startvalues import StartValues
 from bmsid.estimate.state import starts_at_rest
 from bmsid.estimate.tuning import EstimatorTuning
@@ -113,16 +119,21 @@ def start_head(
     """The record's samples up to the end of its start window (through ``gate``, fresh gates,
     when given): its first ``WINDOW_S``, or ``WINDOW_S`` from just before the load where a rest
     longer than half of that comes first (``start_fit.window_start``; at most
-    ``MAX_LEADING_REST_S`` of it read). None for a record without blocks."""
+    ``MAX_LEADING_REST_S`` of it, and past the first ``WINDOW_S`` at most
+    ``MAX_HEAD_CELL_SAMPLES``, read). None for a record without blocks."""
     head: list[SampleBlock] = []
     load: float | None = None
+    cell_samples = 0
     for block in blocks:
         head.append(block if gate is None else gate.apply(block))
         if not len(block):
             continue
+        cell_samples += len(block) * block.n_cells
         if load is None:
             load = first_load_s(head[-1].t_s, head[-1].current_A, rest_limit_A)
-        last = float(block.t_s[-1])
-        if last >= head_end_s(next(float(h.t_s[0]) for h in head if len(h)), load, last):
+        first, last = next(float(h.t_s[0]) for h in head if len(h)), float(block.t_s[-1])
+        if last >= head_end_s(first, load, last):
             break
+        if last - first >= WINDOW_S and cell_samples > MAX_HEAD_CELL_SAMPLES:
+            break  # past the first window, a long rest of a large, fast pack: memory bounded
     return SampleBlock.concat(head) if head else None
