@@ -49,7 +49,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -187,8 +186,7 @@ def fit_start_soc(
         h_free, decay = paths[rate]
         cell = _CellWindow(v[:, c], ok, i, charge_As / q_As, h_free, decay)
         if rested:
-            args = (grid, ok, i_held, dt, t, tun.tau_ratio_min, False)
-            res = _fit_h0(model, cell, z0, args)
+            res = _fit_h0(model, cell, z0, grid)
         else:
             res = _fit_dz(model, cell, z0, grid.at(ok), soc_known)
         if res is not None and abs(res[0] + before_As / q_As - float(guess[c])) <= MAX_DZ:
@@ -282,11 +280,11 @@ def _fit_dz(
 
 
 def _fit_h0(
-    model: CellModel, w: _CellWindow, z0: float, args: tuple[Any, ...]
+    model: CellModel, w: _CellWindow, z0: float, grid: TauGrid
 ) -> tuple[float, float, Fit] | None:
     """(z0, h0, fit) of a rested start: h0 along the first voltage's line (module docstring),
     on refined grids (h0 takes up what the coarse grid's step leaves: -0.5 for 0), the branches
-    empty (relaxed: no decay columns, fewer to trade with h0; ``args`` ends in False). None
+    empty (relaxed: no decay columns, fewer to trade with h0). None
     where h0 explains too little: the window's RMSE with h = 0 under ``H0_GAIN_MIN`` x the
     fit's (the model's error, not h), unless h = 0 has no physical fit at all (LFP after a
     discharge, its curve flat)."""
@@ -297,9 +295,10 @@ def _fit_h0(
         if not (math.isfinite(slope[0]) and slope[0] != 0.0):
             return None  # a flat point of the curve (a PCHIP table's extremum): no SOC line
         col = (m * w.decay - slope * m[0] / slope[0])[w.ok]  # dz0/dh0 = -M / OCV'
-        fit = refined_fit(y[w.ok], -w.current_A[w.ok], col, *args)
+        fit = refined_fit(y[w.ok], -w.current_A[w.ok], col, grid, w.ok, decays=False)
         if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
-            plain = refined_fit(y[w.ok], -w.current_A[w.ok], None, *args) or (math.nan,)
+            base = refined_fit(y[w.ok], -w.current_A[w.ok], None, grid, w.ok, decays=False)
+            plain = base or (math.nan,)
         if fit is None:
             return None
         step = float(np.clip(h0 + fit[1], -1.0, 1.0)) - h0

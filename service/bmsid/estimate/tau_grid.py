@@ -24,15 +24,14 @@ Fit = tuple[float, float, float, float, int, int]
 
 def refined_fit(
     y: FloatArray, minus_i: FloatArray, col: FloatArray | None, grid: TauGrid,
-    ok: npt.NDArray[np.bool_], i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float,
-    decays: bool = True,
+    ok: npt.NDArray[np.bool_], decays: bool = True,
 ) -> Fit | None:  # fmt: skip
-    """``best_fit`` over the grid, then over a finer one between its best point's neighbours."""
+    """``best_fit`` over the grid at the samples ``ok``, then over a finer one between its
+    best point's neighbours."""
     fit = best_fit(y, minus_i, col, grid.at(ok), decays)
     if fit is None:
         return None
-    fine = grid.around(fit[4], fit[5], i_held, dt, t, ratio)
-    return min(fit, best_fit(y, minus_i, col, fine.at(ok), decays) or fit)
+    return min(fit, best_fit(y, minus_i, col, grid.around(fit[4], fit[5]).at(ok), decays) or fit)
 
 
 def branch_states(i_held: FloatArray, dt: FloatArray, taus: FloatArray) -> FloatArray:
@@ -56,7 +55,8 @@ def branch_states(i_held: FloatArray, dt: FloatArray, taus: FloatArray) -> Float
 @dataclass(frozen=True)
 class TauGrid:
     """A grid of time constants (s) and the branch columns over the window: unit-gain ZOH
-    states ``x`` (taus, samples) and start decays ``d``; ``pairs`` keeps tau2 >= ratio tau1."""
+    states ``x`` (taus, samples) and start decays ``d``; ``pairs`` keeps tau2 >= ratio tau1;
+    ``window`` is what it was built from (a finer grid is built from it too)."""
 
     tau1: FloatArray
     tau2: FloatArray
@@ -65,6 +65,7 @@ class TauGrid:
     d1: FloatArray
     d2: FloatArray
     pairs: npt.NDArray[np.bool_]
+    window: _Window
 
     @classmethod
     def of(
@@ -75,17 +76,15 @@ class TauGrid:
         return cls(
             tau1, tau2, branch_states(i_held, dt, tau1), branch_states(i_held, dt, tau2),
             np.exp(-since / tau1[:, None]), np.exp(-since / tau2[:, None]),
-            tau2[None, :] >= ratio * tau1[:, None],
+            tau2[None, :] >= ratio * tau1[:, None], _Window(i_held, dt, t, ratio),
         )  # fmt: skip
 
     def at(self, ok: npt.NDArray[np.bool_]) -> TauGrid:
         """The columns at the samples ``ok``."""
         return TauGrid(self.tau1, self.tau2, self.x1[:, ok], self.x2[:, ok], self.d1[:, ok],
-                     self.d2[:, ok], self.pairs)  # fmt: skip
+                     self.d2[:, ok], self.pairs, self.window)  # fmt: skip
 
-    def around(
-        self, j1: int, j2: int, i_held: FloatArray, dt: FloatArray, t: FloatArray, ratio: float
-    ) -> TauGrid:
+    def around(self, j1: int, j2: int) -> TauGrid:
         """A finer grid between the neighbours of the point (j1, j2): on the paper cell the
         coarse grid's step let a rested start's h0 take up its misfit (-0.5 for 0). Not for
         the loaded starts: entered mid-DST at 1,500 s it split the branches' 27.5 mV as
@@ -94,7 +93,20 @@ class TauGrid:
         def between(tau: FloatArray, j: int) -> FloatArray:
             return np.geomspace(tau[max(j - 1, 0)], tau[min(j + 1, tau.shape[0] - 1)], ZOOM_POINTS)
 
-        return TauGrid.of(between(self.tau1, j1), between(self.tau2, j2), i_held, dt, t, ratio)
+        w = self.window
+        return TauGrid.of(between(self.tau1, j1), between(self.tau2, j2), w.i_held, w.dt, w.t,
+                          w.ratio)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Window:
+    """What a grid's columns come from: the held current (A), steps (s) and times (s) of the
+    window, and the least tau2 / tau1."""
+
+    i_held: FloatArray
+    dt: FloatArray
+    t: FloatArray
+    ratio: float
 
 
 def best_fit(
