@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import os
 import pwd
+import random
 import shutil
 import signal
 import socket
@@ -138,12 +139,35 @@ def require_tool(name: str) -> str:
     return path
 
 
+def _ephemeral_port_range() -> tuple[int, int]:
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
 def free_loopback_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+    """A TCP port on 127.0.0.1 that was free a moment ago, outside the ephemeral range.
+
+    Why outside: while a broker is down, a client reconnecting to a port in the kernel's
+    ephemeral range can be given that same port as its source port and connect to itself (a TCP
+    simultaneous open; paho then reads its own CONNECT: "Unrecognised command 16"), and then holds
+    the port the broker is restarted on ("Address already in use"). The kernel never picks a
+    source port outside the range, so such a port stays the broker's.
+    """
+    low, high = _ephemeral_port_range()
+    candidates = [p for p in range(10000, 65536) if not low <= p <= high]
+    rng = random.Random()  # independent of any test's seeded random state
+    for _ in range(200):
+        port = rng.choice(candidates)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free loopback port outside the ephemeral range {low}-{high}")
 
 
 def port_accepts(host: str, port: int) -> bool:
