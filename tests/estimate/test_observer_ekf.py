@@ -3,7 +3,8 @@
 The module forms P H' and H P H' from the sparse H (one SOC column per cell, the offset, the
 hysteresis map); the reference below builds H dense and applies the textbook
 (I - K H) P (I - K H)' + K R K' with the consider gain (the offset's row zeroed for unforced
-cells, every entry but its own SOC's zeroed for a lone cell)."""
+cells, the map's rows for cells that do not teach it, every entry but its own SOC's zeroed for a
+lone cell)."""
 
 from __future__ import annotations
 
@@ -16,9 +17,9 @@ from bmsid.estimate.observer_ekf import joint_update
 from bmsid.estimate.observer_kernel import lone_cells
 
 
-def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone):  # type: ignore[no-untyped-def]
-    """Dense H, Kalman gain, the offset row zeroed for unforced cells and a lone cell's column
-    but for its own SOC, Joseph's form."""
+def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach):  # type: ignore[no-untyped-def]
+    """Dense H, Kalman gain, the offset row zeroed for unforced cells, the map's rows for cells
+    not teaching it and a lone cell's column but for its own SOC, Joseph's form."""
     N = P.shape[0]
     H = np.zeros((idx.size, N))
     H[np.arange(idx.size), idx] = hz[idx]
@@ -28,6 +29,7 @@ def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone):  # type: ign
     K = P @ H.T @ np.linalg.inv(S)
     if consider:
         K[n, ~forced[idx]] = 0.0
+    K[n + 1 :, ~teach[idx]] = 0.0
     for q, c in enumerate(idx):
         if lone[c]:
             own = K[c, q]
@@ -59,13 +61,14 @@ def test_the_update_is_josephs_form_of_the_consider_gain(
     r = rng.uniform(1e-6, 1e-4, n)
     forced = rng.random(n) < 0.3
     lone = rng.random(n) < 0.3
+    teach = rng.random(n) < 0.5
     idx = np.flatnonzero(rng.random(n) < 0.8)
     step = joint_update(P, n, idx, hz, hb, G, e, r, forced, gate_sigmas=1e9,
-                        consider_offset=consider, lone=lone)  # fmt: skip
+                        consider_offset=consider, lone=lone, teach=teach)  # fmt: skip
     if idx.size == 0:
         assert step.dx is None
         return
-    dx_ref, P_ref = _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone)
+    dx_ref, P_ref = _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach)
     assert step.dx is not None and step.P is not None
     np.testing.assert_allclose(step.dx, dx_ref, rtol=1e-7, atol=1e-12)
     P_ref = 0.5 * (P_ref + P_ref.T)
@@ -114,3 +117,22 @@ def test_one_cell_far_off_is_lone_and_the_others_are_not() -> None:
     e = np.array([1e-3, 1.2e-3, 0.8e-3, 50e-3, 1.1e-3])
     lone = lone_cells(e, 1e-6, np.ones(5, dtype=bool), 9.0)
     np.testing.assert_array_equal(lone, [False, False, False, True, False])
+
+
+def test_a_cell_that_does_not_teach_the_map_sees_its_uncertainty_and_leaves_it() -> None:
+    """Consider states: a cell read through an uncertain half-gap M (its map row G) gets a
+    smaller SOC gain and keeps a larger SOC variance than if M were exact (G = 0, what the
+    update did before), and the map itself neither moves nor narrows."""
+    n, k = 1, 2
+    P = np.diag([1e-4, 1e-4, 4e-6, 4e-6])  # SOC 1 point, offset 0.01 A, M 2 mV per knot
+    hz, hb, e, r = np.array([0.5]), np.array([0.01]), np.array([2e-3]), np.array([1e-6])
+    G = np.array([[0.7, 0.3]])  # h s w(z)
+    no = np.zeros(1, dtype=bool)
+    seen = joint_update(P, n, np.arange(1), hz, hb, G, e, r, no, 1e9, False, teach=no)
+    blind = joint_update(P, n, np.arange(1), hz, hb, np.zeros((1, k)), e, r, no, 1e9, False)
+    assert seen.dx is not None and seen.P is not None
+    assert blind.dx is not None and blind.P is not None
+    assert 0.0 < seen.dx[0] < blind.dx[0]
+    assert seen.P[0, 0] > blind.P[0, 0]
+    np.testing.assert_array_equal(seen.dx[n + 1 :], 0.0)
+    np.testing.assert_allclose(np.diag(seen.P)[n + 1 :], np.diag(P)[n + 1 :], rtol=1e-12)

@@ -13,7 +13,13 @@ Management Systems Vol. II", ch. 3-4):
 * with ``learn_hysteresis``, ``x`` also holds a correction d_k of the half-gap M at each knot
   of a SOC grid, one for the pack (``M(z) = M_table(z) + sum_k w_k(z) d_k``,
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
-  M per SOC region from the data, the table its prior.
+  M per SOC region from the data, the table its prior. Only rested cells whose SOC is known
+  better than M there teach the map; every other update takes it as consider states
+  (Schmidt-Kalman: its uncertainty in the innovation's variance and in P, its gain 0), so a
+  SOC read through an uncertain M is as uncertain as it is;
+* the hysteresis state moves only with a current beyond the rest limit: a rest's current is
+  the sensor's noise and offset, which would relax h towards 0 (Eq. 5-6 driven by |noise|)
+  where the cell's holds;
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
 while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
@@ -87,6 +93,9 @@ class ObserverState(CoulombState):
         self.P[n + 1 :, n + 1 :] = np.diag(m_sd**2)
         self._b_max = tuning.offset_max_C * q_mean_Ah
         self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
+        # A current the sensor cannot tell from its noise and offset is no charge: it moves no
+        # hysteresis (Eq. 5-6 driven by noise relax h towards 0 at every rest; the truth holds).
+        self._h_rest_A = self._rest_limit_A
         self.capacity = CapacityTracker(
             model.capacity_Ah, tuning.capacity_prior_rel, tuning.capacity_min_dsoc,
             tuning.capacity_fade_rel_per_sqrt_day,
@@ -234,18 +243,20 @@ class ObserverState(CoulombState):
             scale = np.where(np.isfinite(scale), scale, 1.0)
             # Only rests teach M (the branches relaxed, the hysteresis not), and only cells
             # whose SOC is known better than M there: a SOC error is an OCV error as well.
+            # The others see M's uncertainty without moving it (consider states).
             W, var = hat_matrix(self._knots, zc), np.maximum(np.diag(self.P), 0.0)
             teach = anchor & (np.abs(hz) * np.sqrt(var[:n]) <= np.sqrt(W @ var[n + 1 :]))
-            G = (teach * scale * ctx.h)[:, None] * W
+            G = (scale * ctx.h)[:, None] * W
         else:
             r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
             G = np.zeros((n, 0))
+            teach = np.zeros(n, dtype=bool)
         r = np.where(anchor, r_anchor, r)
         valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
         forced = anchor | self._reanchor
         valid &= converged | forced
         lone = lone_cells(e, tun.v_sigma_floor_V**2, valid, tun.agree_sigmas**2)
-        self._update(np.flatnonzero(valid), hz, hb, G, e, r, forced, lone)
+        self._update(np.flatnonzero(valid), hz, hb, G, e, r, forced, lone, teach)
         anchored = anchor & valid
         if anchored.any():
             z_var = r / np.maximum(hz**2, 1e-12)
@@ -274,13 +285,14 @@ class ObserverState(CoulombState):
     def _update(
         self, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray, e: FloatArray,
         r: FloatArray, forced: BoolArray | bool, lone: BoolArray | None = None,
+        teach: BoolArray | None = None,
     ) -> None:  # fmt: skip
         """Joint EKF update of the cells ``idx`` (``observer_ekf.joint_update``); the offset
         is a consider state under load (module docstring)."""
         n = self.n
         step = joint_update(
             self.P, n, idx, hz, hb, G, e, r, np.broadcast_to(forced, (n,)),
-            self.tun.gate_sigmas, consider_offset=self._rest_s <= 0.0, lone=lone,
+            self.tun.gate_sigmas, consider_offset=self._rest_s <= 0.0, lone=lone, teach=teach,
         )  # fmt: skip
         self.counters["observer_gated"] += step.n_gated
         if step.dx is None or step.P is None:

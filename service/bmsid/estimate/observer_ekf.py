@@ -30,7 +30,7 @@ class EkfStep(NamedTuple):
 def joint_update(
     P: FloatArray, n: int, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray,
     e: FloatArray, r: FloatArray, forced: BoolArray, gate_sigmas: float, consider_offset: bool,
-    lone: BoolArray | None = None,
+    lone: BoolArray | None = None, teach: BoolArray | None = None,
 ) -> EkfStep:  # fmt: skip
     """Update the cells ``idx`` (of ``n``) with innovations ``e`` (V) of variance ``r`` (V^2).
 
@@ -38,7 +38,9 @@ def joint_update(
     ``forced`` (an anchor, a restart) are used only when ``e^2 <= gate_sigmas^2 S_cc``. With
     ``consider_offset`` the unforced cells leave the offset alone (Schmidt-Kalman: it stays in P
     but is not updated; under load it is confounded with the parameters' errors). A ``lone``
-    cell (``observer_kernel.lone_cells``) updates its own SOC only. The
+    cell (``observer_kernel.lone_cells``) updates its own SOC only. Where ``teach`` is given,
+    the map's corrections are consider states for the cells it leaves out (their ``G`` rows
+    count in S and in P, their gain on d is 0). The
     covariance is updated in Joseph form, P - K (PH')' - (PH') K' + K S K', true for any gain,
     symmetrised, its diagonal kept >= 0.
     """
@@ -60,6 +62,8 @@ def joint_update(
         return EkfStep(None, None, n_gated)
     if consider_offset:
         K[n, ~forced[idx]] = 0.0
+    if teach is not None:  # the map's corrections are consider states for cells not teaching
+        K[n + 1 :, ~teach[idx]] = 0.0
     if lone is not None and lone[idx].any():
         q = np.flatnonzero(lone[idx])
         own = K[idx[q], q]

@@ -134,7 +134,7 @@ def _step_source(
         if observer:
             qz[c] = qz[c] + tun[WALK2] * dt_s / 3600.0
         hc = h[c]
-        if dt_s > 0:
+        if dt_s > 0 and abs(i_prev_A) >= tun[REST_LIMIT]:  # ObserverState: rest moves no h
             kappa = cells[KAPPA_C, c] if i_prev_A < 0 else cells[KAPPA_D, c]
             if c == 0 or kappa != kappa_prev:  # a pack of one rate: one exp, the same bits
                 decay = math.exp(-abs(kappa * i_prev_A) * dt_s)
@@ -240,6 +240,7 @@ def _update_source(
     hz, hb, e, r = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     z_ocv, z_var = np.full(n, np.nan), np.empty(n)
     G = np.zeros((n, K))
+    teaches = np.zeros(n, dtype=np.bool_)
     valid = np.empty(n, dtype=np.bool_)
     jump = reanchor
     for c in range(n):
@@ -271,8 +272,8 @@ def _update_source(
             var_c = _max(P[c, c], 0.0)
             var_m = (1.0 - f) * _max(P[n + 1 + j, n + 1 + j], 0.0) + f * _max(
                 P[n + 2 + j, n + 2 + j], 0.0)  # fmt: skip
-            teach = anchor[c] and abs(hz[c]) * math.sqrt(var_c) <= math.sqrt(var_m)
-            coef = (1.0 if teach else 0.0) * scale * h[c]
+            teaches[c] = anchor[c] and abs(hz[c]) * math.sqrt(var_c) <= math.sqrt(var_m)
+            coef = scale * h[c]
             G[c, j] = coef * (1.0 - f)
             G[c, j + 1] = coef * f
         else:
@@ -327,6 +328,10 @@ def _update_source(
                 for q in range(idx.size):
                     if not (anchor[idx[q]] or reanchor):
                         Kg[n, q] = 0.0
+            for q in range(idx.size):  # the map: consider states where a cell does not teach
+                if not teaches[idx[q]]:
+                    for k in range(K):
+                        Kg[n + 1 + k, q] = 0.0
             for q in range(idx.size):  # a lone cell teaches its own SOC only
                 if lone[idx[q]]:
                     for a in range(N):

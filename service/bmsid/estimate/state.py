@@ -124,6 +124,8 @@ class CoulombState:
         gamma = _uniform(model.gamma)
         self._kappa_discharge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, 1.0)
         self._kappa_charge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, -1.0)
+        #: |current| (A) below which the hysteresis holds (the observer's rest limit; 0 here)
+        self._h_rest_A = 0.0
 
     def step(self, ctx: TickContext) -> None:
         if state_jit.step(self, ctx, observer=False):  # the compiled kernel (jit.select)
@@ -136,7 +138,7 @@ class CoulombState:
         for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
         ip = tick.i_prev_A
-        if tick.dt_s > 0:
+        if tick.dt_s > 0 and abs(ip) >= self._h_rest_A:
             kappa = self._kappa_charge if ip < 0 else self._kappa_discharge
             self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
         if np.count_nonzero(self._pending):  # after the count: SOC is that of the start sample
