@@ -212,7 +212,8 @@ class ObserverState(CoulombState):
         error is the start values', not SOC's) for ``unconverged_wait_s`` of data."""
         tun = self.tun
         converged = converged | (self._seen_s >= tun.unconverged_wait_s)
-        self._tau_load_s = params["tau2_s"]
+        if self._rest_s <= 0.0:  # a rest is timed by the tau2 identified under load before it
+            self._tau_load_s = params["tau2_s"]
         anchor = anchors_due(self._rest_s, self._anchored, self._tau_load_s, tun)
         any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):

@@ -1,7 +1,9 @@
 """When a rest anchors a cell's SOC to its OCV (``observer.py``, issue 11 item 4).
 
 A rest anchors once it has lasted ``anchor_rest_taus`` identified slow time constants (the RC
-branches relaxed to within exp(-3) = 5 %) and at least ``anchor_min_rest_s``
+branches relaxed to within exp(-3) = 5 %; tau2 as identified under load before the rest: the
+observer's SOC corrections during the rest read as a slower relaxation to the fits, which put
+the anchor off by itself) and at least ``anchor_min_rest_s``
 (``ObserverTuning``). In a pack of 3 or more cells a cell's tau2 counts at most as the cells'
 median: a cell short of capacity reads its count's drift as a slow relaxation and inflates
 its own tau2, which would keep it from the anchors that measure its capacity.
