@@ -118,18 +118,16 @@ def _sense_wire_runs(agree_sigmas: float) -> tuple[MultidayRecord, EstimateBlock
     return rec, runs[0], runs[1]
 
 
-_NO_AGREEMENT = pytest.mark.xfail(
-    strict=True, reason="without the agreement test one cell's fault moves the pack"
-)
-
-
-@pytest.mark.parametrize("agree_sigmas", [3.0, pytest.param(1e9, marks=_NO_AGREEMENT)])
+@pytest.mark.parametrize("agree_sigmas", [3.0, 1e9])
 def test_one_cells_sensing_fault_does_not_move_the_offset_or_the_other_cells(
     agree_sigmas: float,
 ) -> None:
     """The offset is the pack's (one sensor): one cell's glitches must not teach it, nor move
     the good cells' SOC through it (``ObserverTuning.agree_sigmas``); before, the offset ran to
-    its 3.5 A bound here and the good cells' SOC 6 points off."""
+    its 3.5 A bound here and the good cells' SOC 6 points off. Without the agreement test
+    (1e9) the offset still ran to 1.94 A and the good cells' SOC 6 points off until the
+    hysteresis map's uncertainty was in every update and rests held h (why either does it is
+    not measured): now +0.047 A, within 0.0065; both must hold."""
     rec, clean, faulty = _sense_wire_runs(agree_sigmas)
     k = np.searchsorted(rec.t_s, faulty.t_s)
     good = [0, 1, 3]

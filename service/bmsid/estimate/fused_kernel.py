@@ -253,8 +253,7 @@ def _fused_source(
             m_out = m_table if use_h else zeros
         # ObserverState.correct: the periodic update (anchors and re-anchors: the Python path)
         if observer:
-            if so[REST] <= 0.0:  # (the fusion's taus are written in place by a swarm)
-                tau_load = tau2.copy()
+            tau_load = tau2.copy() if so[REST] <= 0.0 else tau_load  # rest: the one before
             if so[SINCE] >= so[UPD_PERIOD]:
                 m_arg = m_out if d.shape[0] else z
                 u1 = (P, g, qz, so[QB], so[SINCE], d_walk, z, out[2], out[3], h, m_table, v,

@@ -40,6 +40,23 @@ def hat_matrix(knots: FloatArray, z: FloatArray) -> FloatArray:
     return w
 
 
+def map_rows(
+    knots: FloatArray, zc: FloatArray, h: FloatArray, m_V: FloatArray, m_table_V: FloatArray,
+    P: FloatArray, hz: FloatArray, anchor: npt.NDArray[np.bool_],
+) -> tuple[FloatArray, npt.NDArray[np.bool_]]:  # fmt: skip
+    """The cells' rows of H for the map, ``dv_c/dd_k = s h_c w_k(z_c)`` (V/V; s the published
+    M over the table's, ``m_V / m_table_V``, 1 where the table is 0), and which cells teach it:
+    anchored cells (the branches relaxed, the hysteresis not) whose SOC is known better than M
+    there (``|dOCV/dz| std(z) <= std(M)``; a SOC error is an OCV error as well). The others take
+    the map as consider states (``observer_ekf.joint_update``)."""
+    n = zc.shape[0]
+    scale = np.where(m_table_V > 0, m_V / np.maximum(m_table_V, 1e-12), 1.0)
+    scale = np.where(np.isfinite(scale), scale, 1.0)
+    W, var = hat_matrix(knots, zc), np.maximum(np.diag(P), 0.0)
+    teach = anchor & (np.abs(hz) * np.sqrt(var[:n]) <= np.sqrt(W @ var[n + 1 :]))
+    return (scale * h)[:, None] * W, teach
+
+
 def restore_covariance(
     P_prior: FloatArray, saved: dict[str, Any], n: int, knots: FloatArray
 ) -> tuple[FloatArray, bool]:

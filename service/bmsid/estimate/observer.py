@@ -13,13 +13,10 @@ Management Systems Vol. II", ch. 3-4):
 * with ``learn_hysteresis``, ``x`` also holds a correction d_k of the half-gap M at each knot
   of a SOC grid, one for the pack (``M(z) = M_table(z) + sum_k w_k(z) d_k``,
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
-  M per SOC region from the data, the table its prior. Only rested cells whose SOC is known
-  better than M there teach the map; every other update takes it as consider states
-  (Schmidt-Kalman: its uncertainty in the innovation's variance and in P, its gain 0), so a
-  SOC read through an uncertain M is as uncertain as it is;
-* the hysteresis state moves only with a current beyond the rest limit: a rest's current is
-  the sensor's noise and offset, which would relax h towards 0 (Eq. 5-6 driven by |noise|)
-  where the cell's holds;
+  M per SOC region from the data, the table its prior; the cells that do not teach it take it
+  as consider states (in S and P, gain 0: ``hysteresis_map.map_rows``);
+* h moves only with a current beyond the rest limit (a rest's is noise and offset, which
+  would relax h towards 0 where the cell's holds);
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
 while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
@@ -45,7 +42,7 @@ import numpy as np
 from bmsid.estimate import state_jit
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
-from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, restore_covariance
+from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, map_rows, restore_covariance
 from bmsid.estimate.observer_ekf import IndexArray, joint_update
 from bmsid.estimate.observer_kernel import lone_cells
 from bmsid.estimate.observer_tuning import ObserverTuning
@@ -93,9 +90,7 @@ class ObserverState(CoulombState):
         self.P[n + 1 :, n + 1 :] = np.diag(m_sd**2)
         self._b_max = tuning.offset_max_C * q_mean_Ah
         self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
-        # A current the sensor cannot tell from its noise and offset is no charge: it moves no
-        # hysteresis (Eq. 5-6 driven by noise relax h towards 0 at every rest; the truth holds).
-        self._h_rest_A = self._rest_limit_A
+        self._h_rest_A = self._rest_limit_A  # a rest's current (noise, offset) moves no h
         self.capacity = CapacityTracker(
             model.capacity_Ah, tuning.capacity_prior_rel, tuning.capacity_min_dsoc,
             tuning.capacity_fade_rel_per_sqrt_day,
@@ -238,20 +233,12 @@ class ObserverState(CoulombState):
             r = tun.v_sigma_V**2 + r_load**2
         if self.d.shape[0]:  # M learnt: its uncertainty is in P, not in the anchor's error
             r_anchor = np.full(n, tun.v_sigma_floor_V**2)
-            scale = np.where(
-                ctx.m_table_V > 0, params["M_V"] / np.maximum(ctx.m_table_V, 1e-12), 1.0
+            G, teach = map_rows(
+                self._knots, zc, ctx.h, params["M_V"], ctx.m_table_V, self.P, hz, anchor
             )
-            scale = np.where(np.isfinite(scale), scale, 1.0)
-            # Only rests teach M (the branches relaxed, the hysteresis not), and only cells
-            # whose SOC is known better than M there: a SOC error is an OCV error as well.
-            # The others see M's uncertainty without moving it (consider states).
-            W, var = hat_matrix(self._knots, zc), np.maximum(np.diag(self.P), 0.0)
-            teach = anchor & (np.abs(hz) * np.sqrt(var[:n]) <= np.sqrt(W @ var[n + 1 :]))
-            G = (scale * ctx.h)[:, None] * W
         else:
             r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
-            G = np.zeros((n, 0))
-            teach = np.zeros(n, dtype=bool)
+            G, teach = np.zeros((n, 0)), np.zeros(n, dtype=bool)
         r = np.where(anchor, r_anchor, r)
         valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
         forced = anchor | self._reanchor
