@@ -88,6 +88,19 @@ def test_current_offset_is_learnt_and_soc_stays_on_the_truth() -> None:
     assert abs(err[-1]) < 0.02, f"SOC error at the end {err[-1]:+.4f}"
 
 
+@pytest.mark.xfail(strict=True, reason="known: the offset overshoots at the first rest (README)")
+def test_the_offset_does_not_overshoot_at_the_first_rest() -> None:
+    """A known fault, kept visible: at the first rest after the drive every 20 s update reads
+    the rest's few mV of systematic model error (the SOC error, the branches' residue) as white
+    noise, and the offset's IR term (dv/db = R0 + R1 + R2, ~2 mV per A) turns it into offset:
+    1.21 A at 2.5 h here for a true 0.5 A (then the count's current at rest is beyond the rest
+    limit and h drifts). Once fixed, this passes and the mark must go."""
+    _, obs, _ = _offset_runs()
+    after = obs.t_s >= DRIVE_END_S
+    b = obs["current_offset_A"][after, 0]
+    assert b.max() <= 0.75, f"offset up to {b.max():.2f} A after the drive, truth 0.5 A"
+
+
 def test_without_the_observer_the_offset_drifts_soc_much_further() -> None:
     rec, obs, plain = _offset_runs()
     e_obs, e_plain = abs(_soc_error(rec, obs)[-1]), abs(_soc_error(rec, plain)[-1])
