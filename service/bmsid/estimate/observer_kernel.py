@@ -117,9 +117,18 @@ def _step_source(
         use_map = use_map or d[k] != 0.0
     all_ok = True
     any_gate = False
-    kappa_prev = decay = 0.0
+    kappa_prev = i_prev = dt_prev = decay = 0.0
+    # h through the raw steps too (|i| does not average over a tick), unless the tick's mean
+    # |i| is a rest's (ObserverState: a raw sample's noise is no current)
+    charge = span = 0.0
+    for k in range(n_steps):
+        i = steps[k, 0] - b if observer and b != 0.0 else steps[k, 0]
+        charge += abs(i) * steps[k, 1]
+        span += steps[k, 1]
+    moves = dt_s > 0 and span > 0 and charge / span >= tun[REST_LIMIT]
     for c in range(n):
         zc_ = z[c]
+        hc = h[c]
         for k in range(n_steps):
             i = steps[k, 0] - b if observer and b != 0.0 else steps[k, 0]
             dt = steps[k, 1]
@@ -131,15 +140,14 @@ def _step_source(
                 thr[c] = thr[c] + eta * i * dt / 3600.0
             ce = cells[EFF, c] if i < 0 else 1.0
             zc_ = zc_ + -ce * i * dt / cells[CAP, c]
+            if moves and dt > 0:
+                kappa = cells[KAPPA_C, c] if i < 0 else cells[KAPPA_D, c]
+                if kappa != kappa_prev or i != i_prev or dt != dt_prev or c == 0:
+                    decay = math.exp(-abs(kappa * i) * dt)  # a pack of one rate: one exp
+                    kappa_prev, i_prev, dt_prev = kappa, i, dt
+                hc = decay * hc - (1.0 - decay) * _sign(i)
         if observer:
             qz[c] = qz[c] + tun[WALK2] * dt_s / 3600.0
-        hc = h[c]
-        if dt_s > 0 and abs(i_prev_A) >= tun[REST_LIMIT]:  # ObserverState: rest moves no h
-            kappa = cells[KAPPA_C, c] if i_prev_A < 0 else cells[KAPPA_D, c]
-            if c == 0 or kappa != kappa_prev:  # a pack of one rate: one exp, the same bits
-                decay = math.exp(-abs(kappa * i_prev_A) * dt_s)
-                kappa_prev = kappa
-            hc = decay * hc - (1.0 - decay) * _sign(i_prev_A)
         out[0, c] = zc_
         out[1, c] = hc
         zcl = _min(_max(zc_, ocv[SOC_MIN]), ocv[SOC_MAX])

@@ -33,6 +33,15 @@ def without_data(
     return out, np.where(no_data, _NO_DATA, quality)
 
 
+def mean_abs_current(steps: tuple[tuple[float, float], ...]) -> float:
+    """Time-weighted mean |i| of a tick's raw (current A, interval s) steps, A (0 if none)."""
+    charge = span = 0.0
+    for i, dt in steps:
+        charge += abs(i) * dt
+        span += dt
+    return charge / span if span > 0 else 0.0
+
+
 def _uniform(x: FloatArray) -> float | FloatArray:
     return float(x[0]) if np.all(x == x[0]) else x
 
@@ -135,12 +144,14 @@ class CoulombState:
         if not self._all_seen:  # until every cell has read a valid voltage (never compiled)
             self._seen = self._seen | tick.ok
             self._all_seen = bool(self._seen.all())
+        # h through the raw steps too (|i| does not average over a tick), unless the tick's
+        # mean |i| is a rest's (a raw sample's noise is no current)
+        moves = tick.dt_s > 0 and mean_abs_current(tick.coulomb_steps) >= self._h_rest_A
         for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
-        ip = tick.i_prev_A
-        if tick.dt_s > 0 and abs(ip) >= self._h_rest_A:
-            kappa = self._kappa_charge if ip < 0 else self._kappa_discharge
-            self.h = hysteresis_step(self.h, ip, tick.dt_s, kappa)
+            if moves and dt > 0:
+                kappa = self._kappa_charge if i < 0 else self._kappa_discharge
+                self.h = hysteresis_step(self.h, i, dt, kappa)
         if np.count_nonzero(self._pending):  # after the count: SOC is that of the start sample
             self._start(tick, self._pending)
         ocv = m.ocv

@@ -28,7 +28,9 @@ class EstimatorTuning(BaseModel):
     id_period_s: float = Field(1.0, gt=0.0, le=10.0)
     """Samples are averaged into bins of this length before identification. 1 s resolves the
     fast branch of most cells (tau1 >= a few s) and keeps the slow pole (minutes) within reach
-    of a 5-parameter model; CAN rates of 10-100 Hz add only noise averaging."""
+    of a 5-parameter model; CAN rates of 10-100 Hz add only noise averaging. SOC and the
+    hysteresis state still follow every raw sample (Eq. 2, 5-6: h moves with |i|, which a
+    bin's mean loses where charge and discharge alternate within it)."""
     gap_s: float = Field(30.0, gt=0.0)
     """A jump in time longer than this is a gap: the states are propagated at zero current and
     the regression history restarts (we cannot know what the current was)."""
