@@ -93,8 +93,9 @@ def test_the_offset_does_not_overshoot_at_the_first_rest() -> None:
     """A known fault, kept visible: at the first rest after the drive every 20 s update reads
     the rest's few mV of systematic model error (the SOC error, the branches' residue) as white
     noise, and the offset's IR term (dv/db = R0 + R1 + R2, ~2 mV per A) turns it into offset:
-    1.21 A at 2.5 h here for a true 0.5 A (then the count's current at rest is beyond the rest
-    limit and h drifts). Once fixed, this passes and the mark must go."""
+    1.05 A 35 min into the rest here for a true 0.5 A (1.21 A while h was integrated from each
+    10 s tick's mean current and the hysteresis voltage it missed went into the offset too).
+    Once fixed, this passes and the mark must go."""
     _, obs, _ = _offset_runs()
     after = obs.t_s >= DRIVE_END_S
     b = obs["current_offset_A"][after, 0]
