@@ -18,10 +18,9 @@ rest long enough for an anchor, a temperature to carry or a swarm stepped tick b
 fusion); the caller checks the rest (a cell to start, the start's relaxation watch, a re-anchor).
 A fusion's swarm events (one due, or one run ahead ending: ``FusionStage._run_ahead``) call back
 into its Python at their place in the tick (``swarms.loop_events``, numba's object mode); in
-between, a swarm run ahead only counts its ticks.
-before each call. It stops after a tick whose guard asks for a re-initialisation
-(``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the caller (``lam``
-per tick: numpy's power, as the stages' ``outputs``).
+between, a swarm run ahead only counts its ticks. It stops after a tick whose guard asks for a
+re-initialisation (``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the
+caller (``lam`` per tick: numpy's power, as the stages' ``outputs``).
 
 Its cache entry is named after the files whose compiled code it embeds (``jit.Kernel``'s
 ``depends``).
@@ -50,7 +49,7 @@ from bmsid.estimate import (
 )
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.jit_helpers import helper, register
-from bmsid.estimate.observer_kernel import REST_LIMIT
+from bmsid.estimate.observer_kernel import NO_REST_A, REST_LIMIT, REST_MEAN_S
 from bmsid.estimate.publish_kernel import AVG_ROW, BITS_ROW, SOC_ROW
 from bmsid.estimate.swarms import loop_events
 
@@ -63,8 +62,8 @@ HELD_F = (R0F, R1F, C1F, R2F, C2F, TAU1F, TAU2F, OCVOFFF)
 PUB_F = (R1F, R2F, TAU1F, TAU2F, C1F, C2F)
 #: Per-tick floats of ``per_tick``: forgetting limits, the innovation RMS's gain.
 LAM_LO, LAM_HI, GAIN, N_PT = 0, 1, 2, 3
-#: The observer's scalars ``so`` (in place): offset b, qb, since_s, rest_s, seen_s, and constants.
-B, QB, SINCE, REST, SEEN, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, WAIT, N_SO = range(11)
+#: The observer's scalars ``so`` (in place): b, qb, since_s, rest_s, seen_s, constants, reading.
+B, QB, SINCE, REST, SEEN, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, WAIT, REST_I, N_SO = range(12)
 #: The counters ``counts`` (in place).
 C_REJ, C_UPD, C_GATED, C_DIV, C_HELD, C_CLAMP, N_C = range(7)
 #: Why the loop stopped: the end, a tick for the Python path, a re-initialisation after a tick.
@@ -118,24 +117,20 @@ def _fused_source(
     theta: Any, P_arx: Any, ue_hist: Any, scale: Any, i_hist: Any, bounds: Any, rest_A: Any,
     clamped: Any, arx_ok: Any, T_arx: float, hist_n: int, trace_max: float,
     consts: tuple[float, float, float, float], use_h: bool, arx_err: Any, v_model: Any,
-    m_table: Any,
-    stats: Any, good: Any, good_soc: Any, episode: Any, cause: Any, bound_bits: Any, near: Any,
-    has_near: bool, gconsts: Any, t_prev: float, gap_s: float, id_period_s: float, avg: Any,
-    restart: Any, tau1_multiple: float, o: Any, oq: Any, o_lam: Any, counts: Any,
-    fusion: bool, lin: Any, fit_scale: bool, fit_offset: bool, buf_i: Any, buf_y: Any,
-    buf_hm: Any, buf_valid: Any, buf_hc: Any, first_due: float, ms: Any, off_v: Any,
-    sw_active: Any, sw_left: Any, sw_key: int,
+    m_table: Any, stats: Any, good: Any, good_soc: Any, episode: Any, cause: Any,
+    bound_bits: Any, near: Any, has_near: bool, gconsts: Any, t_prev: float, gap_s: float,
+    id_period_s: float, avg: Any, restart: Any, tau1_multiple: float, o: Any, oq: Any,
+    o_lam: Any, counts: Any, fusion: bool, lin: Any, fit_scale: bool, fit_offset: bool,
+    buf_i: Any, buf_y: Any, buf_hm: Any, buf_valid: Any, buf_hc: Any, first_due: float, ms: Any,
+    off_v: Any, sw_active: Any, sw_left: Any, sw_key: int,
 ) -> Any:  # fmt: skip
     """The ticks ``k0 ..`` (module docstring); per-cell state arrays that the Python code
     updates in place are updated in place, those it rebinds are returned."""
     n_t, n = tf.shape[0], z.shape[0]
-    zeros = np.zeros(n)
+    zeros, empty = np.zeros(n), np.zeros(0)
     m_out = zeros  # the published M (the fusion's scaled M)
-    empty = np.zeros(0)
-    no_anchor = np.zeros(n, dtype=np.bool_)
-    reinit = np.zeros(n, dtype=np.bool_)
-    ex = np.empty(n, dtype=np.bool_)
-    stop, k = STOP_END, k0
+    no_anchor, reinit = np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_)
+    ex, (stop, k) = np.empty(n, dtype=np.bool_), (STOP_END, k0)
     while k < n_t:
         if tf[k, _TF_NEWSEG] != 0.0:
             stop = STOP_TICK
@@ -155,6 +150,8 @@ def _fused_source(
         elif T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
             stop = STOP_TICK
             break
+        if observer and abs(cur - so[REST_I]) < tun[REST_LIMIT]:  # rest_anchor.offset_within_rest
+            so[B] = min(max(so[B], so[REST_I] - tun[REST_LIMIT]), so[REST_I] + tun[REST_LIMIT])
         b = so[B]
         if observer:
             if b != 0.0:  # _remove_offset (the kernel removes it from the coulomb steps)
@@ -168,7 +165,8 @@ def _fused_source(
             limit = tun[REST_LIMIT]  # the step's rest test, ahead of it: an anchor is near?
             if not any_gate:
                 limit += 2.0 * math.sqrt(max(P[n, n], 0.0))
-            rest_after = so[REST] + dt if abs(cur) < limit else 0.0
+            cont = abs(cur + b - so[REST_I]) < tun[REST_LIMIT]
+            rest_after = so[REST] + dt if abs(cur) < limit or cont else 0.0
             if rest_after >= so[MIN_REST] and not all_anchored:
                 stop = STOP_TICK
                 break
@@ -177,7 +175,7 @@ def _fused_source(
         if observer:
             out, learn, all_ok, resting = _STEP(
                 z, h, g, qz, thr, i_load, tau_load, learn_gate, v, ok, st, b, cur, ip, dt,
-                P[n, n], cells_c, tun, ocv, m_soc, m_V, knots, d, True,
+                P[n, n], cells_c, tun, ocv, m_soc, m_V, knots, d, True, so[REST], so[REST_I],
             )  # fmt: skip
             so[QB] += so[QB_COEF] * dt / 86400.0
             so[SINCE] += dt
@@ -185,7 +183,7 @@ def _fused_source(
         else:
             out, learn, all_ok, resting = _STEP(
                 z, h, empty, empty, empty, empty, empty, ok, v, ok, st, 0.0, cur, ip, dt, 0.0,
-                cells_c, tun, ocv, m_soc, m_V, knots, empty, False,
+                cells_c, tun, ocv, m_soc, m_V, knots, empty, False, 0.0, 0.0,
             )  # fmt: skip
         z, h = out[0], out[1]
         v_safe = v if all_ok else out[6]
@@ -194,9 +192,11 @@ def _fused_source(
         if observer:  # _after_step: the rest clock (no watch open, no restart here)
             if resting:
                 so[REST] += dt
+                if abs(cur) < tun[REST_LIMIT] or abs(cur + b - so[REST_I]) < tun[REST_LIMIT]:
+                    w = 1.0 if so[REST_I] >= NO_REST_A else min(1.0, dt / REST_MEAN_S)
+                    so[REST_I] = cur + b if w >= 1.0 else so[REST_I] + (cur + b - so[REST_I]) * w
             elif so[REST] != 0.0:
-                so[REST] = 0.0
-                anchored = np.zeros(n, dtype=np.bool_)
+                so[REST], anchored = 0.0, np.zeros(n, dtype=np.bool_)
         # the learn gate (bank._run_tick)
         any_bits = False
         for c in range(n):

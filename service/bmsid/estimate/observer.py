@@ -16,7 +16,7 @@ Management Systems Vol. II", ch. 3-4):
   M per SOC region from the data, the table its prior; the cells that do not teach it take it
   as consider states (in S and P, gain 0: ``hysteresis_map.map_rows``);
 * h moves only with a current beyond the rest limit (a rest's is noise and offset, which
-  would relax h towards 0 where the cell's holds);
+  would relax h towards 0 where the cell's holds); what a rest is: ``rest_anchor.py``;
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
 while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
@@ -28,8 +28,7 @@ A rest long enough for the identified branches to relax is an *anchor*: an updat
 cell's small error, counted, which also measures capacity (``capacity.py``). A gap longer than
 ``restart_gap_s`` (a restart after downtime), or one that resumes under load (data lost mid-drive),
 re-anchors from the first voltage after it. The state (SOC, h) is the coulomb-count stage's,
-corrected in place; covariance predictions accumulate between updates: a few scalar operations a
-tick.
+corrected in place; covariance predictions accumulate between updates (a few scalar operations).
 """
 
 from __future__ import annotations
@@ -39,17 +38,17 @@ from typing import Any
 
 import numpy as np
 
+from bmsid.estimate import rest_anchor as rest
 from bmsid.estimate import state_jit
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, map_rows, restore_covariance
 from bmsid.estimate.observer_ekf import IndexArray, joint_update
-from bmsid.estimate.observer_kernel import lone_cells
+from bmsid.estimate.observer_kernel import NO_REST_A, lone_cells
 from bmsid.estimate.observer_tuning import ObserverTuning
-from bmsid.estimate.rest_anchor import anchors_due
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.start_relaxation import StartRelaxation, relaxation_tau_s, widened_variance
-from bmsid.estimate.state import CoulombState, _uniform, start_soc_sigma
+from bmsid.estimate.state import CoulombState, _uniform, mean_abs_current, start_soc_sigma
 from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.ticks import Tick
 from bmsid.model.ecm import hysteresis_kappa
@@ -100,6 +99,7 @@ class ObserverState(CoulombState):
         # Accumulated since the last update: dz/db, SOC and offset process noise, data time.
         self._g, self._qz = np.zeros(n), np.zeros(n)
         self._qb = self._since_s = self._rest_s = self._seen_s = 0.0  # seen: since the start
+        self._rest_i_A = NO_REST_A  # the rests' reading, A (rest_anchor.py)
         self._i_load_A, self._tau_load_s = np.zeros(n), np.array(model.start("tau2_s"), float)
         self._anchored, self._reanchor, self._widen = np.zeros(n, dtype=bool), False, False
         self._learn_gate, self._start_var = np.ones(n, dtype=bool), np.zeros(n)
@@ -111,22 +111,25 @@ class ObserverState(CoulombState):
 
     # ------------------------------------------------------------------ per tick
     def step(self, ctx: TickContext) -> None:
+        tick, reading, limit = ctx.tick, self._rest_i_A, self._rest_limit_A
+        if rest.at_rest_reading(tick.current_A, reading, limit):
+            self.b = rest.offset_within_rest(self.b, reading, limit)
         if state_jit.step(self, ctx, observer=True):  # the compiled kernel (jit.select)
             return
-        tick = ctx.tick
+        off_reading = tuple((i - reading, dt) for i, dt in tick.coulomb_steps)
+        self._h_hold = bool(off_reading) and mean_abs_current(off_reading) < limit
         self._remove_offset(tick)
         self._accumulate(tick)
         super().step(ctx)
-        # |I| the branches still carry: a running mean over each cell's slow time constant.
         i_abs = abs(tick.current_A)
-        a = np.exp(-tick.dt_s / self._tau_load_s)
+        a = np.exp(-tick.dt_s / self._tau_load_s)  # |I| the branches still carry: over tau2
         self._i_load_A = np.maximum(i_abs, a * self._i_load_A + (1 - a) * i_abs)
         # Until a SOC is known (learn gate), |I| within 2 std of the offset rests too (a 1 % C
         # offset is the rest limit); not later: on LFP that moved SOC far (A123 3.48 -> 3.67 mV)
-        limit = self._rest_limit_A
+        cont = rest.at_rest_reading(tick.current_A + self.b, reading, limit)
         if not np.count_nonzero(self._learn_gate):
             limit += 2.0 * math.sqrt(max(float(self.P[self.n, self.n]), 0.0))
-        self._after_step(tick, i_abs < limit)
+        self._after_step(tick, i_abs < limit or cont)
 
     def _after_step(self, tick: Tick, resting: bool) -> None:
         """The start's first rest watched, the rest timed, a restart after downtime or data lost
@@ -136,6 +139,9 @@ class ObserverState(CoulombState):
             self._widen_start(extra_V)
         if resting:
             self._rest_s += tick.dt_s
+            i_meas, lim = tick.current_A + self.b, self._rest_limit_A
+            if abs(tick.current_A) < lim or rest.at_rest_reading(i_meas, self._rest_i_A, lim):
+                self._rest_i_A = rest.next_rest_reading(self._rest_i_A, i_meas, tick.dt_s)
         elif self._rest_s:
             self._rest_s = 0.0
             self._anchored = np.zeros(self.n, dtype=bool)
@@ -209,7 +215,7 @@ class ObserverState(CoulombState):
         converged = converged | (self._seen_s >= tun.unconverged_wait_s)
         if self._rest_s <= 0.0:  # a rest is timed by the tau2 identified under load before it
             self._tau_load_s = params["tau2_s"]
-        anchor = anchors_due(self._rest_s, self._anchored, self._tau_load_s, tun)
+        anchor = rest.anchors_due(self._rest_s, self._anchored, self._tau_load_s, tun)
         any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
@@ -339,30 +345,24 @@ class ObserverState(CoulombState):
         """Variance of the start SOC (fraction^2): from the voltage's uncertainty (hysteresis,
         unknown relaxation, IR drop) through the OCV slope, or that of a given value."""
         tun = self.tun
-        if method == "given":
-            self._start_var = np.full(self.n, tun.given_soc_sigma**2)
-            return
-        if method == "config":  # a value the user fixed, not a measurement
-            self._start_var = np.full(self.n, tun.start_soc_sigma_max**2)
+        if method in ("given", "config"):  # config: a value the user fixed, not a measurement
+            sigma0 = tun.given_soc_sigma if method == "given" else tun.start_soc_sigma_max
+            self._start_var = np.full(self.n, sigma0**2)
             return
         sigma = start_soc_sigma(self.model, z, abs(tick.current_A), tun.start_soc_sigma_max)
         self._start_var = np.maximum(sigma, tun.given_soc_sigma) ** 2
 
     # ------------------------------------------------------------------ outputs, checkpoints
     def outputs(self) -> dict[str, FloatArray]:
-        return {
-            "soc": self.z,
-            "h": self.h,
-            "soc_std": np.sqrt(np.maximum(self.P.diagonal()[: self.n], 0.0)),
-            "capacity_Ah": self.capacity.q_Ah,
-            "capacity_std_Ah": self.capacity.std_Ah,  # never written: shared between ticks
-            "current_offset_A": np.full(self.n, self.b),
-        }
+        sd = np.sqrt(np.maximum(self.P.diagonal()[: self.n], 0.0))
+        return {"soc": self.z, "h": self.h, "soc_std": sd, "capacity_Ah": self.capacity.q_Ah,
+                "capacity_std_Ah": self.capacity.std_Ah,  # never written: shared between ticks
+                "current_offset_A": np.full(self.n, self.b)}  # fmt: skip
 
     _COUNTERS = ("observer_updates", "observer_gated", "anchors", "reanchors", "gaps_under_load",
                  "start_relaxations")  # fmt: skip
     _ARRAYS = ("P", "_g", "_qz", "_learn_gate", "_q_As", "_i_load_A", "_tau_load_s", "_anchored")
-    _SCALARS = ("b", "_qb", "_since_s", "_rest_s")
+    _SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_rest_i_A")
     _ARRAYS_MAP = ("d", "_knots")
 
     def state_dict(self) -> dict[str, Any]:
@@ -390,8 +390,8 @@ class ObserverState(CoulombState):
         if same:
             self.d = np.asarray(obs["d"], dtype=np.float64).copy()
         load_arrays(self, renamed, self._ARRAYS, "state/observer")
-        for k in self._SCALARS:
-            setattr(self, k, float(obs[k.lstrip("_")]))
+        for k in self._SCALARS:  # rest_i_A: absent before it, no rest seen
+            setattr(self, k, float(obs.get(k.lstrip("_"), NO_REST_A)))
         self._seen_s = float(obs.get("seen_s", self.tun.unconverged_wait_s))  # older: has run
         self._reanchor = bool(obs["reanchor"])
         self.capacity.load_state_dict(obs["capacity"])

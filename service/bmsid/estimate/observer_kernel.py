@@ -93,6 +93,9 @@ N_OUT = 7
 #: Layout of the step's tuning vector ``tun``: the learn range, the observer's rest limit (A),
 #: current gain and SOC walk variances.
 LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, N_TUN = 0, 1, 2, 3, 4, 5
+#: The rests' reading before any rest, A (finite: checkpoints), and its running mean's time
+#: constant over rest ticks, s: seconds of light load hardly move it (``rest_anchor.py``).
+NO_REST_A, REST_MEAN_S = 1e30, 60.0
 
 
 def _step_source(
@@ -100,7 +103,7 @@ def _step_source(
     i_load: FloatArray, tau_load: FloatArray, gate: BoolArray, v: FloatArray, ok: BoolArray,
     steps: FloatArray, b: float, current_A: float, i_prev_A: float, dt_s: float, p_bb: float,
     cells: FloatArray, tun: FloatArray, ocv: FloatArray, m_soc: FloatArray, m_V: FloatArray,
-    knots: FloatArray, d: FloatArray, observer: bool,
+    knots: FloatArray, d: FloatArray, observer: bool, rest_s: float, rest_i: float,
 ) -> tuple[FloatArray, BoolArray, bool, bool]:  # fmt: skip
     """One tick of ``CoulombState.step`` (and with ``observer`` of ``ObserverState.step``)
     for cells none of which starts this tick: the coulomb steps (``steps`` (k, 2), measured,
@@ -118,14 +121,19 @@ def _step_source(
     all_ok = True
     any_gate = False
     kappa_prev = i_prev = dt_prev = decay = 0.0
+    # the measured current at the rests' reading (rest_i, A), whatever b does: a rest
+    # (rest_anchor.at_rest_reading)
+    cont = observer and abs(current_A + b - rest_i) < tun[REST_LIMIT]
     # h through the raw steps too (|i| does not average over a tick), unless the tick's mean
-    # |i| is a rest's (ObserverState: a raw sample's noise is no current)
-    charge = span = 0.0
+    # |i| is a rest's, after b or from the rests' reading (a raw sample's noise is no current)
+    charge = off_reading = span = 0.0
     for k in range(n_steps):
         i = steps[k, 0] - b if observer and b != 0.0 else steps[k, 0]
         charge += abs(i) * steps[k, 1]
+        off_reading += abs(steps[k, 0] - rest_i) * steps[k, 1]
         span += steps[k, 1]
-    moves = dt_s > 0 and span > 0 and charge / span >= tun[REST_LIMIT]
+    held = observer and span > 0 and off_reading / span < tun[REST_LIMIT]
+    moves = dt_s > 0 and not held and span > 0 and charge / span >= tun[REST_LIMIT]
     for c in range(n):
         zc_ = z[c]
         hc = h[c]
@@ -173,7 +181,7 @@ def _step_source(
         limit = tun[REST_LIMIT]
         if not any_gate:
             limit += 2.0 * math.sqrt(max(p_bb, 0.0))
-        resting = i_abs < limit
+        resting = i_abs < limit or cont
     return out, learn, all_ok, resting
 
 
@@ -186,7 +194,7 @@ def _warm_step(kernel: Callable[..., Any]) -> object:
         one * 0.5, one * 0.0, one * 0, one * 0, one * 0, one * 0, one * 100.0, yes, one * 3.7,
         yes, np.ones((1, 2)), 0.0, 1.0, 1.0, 1.0, 0.0, np.ones((N_CELL_ROWS, 2)) * 1e4,
         np.array([0.0, 1.0, 0.1, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
-        np.array([0.0, 1.0]), one * 0.0, True,
+        np.array([0.0, 1.0]), one * 0.0, True, 0.0, 0.0,
     )  # fmt: skip
 
 

@@ -1,4 +1,14 @@
-"""When a rest anchors a cell's SOC to its OCV (``observer.py``, issue 11 item 4).
+"""When the pack rests, and when a rest anchors a cell's SOC to its OCV (``observer.py``, issue
+11 item 4).
+
+A rest is a current within the rest limit after the offset, or a measured current within the
+rest limit of the rests' reading (their running mean, ``REST_MEAN_S``), whatever the offset
+estimate says: tested on i - b alone, a rest ended when b moved past the limit and none began
+again, so b stayed a consider state, frozen where it stood, and h drifted on the count's
+current (``offset-0.7-soc-wrong``: b 1.5 A for 0.7, 1.8 h without a rest, h -0.67 -> +0.10;
+A123 DYN50: b -0.024 A for 8 h, its 12-minute rests unseen, the sensor reading 0.000 there).
+At a rest the sensor reads its offset plus a draw within the rest limit, so b stays within that
+limit of the reading.
 
 A rest anchors once it has lasted ``anchor_rest_taus`` identified slow time constants (the RC
 branches relaxed to within exp(-3) = 5 %; tau2 as identified under load before the rest: the
@@ -13,8 +23,25 @@ from __future__ import annotations
 
 import numpy as np
 
+from bmsid.estimate.observer_kernel import NO_REST_A, REST_MEAN_S
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray
+
+
+def at_rest_reading(i_meas_A: float, reading_A: float, limit_A: float) -> bool:
+    """The measured current (A) is the rests' reading within the rest limit (A)."""
+    return abs(i_meas_A - reading_A) < limit_A
+
+
+def next_rest_reading(reading_A: float, i_meas_A: float, dt_s: float) -> float:
+    """The rests' reading (A) after a rest tick of ``dt_s`` (s) measuring ``i_meas_A`` (A)."""
+    w = 1.0 if reading_A >= NO_REST_A else min(1.0, dt_s / REST_MEAN_S)
+    return i_meas_A if w >= 1.0 else reading_A + (i_meas_A - reading_A) * w
+
+
+def offset_within_rest(b_A: float, reading_A: float, limit_A: float) -> float:
+    """The offset estimate (A) within the rest limit (A) of the rests' reading (A)."""
+    return min(max(b_A, reading_A - limit_A), reading_A + limit_A)
 
 
 def anchors_due(

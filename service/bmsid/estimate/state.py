@@ -135,6 +135,7 @@ class CoulombState:
         self._kappa_charge = hysteresis_kappa(gamma, self._capacity_As, self._efficiency, -1.0)
         #: |current| (A) below which the hysteresis holds (the observer's rest limit; 0 here)
         self._h_rest_A = 0.0
+        self._h_hold = False  # set by the observer for the tick: a rest goes on
 
     def step(self, ctx: TickContext) -> None:
         if state_jit.step(self, ctx, observer=False):  # the compiled kernel (jit.select)
@@ -146,7 +147,8 @@ class CoulombState:
             self._all_seen = bool(self._seen.all())
         # h through the raw steps too (|i| does not average over a tick), unless the tick's
         # mean |i| is a rest's (a raw sample's noise is no current)
-        moves = tick.dt_s > 0 and mean_abs_current(tick.coulomb_steps) >= self._h_rest_A
+        moves = (tick.dt_s > 0 and not self._h_hold
+                 and mean_abs_current(tick.coulomb_steps) >= self._h_rest_A)  # fmt: skip
         for i, dt in tick.coulomb_steps:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
             if moves and dt > 0:
