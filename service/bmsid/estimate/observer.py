@@ -116,8 +116,7 @@ class ObserverState(CoulombState):
             self.b = rest.offset_within_rest(self.b, reading, limit)
         if state_jit.step(self, ctx, observer=True):  # the compiled kernel (jit.select)
             return
-        off_reading = tuple((i - reading, dt) for i, dt in tick.coulomb_steps)
-        self._h_hold = bool(off_reading) and mean_abs_current(off_reading) < limit
+        self._h_hold = mean_abs_current([(i - reading, dt) for i, dt in tick.coulomb_steps]) < limit
         self._remove_offset(tick)
         self._accumulate(tick)
         super().step(ctx)
@@ -390,8 +389,9 @@ class ObserverState(CoulombState):
         if same:
             self.d = np.asarray(obs["d"], dtype=np.float64).copy()
         load_arrays(self, renamed, self._ARRAYS, "state/observer")
-        for k in self._SCALARS:  # rest_i_A: absent before it, no rest seen
-            setattr(self, k, float(obs.get(k.lstrip("_"), NO_REST_A)))
+        for k in self._SCALARS:  # rest_i_A: absent before it (no rest seen)
+            v = obs.get(k[1:], NO_REST_A) if k == "_rest_i_A" else obs[k.lstrip("_")]
+            setattr(self, k, float(v))
         self._seen_s = float(obs.get("seen_s", self.tun.unconverged_wait_s))  # older: has run
         self._reanchor = bool(obs["reanchor"])
         self.capacity.load_state_dict(obs["capacity"])

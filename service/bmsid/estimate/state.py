@@ -7,6 +7,7 @@ identified model replaces this stage behind the same protocol.)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -33,7 +34,7 @@ def without_data(
     return out, np.where(no_data, _NO_DATA, quality)
 
 
-def mean_abs_current(steps: tuple[tuple[float, float], ...]) -> float:
+def mean_abs_current(steps: Sequence[tuple[float, float]]) -> float:
     """Time-weighted mean |i| of a tick's raw (current A, interval s) steps, A (0 if none)."""
     charge = span = 0.0
     for i, dt in steps:
