@@ -22,8 +22,7 @@ between, a swarm run ahead only counts its ticks. It stops after a tick whose gu
 re-initialisation (``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the
 caller (``lam`` per tick: numpy's power, as the stages' ``outputs``).
 
-Its cache entry is named after the files whose compiled code it embeds (``jit.Kernel``'s
-``depends``).
+Its cache entry is named after the files whose compiled code it embeds (``jit.Kernel.depends``).
 """
 
 from __future__ import annotations
@@ -43,14 +42,16 @@ from bmsid.estimate import (
     ocv_kernel,
     publish_average,
     publish_kernel,
+    rest_anchor,
     rls_kernel,
     rls_reference,
     tick_block,
 )
 from bmsid.estimate.fields import FIELD_NAMES
 from bmsid.estimate.jit_helpers import helper, register
-from bmsid.estimate.observer_kernel import NO_REST_A, REST_LIMIT, REST_MEAN_S
+from bmsid.estimate.observer_kernel import REST_LIMIT
 from bmsid.estimate.publish_kernel import AVG_ROW, BITS_ROW, SOC_ROW
+from bmsid.estimate.rest_anchor import at_rest_reading, next_rest_reading, offset_within_rest
 from bmsid.estimate.swarms import loop_events
 
 #: Field rows of the output ``o`` (``fields.FIELD_NAMES`` order), literals checked below.
@@ -150,9 +151,9 @@ def _fused_source(
         elif T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
             stop = STOP_TICK
             break
-        if observer and abs(cur - so[REST_I]) < tun[REST_LIMIT]:  # rest_anchor.offset_within_rest
-            so[B] = min(max(so[B], so[REST_I] - tun[REST_LIMIT]), so[REST_I] + tun[REST_LIMIT])
-        b = so[B]
+        if observer and at_rest_reading(cur, so[REST_I], tun[REST_LIMIT]):
+            so[B] = offset_within_rest(so[B], so[REST_I], tun[REST_LIMIT])
+        b, cont = so[B], False
         if observer:
             if b != 0.0:  # _remove_offset (the kernel removes it from the coulomb steps)
                 cur -= b
@@ -165,7 +166,7 @@ def _fused_source(
             limit = tun[REST_LIMIT]  # the step's rest test, ahead of it: an anchor is near?
             if not any_gate:
                 limit += 2.0 * math.sqrt(max(P[n, n], 0.0))
-            cont = abs(cur + b - so[REST_I]) < tun[REST_LIMIT]
+            cont = at_rest_reading(cur + b, so[REST_I], tun[REST_LIMIT])
             rest_after = so[REST] + dt if abs(cur) < limit or cont else 0.0
             if rest_after >= so[MIN_REST] and not all_anchored:
                 stop = STOP_TICK
@@ -192,9 +193,8 @@ def _fused_source(
         if observer:  # _after_step: the rest clock (no watch open, no restart here)
             if resting:
                 so[REST] += dt
-                if abs(cur) < tun[REST_LIMIT] or abs(cur + b - so[REST_I]) < tun[REST_LIMIT]:
-                    w = 1.0 if so[REST_I] >= NO_REST_A else min(1.0, dt / REST_MEAN_S)
-                    so[REST_I] = cur + b if w >= 1.0 else so[REST_I] + (cur + b - so[REST_I]) * w
+                if abs(cur) < tun[REST_LIMIT] or cont:  # at the reading: the test above
+                    so[REST_I] = next_rest_reading(so[REST_I], cur + b, dt)
             elif so[REST] != 0.0:
                 so[REST], anchored = 0.0, np.zeros(n, dtype=np.bool_)
         # the learn gate (bank._run_tick)
@@ -393,7 +393,7 @@ def _reference(*args: Any) -> Any:
 
 #: The files whose compiled code the loop embeds (its cache entry is named after them).
 _EMBEDS = (observer_kernel, ocv_kernel, rls_kernel, rls_reference, publish_kernel, guard_kernel,
-           publish_average, tick_block)  # fmt: skip
+           publish_average, tick_block, rest_anchor)  # fmt: skip
 FUSED_TICKS = jit.Kernel(
     "fused ticks", _reference, _fused_source, _warm,
     depends=tuple(str(m.__file__) for m in _EMBEDS),

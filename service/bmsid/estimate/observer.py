@@ -44,7 +44,7 @@ from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
 from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, map_rows, restore_covariance
 from bmsid.estimate.observer_ekf import IndexArray, joint_update
-from bmsid.estimate.observer_kernel import NO_REST_A, lone_cells
+from bmsid.estimate.observer_kernel import lone_cells
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.start_relaxation import StartRelaxation, relaxation_tau_s, widened_variance
@@ -99,7 +99,7 @@ class ObserverState(CoulombState):
         # Accumulated since the last update: dz/db, SOC and offset process noise, data time.
         self._g, self._qz = np.zeros(n), np.zeros(n)
         self._qb = self._since_s = self._rest_s = self._seen_s = 0.0  # seen: since the start
-        self._rest_i_A = NO_REST_A  # the rests' reading, A (rest_anchor.py)
+        self._rest_i_A = rest.NO_REST_A  # the rests' reading, A (rest_anchor.py)
         self._i_load_A, self._tau_load_s = np.zeros(n), np.array(model.start("tau2_s"), float)
         self._anchored, self._reanchor, self._widen = np.zeros(n, dtype=bool), False, False
         self._learn_gate, self._start_var = np.ones(n, dtype=bool), np.zeros(n)
@@ -390,7 +390,7 @@ class ObserverState(CoulombState):
             self.d = np.asarray(obs["d"], dtype=np.float64).copy()
         load_arrays(self, renamed, self._ARRAYS, "state/observer")
         for k in self._SCALARS:  # rest_i_A: absent before it (no rest seen)
-            v = obs.get(k[1:], NO_REST_A) if k == "_rest_i_A" else obs[k.lstrip("_")]
+            v = obs.get(k[1:], rest.NO_REST_A) if k == "_rest_i_A" else obs[k.lstrip("_")]
             setattr(self, k, float(v))
         self._seen_s = float(obs.get("seen_s", self.tun.unconverged_wait_s))  # older: has run
         self._reanchor = bool(obs["reanchor"])

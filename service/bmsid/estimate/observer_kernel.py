@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bmsid.estimate import jit, ocv_kernel
+from bmsid.estimate import jit, ocv_kernel, rest_anchor
 from bmsid.estimate.jit_helpers import helper, register
 from bmsid.estimate.ocv_kernel import (  # the OCV vector's layout and helpers, re-exported
     EQ4_MAX,
@@ -34,6 +34,7 @@ from bmsid.estimate.ocv_kernel import (  # the OCV vector's layout and helpers, 
     docv_dz_at,
     ocv_at,
 )
+from bmsid.estimate.rest_anchor import at_rest_reading
 from bmsid.estimate.stage import BoolArray, FloatArray
 
 
@@ -93,9 +94,6 @@ N_OUT = 7
 #: Layout of the step's tuning vector ``tun``: the learn range, the observer's rest limit (A),
 #: current gain and SOC walk variances.
 LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, N_TUN = 0, 1, 2, 3, 4, 5
-#: The rests' reading before any rest, A (finite: checkpoints), and its running mean's time
-#: constant over rest ticks, s: seconds of light load hardly move it (``rest_anchor.py``).
-NO_REST_A, REST_MEAN_S = 1e30, 60.0
 
 
 def _step_source(
@@ -122,8 +120,7 @@ def _step_source(
     any_gate = False
     kappa_prev = i_prev = dt_prev = decay = 0.0
     # the measured current at the rests' reading (rest_i, A), whatever b does: a rest
-    # (rest_anchor.at_rest_reading)
-    cont = observer and abs(current_A + b - rest_i) < tun[REST_LIMIT]
+    cont = observer and at_rest_reading(current_A + b, rest_i, tun[REST_LIMIT])
     # h through the raw steps too (|i| does not average over a tick), unless the tick's mean
     # |i| is a rest's, after b or from the rests' reading (a raw sample's noise is no current)
     charge = off_reading = span = 0.0
@@ -393,7 +390,7 @@ def _warm_update(kernel: Callable[..., Any]) -> object:
 
 #: The reference in the registry is the kernel source run as plain Python (the stages' numpy
 #: mode runs their own code: the reference the tests compare against).
-_DEPENDS = (str(ocv_kernel.__file__),)
+_DEPENDS = (str(ocv_kernel.__file__), str(rest_anchor.__file__))
 STEP = jit.Kernel("state step", _step_source, _step_source, _warm_step, depends=_DEPENDS)
 UPDATE = jit.Kernel(
     "observer update", _update_source, _update_source, _warm_update, depends=_DEPENDS

@@ -23,22 +23,32 @@ from __future__ import annotations
 
 import numpy as np
 
-from bmsid.estimate.observer_kernel import NO_REST_A, REST_MEAN_S
+from bmsid.estimate.jit_helpers import helper
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray
 
+#: The rests' reading before any rest, A (finite: checkpoints), and its running mean's time
+#: constant over rest ticks, s: seconds of light load hardly move it.
+NO_REST_A, REST_MEAN_S = 1e30, 60.0
 
+# The three below are ``@helper``s: the compiled step and fused loop call them too (both name
+# this file in their ``depends``).
+
+
+@helper
 def at_rest_reading(i_meas_A: float, reading_A: float, limit_A: float) -> bool:
     """The measured current (A) is the rests' reading within the rest limit (A)."""
     return abs(i_meas_A - reading_A) < limit_A
 
 
+@helper
 def next_rest_reading(reading_A: float, i_meas_A: float, dt_s: float) -> float:
     """The rests' reading (A) after a rest tick of ``dt_s`` (s) measuring ``i_meas_A`` (A)."""
     w = 1.0 if reading_A >= NO_REST_A else min(1.0, dt_s / REST_MEAN_S)
     return i_meas_A if w >= 1.0 else reading_A + (i_meas_A - reading_A) * w
 
 
+@helper
 def offset_within_rest(b_A: float, reading_A: float, limit_A: float) -> float:
     """The offset estimate (A) within the rest limit (A) of the rests' reading (A)."""
     return min(max(b_A, reading_A - limit_A), reading_A + limit_A)
