@@ -175,16 +175,16 @@ def _fused_source(
         st = steps[off[k] : off[k + 1]]
         if observer:
             out, learn, all_ok, resting = _STEP(
-                z, h, g, qz, thr, i_load, tau_load, learn_gate, v, ok, st, b, cur, ip, dt,
-                P[n, n], cells_c, tun, ocv, m_soc, m_V, knots, d, True, so[REST], so[REST_I],
+                z, h, g, qz, thr, i_load, tau_load, learn_gate, v, ok, st, b, cur, dt,
+                P[n, n], cells_c, tun, ocv, m_soc, m_V, knots, d, True, so[REST_I],
             )  # fmt: skip
             so[QB] += so[QB_COEF] * dt / 86400.0
             so[SINCE] += dt
             so[SEEN] += dt
         else:
             out, learn, all_ok, resting = _STEP(
-                z, h, empty, empty, empty, empty, empty, ok, v, ok, st, 0.0, cur, ip, dt, 0.0,
-                cells_c, tun, ocv, m_soc, m_V, knots, empty, False, 0.0, 0.0,
+                z, h, empty, empty, empty, empty, empty, ok, v, ok, st, 0.0, cur, dt, 0.0,
+                cells_c, tun, ocv, m_soc, m_V, knots, empty, False, 0.0,
             )  # fmt: skip
         z, h = out[0], out[1]
         v_safe = v if all_ok else out[6]

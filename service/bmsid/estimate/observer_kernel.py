@@ -99,9 +99,9 @@ LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, N_TUN = 0, 1, 2, 3, 4, 5
 def _step_source(
     z: FloatArray, h: FloatArray, g: FloatArray, qz: FloatArray, thr: FloatArray,
     i_load: FloatArray, tau_load: FloatArray, gate: BoolArray, v: FloatArray, ok: BoolArray,
-    steps: FloatArray, b: float, current_A: float, i_prev_A: float, dt_s: float, p_bb: float,
-    cells: FloatArray, tun: FloatArray, ocv: FloatArray, m_soc: FloatArray, m_V: FloatArray,
-    knots: FloatArray, d: FloatArray, observer: bool, rest_s: float, rest_i: float,
+    steps: FloatArray, b: float, current_A: float, dt_s: float, p_bb: float, cells: FloatArray,
+    tun: FloatArray, ocv: FloatArray, m_soc: FloatArray, m_V: FloatArray, knots: FloatArray,
+    d: FloatArray, observer: bool, rest_i: float,
 ) -> tuple[FloatArray, BoolArray, bool, bool]:  # fmt: skip
     """One tick of ``CoulombState.step`` (and with ``observer`` of ``ObserverState.step``)
     for cells none of which starts this tick: the coulomb steps (``steps`` (k, 2), measured,
@@ -189,9 +189,9 @@ def _warm_step(kernel: Callable[..., Any]) -> object:
     p[[0, EQ4_MIN, EQ4_MAX, SOC_MIN, SOC_MAX]] = 3.7, 0.01, 0.99, 0.01, 0.99
     return kernel(
         one * 0.5, one * 0.0, one * 0, one * 0, one * 0, one * 0, one * 100.0, yes, one * 3.7,
-        yes, np.ones((1, 2)), 0.0, 1.0, 1.0, 1.0, 0.0, np.ones((N_CELL_ROWS, 2)) * 1e4,
+        yes, np.ones((1, 2)), 0.0, 1.0, 1.0, 0.0, np.ones((N_CELL_ROWS, 2)) * 1e4,
         np.array([0.0, 1.0, 0.1, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
-        np.array([0.0, 1.0]), one * 0.0, True, 0.0, 0.0,
+        np.array([0.0, 1.0]), one * 0.0, True, 0.0,
     )  # fmt: skip
 
 

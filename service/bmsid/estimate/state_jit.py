@@ -150,9 +150,9 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
         tau_load = np.ascontiguousarray(obs._tau_load_s)  # params' tau2: a view would compile
         out, learn, all_ok, resting = ok_.STEP.impl(
             st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A, tau_load,
-            obs._learn_gate, tick.v_V, tick.ok, steps, b, tick.current_A, tick.i_prev_A,
+            obs._learn_gate, tick.v_V, tick.ok, steps, b, tick.current_A,
             tick.dt_s, float(obs.P[obs.n, obs.n]), pk.cells, pk.tun, pk.ocv, pk.m_soc, pk.m_V,
-            pk.knots, obs.d, True, obs._rest_s, obs._rest_i_A,
+            pk.knots, obs.d, True, obs._rest_i_A,
         )  # fmt: skip
         obs._qb += pk.qb_coef * tick.dt_s / 86400.0
         obs._since_s += tick.dt_s
@@ -160,8 +160,8 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     else:
         out, learn, all_ok, resting = ok_.STEP.impl(
             st.z, st.h, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, tick.ok, tick.v_V,
-            tick.ok, steps, 0.0, tick.current_A, tick.i_prev_A, tick.dt_s, 0.0, pk.cells, pk.tun,
-            pk.ocv, pk.m_soc, pk.m_V, pk.knots, _EMPTY, False, 0.0, 0.0,
+            tick.ok, steps, 0.0, tick.current_A, tick.dt_s, 0.0, pk.cells, pk.tun,
+            pk.ocv, pk.m_soc, pk.m_V, pk.knots, _EMPTY, False, 0.0,
         )  # fmt: skip
     z, h, ctx.soc_clamped, ctx.ocv_V, ctx.m_table_V, ctx.hm_V, v_safe = out
     st.z = z
