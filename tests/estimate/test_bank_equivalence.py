@@ -1,8 +1,9 @@
 """A 96-cell bank equals 96 single-cell estimators (one vectorised call per sample).
 
-The SOC observer couples the cells of a bank through two things only, the pack's current offset
-(one sensor) and the hysteresis map they share (its uncertainty is in every cell's update); with
-both pinned by their priors, the cells must be independent.
+The SOC observer couples the cells of a bank through three things only, the pack's current
+offset (one sensor), the hysteresis map they share (its uncertainty is in every cell's update)
+and the error of the hysteresis state (one current drives every cell's); with all three pinned
+(priors of 0, the error not estimated), the cells must be independent.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ TUNING = EstimatorTuning(window_s=120.0, min_window_s=40.0, swarm_period_s=60.0,
                          observer=ObserverTuning(offset_prior_C=1e-12,
                                                  offset_walk_C_per_sqrt_day=0.0,
                                                  hysteresis_prior_rel=1e-12,
-                                                 hysteresis_prior_floor_V=0.0))  # fmt: skip
+                                                 hysteresis_prior_floor_V=0.0,
+                                                 hysteresis_error=False))  # fmt: skip
 
 
 @pytest.mark.parametrize("variant", ["hy-affrls-lpso", "non-hy-affrls"])

@@ -1,10 +1,10 @@
 """The observer's EKF update (estimate/observer_ekf.py) against Joseph's form written out.
 
 The module forms P H' and H P H' from the sparse H (one SOC column per cell, the offset, the
-hysteresis map); the reference below builds H dense and applies the textbook
-(I - K H) P (I - K H)' + K R K' with the consider gain (the offset's row zeroed for unforced
-cells, the map's rows for cells that do not teach it, every entry but its own SOC's zeroed for a
-lone cell)."""
+hysteresis map, the hysteresis error); the reference below builds H dense and applies the
+textbook (I - K H) P (I - K H)' + K R K' with the consider gain (the offset's row zeroed for
+unforced cells, the map's rows for cells that do not teach it, every entry but its own SOC's
+zeroed for a lone cell)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from bmsid.estimate.observer_ekf import joint_update
 from bmsid.estimate.observer_kernel import lone_cells
 
 
-def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach):  # type: ignore[no-untyped-def]
+def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach, n_map):  # type: ignore[no-untyped-def]
     """Dense H, Kalman gain, the offset row zeroed for unforced cells, the map's rows for cells
     not teaching it and a lone cell's column but for its own SOC, Joseph's form."""
     N = P.shape[0]
@@ -29,7 +29,7 @@ def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach):  # ty
     K = P @ H.T @ np.linalg.inv(S)
     if consider:
         K[n, ~forced[idx]] = 0.0
-    K[n + 1 :, ~teach[idx]] = 0.0
+    K[n + 1 : n + 1 + n_map, ~teach[idx]] = 0.0
     for q, c in enumerate(idx):
         if lone[c]:
             own = K[c, q]
@@ -46,17 +46,20 @@ def _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach):  # ty
     k=st.integers(0, 3),
     seed=st.integers(0, 2**32 - 1),
     consider=st.booleans(),
+    h_error=st.booleans(),
 )
 def test_the_update_is_josephs_form_of_the_consider_gain(
-    n: int, k: int, seed: int, consider: bool
+    n: int, k: int, seed: int, consider: bool, h_error: bool
 ) -> None:
+    """``k`` map knots and, with ``h_error``, the hysteresis error after them: a state
+    every update teaches (the map's consider rule is the map's alone)."""
     rng = np.random.default_rng(seed)
-    N = n + 1 + k
+    N = n + 1 + k + int(h_error)
     A = rng.normal(size=(N, N))
     P = A @ A.T * 1e-3 + np.eye(N) * 1e-4
     hz = rng.uniform(0.05, 2.0, n)
     hb = rng.uniform(0.001, 0.2, n)
-    G = rng.normal(size=(n, k)) * 0.5
+    G = rng.normal(size=(n, k + int(h_error))) * 0.5
     e = rng.normal(size=n) * 1e-3
     r = rng.uniform(1e-6, 1e-4, n)
     forced = rng.random(n) < 0.3
@@ -64,11 +67,11 @@ def test_the_update_is_josephs_form_of_the_consider_gain(
     teach = rng.random(n) < 0.5
     idx = np.flatnonzero(rng.random(n) < 0.8)
     step = joint_update(P, n, idx, hz, hb, G, e, r, forced, gate_sigmas=1e9,
-                        consider_offset=consider, lone=lone, teach=teach)  # fmt: skip
+                        consider_offset=consider, lone=lone, teach=teach, n_map=k)  # fmt: skip
     if idx.size == 0:
         assert step.dx is None
         return
-    dx_ref, P_ref = _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach)
+    dx_ref, P_ref = _reference(P, n, idx, hz, hb, G, e, r, forced, consider, lone, teach, k)
     assert step.dx is not None and step.P is not None
     np.testing.assert_allclose(step.dx, dx_ref, rtol=1e-7, atol=1e-12)
     P_ref = 0.5 * (P_ref + P_ref.T)
@@ -136,3 +139,19 @@ def test_a_cell_that_does_not_teach_the_map_sees_its_uncertainty_and_leaves_it()
     assert seen.P[0, 0] > blind.P[0, 0]
     np.testing.assert_array_equal(seen.dx[n + 1 :], 0.0)
     np.testing.assert_allclose(np.diag(seen.P)[n + 1 :], np.diag(P)[n + 1 :], rtol=1e-12)
+
+
+def test_a_forced_cell_beyond_the_gate_updates_its_own_soc_only() -> None:
+    """An anchor is forced (SOC may be far off), but one cell's 50 mV at its anchor (a glitch
+    on its sense wire, the agreement test off) moved the pack's hysteresis error to its +1
+    bound and its offset to -0.29 A: beyond the gate it is that cell's own SOC only."""
+    n = 3
+    P = np.diag([1e-4, 1e-4, 1e-4, 1e-4, 0.05])  # SOC 1 point each, offset 0.01 A, dh 0.22
+    hz, hb = np.full(n, 0.5), np.full(n, 0.01)
+    G = np.full((n, 1), 0.015)  # dv / d dh = M
+    e, r = np.array([0.5e-3, 50e-3, -0.5e-3]), np.array([25e-6, 1e-6, 25e-6])
+    forced = np.array([False, True, False])
+    step = joint_update(P, n, np.arange(n), hz, hb, G, e, r, forced, 5.0, False, n_map=0)
+    assert step.dx is not None
+    assert step.dx[1] > 0.05  # its own SOC: 7 points up
+    np.testing.assert_array_equal(step.dx[[n, n + 1]], 0.0)

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from bmsid.config.cell import PAPER_OCV_MEAN, paper_cell
 from bmsid.config.engine import build_bank, cell_model
-from bmsid.estimate import jit, observer_kernel, ocv_kernel
+from bmsid.estimate import jit, observer_kernel, observer_update_kernel, ocv_kernel
 from bmsid.estimate.jit_helpers import register
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.observer_tuning import ObserverTuning
@@ -38,7 +38,7 @@ M_SOC, M_V = [0.0, 0.3, 0.7, 1.0], [0.02, 0.012, 0.01, 0.015]
 def test_the_compiled_kernels_are_available() -> None:
     """numba is a dependency: both kernels compile here (no silent fallback)."""
     assert observer_kernel.STEP.compiled() is not None
-    assert observer_kernel.UPDATE.compiled() is not None
+    assert observer_update_kernel.UPDATE.compiled() is not None
 
 
 # ----------------------------------------------------------------------------- random stages
@@ -144,6 +144,7 @@ def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombStat
             stage.d = rng.uniform(-3e-3, 3e-3, stage.d.shape[0])
         stage._g = rng.uniform(0.0, 1e-3, n)
         stage._qz = rng.uniform(0.0, 1e-6, n)
+        stage._lh = rng.uniform(-2.0, 0.0, n)  # h's log decay since the last update
         stage._qb, stage._since_s = float(rng.uniform(0, 1e-4)), float(rng.uniform(0, 10))
         stage._rest_s = float(rng.choice([0.0, 10.0, 40.0, 500.0]))
         stage._anchored = rng.random(n) < 0.3
@@ -184,7 +185,7 @@ def _params(rng: np.random.Generator, v: np.ndarray) -> dict[str, np.ndarray]:
 
 
 _CTX = ("soc_clamped", "ocv_V", "m_table_V", "h", "hm_V", "v_safe_V")
-_OBS_ARRAYS = ("P", "_g", "_qz", "d", "_i_load_A", "_learn_gate", "_anchored", "_q_As")
+_OBS_ARRAYS = ("P", "_g", "_qz", "_lh", "d", "_i_load_A", "_learn_gate", "_anchored", "_q_As")
 _OBS_SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_reanchor", "soc_init_method")
 
 
@@ -253,7 +254,7 @@ def test_compiled_and_numpy_ticks_agree(
             for name, stage in (("numpy", ref), ("compiled", new), ("source", src)):
                 assert jit.select("numpy" if name == "numpy" else "compiled")
                 if name == "source":  # the kernels' own sources run uncompiled
-                    for kernel in (observer_kernel.STEP, observer_kernel.UPDATE):
+                    for kernel in (observer_kernel.STEP, observer_update_kernel.UPDATE):
                         kernel.impl = kernel.reference
                 ctx[name] = TickContext(copy.deepcopy(tick))
                 stage.step(ctx[name])

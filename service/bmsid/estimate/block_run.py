@@ -29,6 +29,7 @@ import numpy as np
 from bmsid.estimate import fused_kernel as fk
 from bmsid.estimate import (
     observer_kernel,
+    observer_update_kernel,
     publish_kernel,
     rls_kernel,
     state_jit,
@@ -61,7 +62,8 @@ def fusable(bank: EstimatorBank) -> bool:
         and type(bank.state) in (CoulombState, ObserverState)
         and rls_kernel.FUSION_TICK.kind == "compiled"
         and fk.FUSED_TICKS.kind == "compiled" and observer_kernel.STEP.kind == "compiled"
-        and observer_kernel.UPDATE.kind == "compiled" and rls_kernel.ARX_TICK.kind == "compiled"
+        and observer_update_kernel.UPDATE.kind == "compiled"
+        and rls_kernel.ARX_TICK.kind == "compiled"
         and publish_kernel.TAIL.kind == "compiled"
     )  # fmt: skip
 
@@ -233,7 +235,7 @@ def _call(
         obs_args = (
             False, st.z, st.h, f, f, f, f, f, b_, np.zeros((n + 1, n + 1)), np.zeros(0), so, b_,
             pk.cells, pk.tun, pk.ocv, pk.m_soc, pk.m_V, pk.knots, np.zeros(0), np.zeros(2),
-            np.zeros(2), np.zeros(0), np.zeros(observer_kernel.N_UTUN), st._learn_everywhere,
+            np.zeros(2), np.zeros(0), np.zeros(observer_update_kernel.N_UTUN), st._learn_everywhere,
             f64(st.model.capacity_Ah, dtype=np.float64), f,
         )  # fmt: skip
     ex_lim = np.array(np.broadcast_to(bank._excitation_limit_A, (n,)), dtype=np.float64)
@@ -247,7 +249,7 @@ def _call(
         gd.good_soc, gd.episode, gd.cause, gd.bound_bits, gd._near, gd._has_near, gd._consts,
         math.nan if gd.t_prev is None else gd.t_prev, float(gd.tuning.gap_s),
         float(gd.tuning.id_period_s), av.avg, av.restart, av.tau1_multiple, o, oq, o_lam, counts,
-        *fusion_args,
+        *fusion_args, obs._lh if obs is not None else np.zeros(n),
     )  # fmt: skip
     (stop, k, z, h, tau_load, learn_gate, d, anchored, R0, R1, R2, tau1, tau2, arx_err, v_model,
      m_table, hist_n, good, good_soc, t_prev, restart, reinit, ms, off_v) = res  # fmt: skip

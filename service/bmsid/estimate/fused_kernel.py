@@ -7,10 +7,10 @@ and average) over ticks ``k0 ..`` of a block's tick arrays (``tick_block.py``), 
 published field into preallocated arrays. The parameter stage is the AFFRLS on the ARX model
 (``non-hy-affrls``, ``hy-affrls``) or the fusion's per-tick AFFRLS and window buffer
 (``hy-affrls-lpso``, while swarms run ahead). It calls the stages' own compiled kernels
-(``observer_kernel.STEP`` and ``UPDATE``, ``rls_kernel.ARX_TICK`` or ``FUSION_TICK``,
-``publish_kernel.TAIL``: the same compiled code, the same bits) and does between them, in loops,
-what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'s rest clock,
-``ArxRlsStage.step`` or ``FusionStage.step`` and their ``outputs``, ``publish_kernel.publish``).
+(``observer_kernel.STEP``, ``observer_update_kernel.UPDATE``, ``rls_kernel.ARX_TICK`` or
+``FUSION_TICK``, ``publish_kernel.TAIL``: the same compiled code, the same bits) and does between
+them, in loops, what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'s
+rest clock, ``ArxRlsStage.step`` or ``FusionStage.step`` and their ``outputs``, ``publish``).
 
 It stops before a tick that needs the stages' Python code (``STOP_TICK``): a new segment (the
 first sample, a gap, a time jump), the first tick with a step (the ARX period is seeded), a
@@ -37,8 +37,10 @@ import numpy as np
 
 from bmsid.estimate import (
     guard_kernel,
+    hysteresis_error,
     jit,
     observer_kernel,
+    observer_update_kernel,
     ocv_kernel,
     publish_average,
     publish_kernel,
@@ -123,7 +125,7 @@ def _fused_source(
     id_period_s: float, avg: Any, restart: Any, tau1_multiple: float, o: Any, oq: Any,
     o_lam: Any, counts: Any, fusion: bool, lin: Any, fit_scale: bool, fit_offset: bool,
     buf_i: Any, buf_y: Any, buf_hm: Any, buf_valid: Any, buf_hc: Any, first_due: float, ms: Any,
-    off_v: Any, sw_active: Any, sw_left: Any, sw_key: int,
+    off_v: Any, sw_active: Any, sw_left: Any, sw_key: int, lh: Any,
 ) -> Any:  # fmt: skip
     """The ticks ``k0 ..`` (module docstring); per-cell state arrays that the Python code
     updates in place are updated in place, those it rebinds are returned."""
@@ -176,7 +178,7 @@ def _fused_source(
         if observer:
             out, learn, all_ok, resting = _STEP(
                 z, h, g, qz, thr, i_load, tau_load, learn_gate, v, ok, st, b, cur, dt,
-                P[n, n], cells_c, tun, ocv, m_soc, m_V, knots, d, True, so[REST_I],
+                P[n, n], cells_c, tun, ocv, m_soc, m_V, knots, d, True, so[REST_I], lh,
             )  # fmt: skip
             so[QB] += so[QB_COEF] * dt / 86400.0
             so[SINCE] += dt
@@ -184,7 +186,7 @@ def _fused_source(
         else:
             out, learn, all_ok, resting = _STEP(
                 z, h, empty, empty, empty, empty, empty, ok, v, ok, st, 0.0, cur, dt, 0.0,
-                cells_c, tun, ocv, m_soc, m_V, knots, empty, False, 0.0,
+                cells_c, tun, ocv, m_soc, m_V, knots, empty, False, 0.0, empty,
             )  # fmt: skip
         z, h = out[0], out[1]
         v_safe = v if all_ok else out[6]
@@ -255,19 +257,16 @@ def _fused_source(
         if observer:
             tau_load = tau2.copy() if so[REST] <= 0.0 else tau_load  # rest: the one before
             if so[SINCE] >= so[UPD_PERIOD]:
-                m_arg = m_out if d.shape[0] else z
                 u1 = (P, g, qz, so[QB], so[SINCE], d_walk, z, out[2], out[3], h, m_table, v,
-                      ok, R0, R1, R2, v_model, m_arg, np.logical_or(arx_ok, so[SEEN] >= so[WAIT]),
+                      ok, R0, R1, R2, v_model, m_out, np.logical_or(arx_ok, so[SEEN] >= so[WAIT]),
                       no_anchor)  # fmt: skip
                 u2 = (i_load, False, cur, so[REST] <= 0.0, b, so[B_MAX], ocv, inv_v, inv_z,
-                      knots, d, m_knots, utun)  # fmt: skip
-                z_n, d_n, gate_n, _anch, _zo, _zv, b_n, n_gated, updated = _UPDATE(*u1, *u2)
-                so[QB] = 0.0
-                so[SINCE] = 0.0
+                      knots, d, m_knots, utun, lh)  # fmt: skip
+                z_n, d_n, gate_n, _anch, _zo, _zv, b_n, n_gated, updated, h_n = _UPDATE(*u1, *u2)
+                so[QB], so[SINCE] = 0.0, 0.0
                 counts[C_GATED] += n_gated
                 if updated:
-                    z = z_n
-                    so[B] = b_n
+                    z, h, so[B] = z_n, h_n, b_n
                     if d.shape[0]:
                         d = d_n
                     counts[C_UPD] += 1
@@ -361,7 +360,7 @@ def warm_args(n: int) -> tuple[Any, ...]:
         f, f, f, f, b_, np.zeros((n + 1, n + 1)), np.zeros(0), np.zeros(N_SO), b_,
         np.zeros((observer_kernel.N_CELL_ROWS, n)), np.zeros(observer_kernel.N_TUN),
         np.zeros(ocv_kernel.N_OCV), np.zeros(2), np.zeros(2), np.zeros(0), np.zeros(0),
-        np.zeros(2), np.zeros(2), np.zeros(0), np.zeros(observer_kernel.N_UTUN), True, f, f,
+        np.zeros(2), np.zeros(2), np.zeros(0), np.zeros(observer_update_kernel.N_UTUN), True, f, f,
         f, f, f, f, f, f, f, f, f, np.zeros((n, 5)), np.zeros((n, 5, 5)), np.zeros((n, 2)),
         np.zeros((n, 5)), np.zeros(2), np.zeros((2, 5, n)), f, b_, b_, 1.0, 0, 1e5,
         (1e-3, 6.0, 3.0, 0.5), True, f, f, f, np.zeros((5, n)), np.zeros((8, n)), f, b_, i_,
@@ -369,7 +368,7 @@ def warm_args(n: int) -> tuple[Any, ...]:
         1.0, np.zeros((len(FIELD_NAMES), 0, n)), np.zeros((0, n), dtype=np.int64),
         np.zeros((0, n)), np.zeros(N_C, dtype=np.int64), True, np.zeros((5, n, 5)), True, False,
         np.zeros(3), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3), dtype=np.bool_),
-        np.zeros(2, dtype=np.int64), 0.0, f, f, b_, i_, -1,
+        np.zeros(2, dtype=np.int64), 0.0, f, f, b_, i_, -1, f,
     )  # fmt: skip
 
 
@@ -377,7 +376,7 @@ def _warm(kernel: Callable[..., Any]) -> object:
     # the compiled callees, bound before this kernel compiles
     global _STEP, _UPDATE, _ARX, _TAIL, _FUSION  # noqa: PLW0603
     register()  # the helpers (_arx_step) callable from compiled code
-    _STEP, _UPDATE = observer_kernel.STEP.compiled(), observer_kernel.UPDATE.compiled()
+    _STEP, _UPDATE = observer_kernel.STEP.compiled(), observer_update_kernel.UPDATE.compiled()
     _ARX, _TAIL = rls_kernel.ARX_TICK.compiled(), publish_kernel.TAIL.compiled()
     _FUSION = rls_kernel.FUSION_TICK.compiled()
     if _STEP is None or _UPDATE is None or _ARX is None or _TAIL is None or _FUSION is None:
@@ -392,8 +391,9 @@ def _reference(*args: Any) -> Any:
 
 
 #: The files whose compiled code the loop embeds (its cache entry is named after them).
-_EMBEDS = (observer_kernel, ocv_kernel, rls_kernel, rls_reference, publish_kernel, guard_kernel,
-           publish_average, tick_block, rest_anchor)  # fmt: skip
+_EMBEDS = (observer_kernel, observer_update_kernel, ocv_kernel, rls_kernel, rls_reference,
+           publish_kernel, guard_kernel, publish_average, tick_block, rest_anchor,
+           hysteresis_error)  # fmt: skip
 FUSED_TICKS = jit.Kernel(
     "fused ticks", _reference, _fused_source, _warm,
     depends=tuple(str(m.__file__) for m in _EMBEDS),

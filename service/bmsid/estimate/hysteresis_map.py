@@ -53,7 +53,7 @@ def map_rows(
     scale = np.where(m_table_V > 0, m_V / np.maximum(m_table_V, 1e-12), 1.0)
     scale = np.where(np.isfinite(scale), scale, 1.0)
     W, var = hat_matrix(knots, zc), np.maximum(np.diag(P), 0.0)
-    teach = anchor & (np.abs(hz) * np.sqrt(var[:n]) <= np.sqrt(W @ var[n + 1 :]))
+    teach = anchor & (np.abs(hz) * np.sqrt(var[:n]) <= np.sqrt(W @ var[n + 1 : n + 1 + W.shape[1]]))
     return (scale * h)[:, None] * W, teach
 
 
@@ -61,13 +61,16 @@ def restore_covariance(
     P_prior: FloatArray, saved: dict[str, Any], n: int, knots: FloatArray
 ) -> tuple[FloatArray, bool]:
     """The observer's covariance from a checkpoint's ``saved`` state (its ``P``, ``knots``) for
-    a filter of ``n`` cells, an offset and the map on ``knots``; True when the checkpoint's map
-    is on the same knots. Otherwise its SOC and offset block with ``P_prior``'s map block."""
+    a filter of ``n`` cells, an offset, the map on ``knots`` and the hysteresis error; True when
+    the checkpoint's map is on the same knots. Otherwise its SOC and offset block with
+    ``P_prior``'s map block; a checkpoint from before the hysteresis error: ``P_prior``'s."""
     P_saved = np.asarray(saved["P"], dtype=np.float64)
     old = np.asarray(saved.get("knots", np.zeros(0)), dtype=np.float64)
-    if old.shape == knots.shape and np.allclose(old, knots):
+    same = old.shape == knots.shape and np.allclose(old, knots)
+    if same and P_saved.shape == P_prior.shape:
         return P_saved, True
+    keep = n + 1 + knots.shape[0] if same else n + 1
     P = P_prior.copy()
-    P[: n + 1, : n + 1] = P_saved[: n + 1, : n + 1]
-    P[: n + 1, n + 1 :] = P[n + 1 :, : n + 1] = 0.0
-    return P, False
+    P[:keep, :keep] = P_saved[:keep, :keep]
+    P[:keep, keep:] = P[keep:, :keep] = 0.0
+    return P, same

@@ -15,8 +15,10 @@ Management Systems Vol. II", ch. 3-4):
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
   M per SOC region from the data, the table its prior; the cells that do not teach it take it
   as consider states (in S and P, gain 0: ``hysteresis_map.map_rows``);
-* h moves only with a current beyond the rest limit (a rest's is noise and offset, which
-  would relax h towards 0 where the cell's holds); what a rest is: ``rest_anchor.py``;
+* the error of the hysteresis state h, one for the pack (``hysteresis_error.py``): Plett's h
+  (Eq. 5-6, gamma a guess) taken as exact put its error into SOC at every rest; h moves only
+  with a current beyond the rest limit; what a rest is and what its reading says of the
+  offset: ``rest_anchor.py``;
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
 while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
@@ -38,18 +40,19 @@ from typing import Any
 
 import numpy as np
 
+from bmsid.estimate import observer_checkpoint, state_jit
 from bmsid.estimate import rest_anchor as rest
-from bmsid.estimate import state_jit
 from bmsid.estimate.capacity import CapacityTracker
 from bmsid.estimate.cellmodel import CellModel
-from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, map_rows, restore_covariance
+from bmsid.estimate.hysteresis_error import fold, target_variance
+from bmsid.estimate.hysteresis_error import predict as predict_h
+from bmsid.estimate.hysteresis_map import hat_matrix, map_knots, map_rows
 from bmsid.estimate.observer_ekf import IndexArray, joint_update
 from bmsid.estimate.observer_kernel import lone_cells
 from bmsid.estimate.observer_tuning import ObserverTuning
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext
 from bmsid.estimate.start_relaxation import StartRelaxation, relaxation_tau_s, widened_variance
 from bmsid.estimate.state import CoulombState, _uniform, mean_abs_current, start_soc_sigma
-from bmsid.estimate.statedict import load_arrays
 from bmsid.estimate.ticks import Tick
 from bmsid.model.ecm import hysteresis_kappa
 
@@ -84,9 +87,10 @@ class ObserverState(CoulombState):
         m_sd = tuning.hysteresis_prior_rel * self._m_knots + tuning.hysteresis_prior_floor_V
         self._d_walk = (tuning.hysteresis_walk_rel_per_sqrt_day * m_sd) ** 2 / 86400.0  # V^2/s
         self.d = np.zeros(self._knots.shape[0])  # M correction at each knot, V
-        self.P = np.zeros((n + 1 + self.d.shape[0],) * 2)
+        self.P = np.zeros((n + 2 + self.d.shape[0],) * 2)  # z, b, d, the hysteresis error
         self.P[n, n] = (tuning.offset_prior_C * q_mean_Ah) ** 2
-        self.P[n + 1 :, n + 1 :] = np.diag(m_sd**2)
+        self.P[n + 1 : -1, n + 1 : -1] = np.diag(m_sd**2)
+        self.P[-1, -1] = self._h_target()
         self._b_max = tuning.offset_max_C * q_mean_Ah
         self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
         self._h_rest_A = self._rest_limit_A  # a rest's current (noise, offset) moves no h
@@ -97,7 +101,7 @@ class ObserverState(CoulombState):
         self._q_As = np.asarray(model.capacity_As, dtype=np.float64).copy()
         self._eff = np.broadcast_to(np.asarray(model.efficiency, dtype=np.float64), (n,)).copy()
         # Accumulated since the last update: dz/db, SOC and offset process noise, data time.
-        self._g, self._qz = np.zeros(n), np.zeros(n)
+        self._g, self._qz, self._lh = np.zeros(n), np.zeros(n), np.zeros(n)  # lh: h's log decay
         self._qb = self._since_s = self._rest_s = self._seen_s = 0.0  # seen: since the start
         self._rest_i_A = rest.NO_REST_A  # the rests' reading, A (rest_anchor.py)
         self._i_load_A, self._tau_load_s = np.zeros(n), np.array(model.start("tau2_s"), float)
@@ -149,6 +153,13 @@ class ObserverState(CoulombState):
         self.counters["gaps_under_load"] += int(gap and not resting)
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
+
+    def _h_decayed(self, log_decay: FloatArray) -> None:
+        self._lh = self._lh + log_decay
+
+    def _h_target(self) -> float:
+        """The hysteresis error's variance once the current moved h (``hysteresis_error``)."""
+        return target_variance(self.h) if self.tun.hysteresis_error else 0.0
 
     def hysteresis_m(self, zc: FloatArray) -> FloatArray:
         """The table's M (V) at ``zc`` plus the learnt correction, never below 0."""
@@ -210,7 +221,7 @@ class ObserverState(CoulombState):
         parameter stage's a-priori model voltage and parameters of this tick. Cells whose
         parameters have not converged once update only at anchors and restarts (their model
         error is the start values', not SOC's) for ``unconverged_wait_s`` of data."""
-        tun = self.tun
+        tun, n = self.tun, self.n
         converged = converged | (self._seen_s >= tun.unconverged_wait_s)
         if self._rest_s <= 0.0:  # a rest is timed by the tau2 identified under load before it
             self._tau_load_s = params["tau2_s"]
@@ -218,11 +229,16 @@ class ObserverState(CoulombState):
         any_anchor = anchor is not None and np.count_nonzero(anchor) > 0
         if not (any_anchor or self._reanchor or self._since_s >= tun.update_period_s):
             return
-        anchor = np.zeros(self.n, dtype=bool) if anchor is None else anchor
+        anchor = np.zeros(n, dtype=bool) if anchor is None else anchor
+        if any_anchor and not self._anchored.any() and self._rest_i_A < rest.NO_REST_A:
+            self._predict()  # the rest's first anchor: its reading measures the offset now
+            dx, self.P = rest.draw_update(self.P, n, self.b, self._rest_i_A, self._rest_limit_A)
+            self._apply(dx)
+            ctx.h = self.h
         if state_jit.update(self, ctx, params, converged, anchor):  # compiled (jit.select)
             return
         self._predict()
-        tick, n, zc = ctx.tick, self.n, ctx.soc_clamped
+        tick, zc = ctx.tick, ctx.soc_clamped
         hz = self.model.ocv.docv_dz(zc)
         hb = params["R0_ohm"] + params["R1_ohm"] + params["R2_ohm"]
         e = tick.v_V - params["v_model_V"]
@@ -244,6 +260,7 @@ class ObserverState(CoulombState):
         else:
             r_anchor = tun.v_sigma_floor_V**2 + (0.25 * ctx.m_table_V) ** 2
             G, teach = np.zeros((n, 0)), np.zeros(n, dtype=bool)
+        G = np.column_stack([G, params["M_V"]])  # dv / d dh (hysteresis_error.py)
         r = np.where(anchor, r_anchor, r)
         valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
         forced = anchor | self._reanchor
@@ -270,8 +287,9 @@ class ObserverState(CoulombState):
         P[:n, n] = P[n, :n] = pb + g * pbb
         P[np.arange(n), np.arange(n)] += self._qz
         P[n, n] += self._qb
-        k = np.arange(n + 1, P.shape[0])
+        k = np.arange(n + 1, P.shape[0] - 1)
         P[k, k] += self._d_walk * self._since_s
+        predict_h(P, self._lh, self._h_target())
         self._g, self._qz = np.zeros(n), np.zeros(n)
         self._qb = self._since_s = 0.0
 
@@ -286,16 +304,24 @@ class ObserverState(CoulombState):
         step = joint_update(
             self.P, n, idx, hz, hb, G, e, r, np.broadcast_to(forced, (n,)),
             self.tun.gate_sigmas, consider_offset=self._rest_s <= 0.0, lone=lone, teach=teach,
+            n_map=self.d.shape[0],
         )  # fmt: skip
         self.counters["observer_gated"] += step.n_gated
         if step.dx is None or step.P is None:
             return
-        dx, self.P = step.dx, step.P
+        self.P = step.P
+        self._apply(step.dx)
+        self.counters["observer_updates"] += 1
+
+    def _apply(self, dx: FloatArray) -> None:
+        """The state's correction ``dx``: SOC within [0, 1], the offset within its bound, M >= 0
+        at the knots, the hysteresis error folded into h (``hysteresis_error.py``)."""
+        n = self.n
         self.z = np.clip(self.z + dx[:n], 0.0, 1.0)
         self.b = float(np.clip(self.b + dx[n], -self._b_max, self._b_max))
         if self.d.shape[0]:
-            self.d = np.maximum(self.d + dx[n + 1 :], -self._m_knots)  # M >= 0 at the knots
-        self.counters["observer_updates"] += 1
+            self.d = np.maximum(self.d + dx[n + 1 : -1], -self._m_knots)  # M >= 0 at the knots
+        self.h = fold(self.h, float(dx[-1]))
 
     def _use_capacity(self) -> None:
         """The coulomb count and the hysteresis rate (Eq. 6) follow the measured capacity."""
@@ -319,6 +345,9 @@ class ObserverState(CoulombState):
         self.P[:n, n:] *= keep[:, None]
         self.P[n:, :n] *= keep
         self.P[np.arange(n), np.arange(n)] = sigma**2
+        if cells.all():  # the start's h (0, or a start fit's): its error's variance
+            self.P[-1, :], self.P[:, -1] = 0.0, 0.0
+            self.P[-1, -1] = self._h_target()
         if self.soc_init_method == "ocv_at_rest":
             self._relax.begin(tick.t_s, cells)
         self._gate_learning()
@@ -360,41 +389,12 @@ class ObserverState(CoulombState):
 
     _COUNTERS = ("observer_updates", "observer_gated", "anchors", "reanchors", "gaps_under_load",
                  "start_relaxations")  # fmt: skip
-    _ARRAYS = ("P", "_g", "_qz", "_learn_gate", "_q_As", "_i_load_A", "_tau_load_s", "_anchored")
-    _SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_rest_i_A")
-    _ARRAYS_MAP = ("d", "_knots")
 
     def state_dict(self) -> dict[str, Any]:
         st = super().state_dict()
-        st["observer"] = {
-            **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS},
-            **{k.lstrip("_"): float(getattr(self, k)) for k in self._SCALARS},
-            **{k.lstrip("_"): np.array(getattr(self, k)) for k in self._ARRAYS_MAP},
-            "seen_s": self._seen_s,
-            "reanchor": self._reanchor,
-            "capacity": self.capacity.state_dict(),
-            "start_relaxation": self._relax.state_dict(),
-        }
+        st["observer"] = observer_checkpoint.save(self)
         return st
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         super().load_state_dict(st)
-        obs = st.get("observer")
-        if obs is None:  # a checkpoint from before the observer: its SOC, widened at the next tick
-            self._widen = True
-            return
-        renamed = {k: obs[k.lstrip("_")] for k in self._ARRAYS}
-        # another map (none before it was learnt, another table): the map from its prior
-        renamed["P"], same = restore_covariance(self.P, obs, self.n, self._knots)
-        if same:
-            self.d = np.asarray(obs["d"], dtype=np.float64).copy()
-        load_arrays(self, renamed, self._ARRAYS, "state/observer")
-        for k in self._SCALARS:  # rest_i_A: absent before it (no rest seen)
-            v = obs.get(k[1:], rest.NO_REST_A) if k == "_rest_i_A" else obs[k.lstrip("_")]
-            setattr(self, k, float(v))
-        self._seen_s = float(obs.get("seen_s", self.tun.unconverged_wait_s))  # older: has run
-        self._reanchor = bool(obs["reanchor"])
-        self.capacity.load_state_dict(obs["capacity"])
-        if "start_relaxation" in obs:  # absent from checkpoints before it: nothing watched
-            self._relax.load_state_dict(obs["start_relaxation"])
-        self._use_capacity()
+        observer_checkpoint.load(self, st.get("observer"))

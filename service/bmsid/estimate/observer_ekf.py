@@ -30,17 +30,20 @@ class EkfStep(NamedTuple):
 def joint_update(
     P: FloatArray, n: int, idx: IndexArray, hz: FloatArray, hb: FloatArray, G: FloatArray,
     e: FloatArray, r: FloatArray, forced: BoolArray, gate_sigmas: float, consider_offset: bool,
-    lone: BoolArray | None = None, teach: BoolArray | None = None,
+    lone: BoolArray | None = None, teach: BoolArray | None = None, n_map: int | None = None,
 ) -> EkfStep:  # fmt: skip
     """Update the cells ``idx`` (of ``n``) with innovations ``e`` (V) of variance ``r`` (V^2).
 
     ``hz``: dOCV/dz (V); ``hb``: dv/db, the DC resistance (ohm); ``G``: dv/dd (n, K). Cells not
-    ``forced`` (an anchor, a restart) are used only when ``e^2 <= gate_sigmas^2 S_cc``. With
+    ``forced`` (an anchor, a restart) are used only when ``e^2 <= gate_sigmas^2 S_cc``; a forced
+    one beyond it (a SOC far off, or one cell's glitch) updates its own SOC only, as a ``lone``
+    cell does: the pack's states (offset, map, hysteresis error) are not one cell's. With
     ``consider_offset`` the unforced cells leave the offset alone (Schmidt-Kalman: it stays in P
     but is not updated; under load it is confounded with the parameters' errors). A ``lone``
     cell (``observer_kernel.lone_cells``) updates its own SOC only. Where ``teach`` is given,
-    the map's corrections are consider states for the cells it leaves out (their ``G`` rows
-    count in S and in P, their gain on d is 0). The
+    the map's corrections (the first ``n_map`` columns of ``G``, all without it) are consider
+    states for the cells it leaves out (their ``G`` rows count in S and in P, their gain on d
+    is 0). The
     covariance is updated in Joseph form, P - K (PH')' - (PH') K' + K S K', true for any gain,
     symmetrised, its diagonal kept >= 0.
     """
@@ -50,7 +53,11 @@ def joint_update(
     PHt = P[:, idx] * hz[idx] + np.outer(P[:, n], hb[idx]) + P[:, n + 1 :] @ Gi.T  # (N, m)
     S = hz[idx, None] * PHt[idx, :] + hb[idx, None] * PHt[n, :] + Gi @ PHt[n + 1 :, :]
     S[np.diag_indices_from(S)] += r[idx]
-    inside = (e[idx] ** 2 <= gate_sigmas**2 * np.diag(S)) | forced[idx]
+    within = e[idx] ** 2 <= gate_sigmas**2 * np.diag(S)
+    inside = within | forced[idx]
+    if not within.all():  # forced beyond the gate (a SOC far off): its own SOC only
+        lone = np.zeros(n, dtype=bool) if lone is None else lone.copy()
+        lone[idx[~within]] = True
     n_gated = int((~inside).sum())
     if not inside.all():
         idx, PHt, S = idx[inside], PHt[:, inside], S[np.ix_(inside, inside)]
@@ -63,7 +70,8 @@ def joint_update(
     if consider_offset:
         K[n, ~forced[idx]] = 0.0
     if teach is not None:  # the map's corrections are consider states for cells not teaching
-        K[n + 1 :, ~teach[idx]] = 0.0
+        m = G.shape[1] if n_map is None else n_map
+        K[n + 1 : n + 1 + m, ~teach[idx]] = 0.0
     if lone is not None and lone[idx].any():
         q = np.flatnonzero(lone[idx])
         own = K[idx[q], q]

@@ -104,6 +104,12 @@ class ObserverTuning(BaseModel):
     per knot for the pack: its cells are one type at one temperature), the configured M(z)
     table the prior (``hysteresis_map.py``). Rests resolve it: the branches relax, the
     hysteresis does not, and the count ties each rest's SOC to the others'."""
+    hysteresis_error: bool = True
+    """Estimate the error of the hysteresis state h (Eq. 5-6), one for the pack, as a state of
+    the filter (``hysteresis_error.py``): its variance (1 - h^2) / 3 once the current has moved
+    h, 0 where h saturates. The rate gamma is not measured, and under a drive's mixed current
+    h settles where its charge balances; taken as exact, its error went into SOC at the rests.
+    False: h as exact, as before."""
     hysteresis_prior_rel: float = Field(0.25, gt=0.0)
     """Prior std of M at each knot, as a fraction of the table's M: the uncertainty the anchors
     assumed of the table before M was learnt (a C/20 test's half-gap against polarisation)."""

@@ -155,6 +155,7 @@ class CoulombState:
             if moves and dt > 0:
                 kappa = self._kappa_charge if i < 0 else self._kappa_discharge
                 self.h = hysteresis_step(self.h, i, dt, kappa)
+                self._h_decayed(-np.abs(kappa * i) * dt)
         if np.count_nonzero(self._pending):  # after the count: SOC is that of the start sample
             self._start(tick, self._pending)
         ocv = m.ocv
@@ -170,6 +171,9 @@ class CoulombState:
             ctx.learn = tick.ok
         else:
             ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
+
+    def _h_decayed(self, log_decay: FloatArray) -> None:
+        """Hook: h moved with ``-kappa |i| dt`` of a raw step (the observer keeps its sum)."""
 
     def hysteresis_m(self, zc: FloatArray) -> FloatArray:
         """The half-gap M (V) at the (clamped) SOC ``zc``: the configured table (Eq. 32)."""

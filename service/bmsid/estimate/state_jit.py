@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bmsid.estimate import observer_kernel as ok_
+from bmsid.estimate import observer_update_kernel as ou_
 from bmsid.estimate import ocv_kernel as oc_
 from bmsid.estimate.stage import BoolArray, FloatArray, TickContext, nnz
 from bmsid.model.ocv import OcvModel
@@ -121,7 +122,7 @@ def update_tuning(obs: ObserverState, pk: Packed) -> FloatArray:
         tun = obs.tun
         pk.utun = np.array([tun.v_sigma_V**2, tun.r_dc_rel_sigma, tun.v_sigma_floor_V**2,
                             tun.gate_sigmas**2, tun.learn_ocv_sigma_V,
-                            tun.agree_sigmas**2])  # fmt: skip
+                            tun.agree_sigmas**2, float(tun.hysteresis_error)])  # fmt: skip
     return pk.utun
 
 
@@ -152,7 +153,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
             st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A, tau_load,
             obs._learn_gate, tick.v_V, tick.ok, steps, b, tick.current_A,
             tick.dt_s, float(obs.P[obs.n, obs.n]), pk.cells, pk.tun, pk.ocv, pk.m_soc, pk.m_V,
-            pk.knots, obs.d, True, obs._rest_i_A,
+            pk.knots, obs.d, True, obs._rest_i_A, obs._lh,
         )  # fmt: skip
         obs._qb += pk.qb_coef * tick.dt_s / 86400.0
         obs._since_s += tick.dt_s
@@ -161,7 +162,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
         out, learn, all_ok, resting = ok_.STEP.impl(
             st.z, st.h, _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY, tick.ok, tick.v_V,
             tick.ok, steps, 0.0, tick.current_A, tick.dt_s, 0.0, pk.cells, pk.tun,
-            pk.ocv, pk.m_soc, pk.m_V, pk.knots, _EMPTY, False, 0.0,
+            pk.ocv, pk.m_soc, pk.m_V, pk.knots, _EMPTY, False, 0.0, _EMPTY,
         )  # fmt: skip
     z, h, ctx.soc_clamped, ctx.ocv_V, ctx.m_table_V, ctx.hm_V, v_safe = out
     st.z = z
@@ -179,7 +180,7 @@ def update(
 ) -> bool:  # fmt: skip
     """The observer's measurement update that is due by the compiled kernel; False (nothing
     done) in the numpy mode."""
-    if ok_.UPDATE.kind != "compiled":
+    if ou_.UPDATE.kind != "compiled":
         return False
     tick, n, pk = ctx.tick, obs.n, packed(obs)
     utun = update_tuning(obs, pk)
@@ -187,19 +188,19 @@ def update(
     # C-contiguous float64 as the kernel was compiled for (a view would compile anew mid-run)
     p = {k: np.ascontiguousarray(params[k], dtype=np.float64)
          for k in ("R0_ohm", "R1_ohm", "R2_ohm", "v_model_V", "M_V") if k in params}  # fmt: skip
-    z, d, gate, anchored, z_ocv, z_var, b, n_gated, updated = ok_.UPDATE.impl(
+    z, d, gate, anchored, z_ocv, z_var, b, n_gated, updated, h = ou_.UPDATE.impl(
         obs.P, obs._g, obs._qz, obs._qb, obs._since_s, obs._d_walk, obs.z, ctx.soc_clamped,
         ctx.ocv_V, ctx.h, ctx.m_table_V, tick.v_V, tick.ok, p["R0_ohm"], p["R1_ohm"],
-        p["R2_ohm"], p["v_model_V"], p["M_V"] if obs.d.shape[0] else obs.z,
+        p["R2_ohm"], p["v_model_V"], p["M_V"],
         converged, anchor, obs._i_load_A, obs._reanchor, tick.current_A, obs._rest_s <= 0.0,
         obs.b, obs._b_max, pk.ocv, ocv._inv_v, ocv._inv_z, pk.knots, obs.d, obs._m_knots,
-        utun,
+        utun, obs._lh,
     )  # fmt: skip
     obs._qb = 0.0
     obs._since_s = 0.0
     obs.counters["observer_gated"] += n_gated
     if updated:
-        obs.z, obs.b = z, b
+        obs.z, obs.b, obs.h = z, b, h
         if obs.d.shape[0]:
             obs.d = d
         obs.counters["observer_updates"] += 1
