@@ -15,8 +15,7 @@ Management Systems Vol. II", ch. 3-4):
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
   M per SOC region from the data, the table its prior; the cells that do not teach it take it
   as consider states (in S and P, gain 0: ``hysteresis_map.map_rows``);
-* the error of the hysteresis state h, one for the pack (``hysteresis_error.py``): Plett's h
-  (Eq. 5-6, gamma a guess) taken as exact put its error into SOC at every rest; h moves only
+* the error of the hysteresis state h, one for the pack (``hysteresis_error.py``); h moves only
   with a current beyond the rest limit; what a rest is and what its reading says of the
   offset: ``rest_anchor.py``;
 
@@ -154,7 +153,7 @@ class ObserverState(CoulombState):
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
 
-    def _h_decayed(self, log_decay: FloatArray) -> None:
+    def _h_decayed(self, log_decay: FloatArray) -> None:  # (state.py's hook)
         self._lh = self._lh + log_decay
 
     def _h_target(self) -> float:
@@ -170,12 +169,13 @@ class ObserverState(CoulombState):
 
     def _restart(self, tick: Tick) -> None:
         """After downtime the count missed what the pack did: SOC is as uncertain as the first
-        voltage makes it (its correlation with the offset gone, which did not cause it), the
-        next update re-anchors, and no capacity is measured across the gap."""
-        n = self.n
+        voltage makes it (not correlated with the offset), h as a current that moved it leaves
+        it; the next update re-anchors, and no capacity is measured across the gap."""
+        n, P = self.n, self.P
         self.start_variance(tick, "restart", self.z)
-        self.P[:n, :n] = np.diag(np.diag(self.P)[:n] + self._start_var)
-        self.P[:n, n:] = self.P[n:, :n] = 0.0
+        P[:n, :n] = np.diag(np.diag(P)[:n] + self._start_var)
+        P[:n, n:] = P[n:, :n] = 0.0
+        P[-1, -1] = max(P[-1, -1], self._h_target())
         self.capacity.forget_anchors()
         self._reanchor, self._widen = True, False
 
