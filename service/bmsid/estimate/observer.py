@@ -262,7 +262,7 @@ class ObserverState(CoulombState):
             G, teach = np.zeros((n, 0)), np.zeros(n, dtype=bool)
         G = np.column_stack([G, params["M_V"]])  # dv / d dh (hysteresis_error.py)
         r = np.where(anchor, r_anchor, r)
-        valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb)
+        valid = tick.ok & np.isfinite(e) & np.isfinite(hz) & np.isfinite(hb) & np.isfinite(G[:, -1])
         forced = anchor | self._reanchor
         valid &= converged | forced
         lone = lone_cells(e, tun.v_sigma_floor_V**2, valid, tun.agree_sigmas**2)

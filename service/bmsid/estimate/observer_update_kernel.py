@@ -120,7 +120,8 @@ def _update_source(
             r[c] = r_anchor
         forced = anchor[c] or reanchor
         valid[c] = (ok[c] and math.isfinite(e[c]) and math.isfinite(hz[c])
-                    and math.isfinite(hb[c]) and (converged[c] or forced))  # fmt: skip
+                    and math.isfinite(hb[c]) and math.isfinite(M_V[c])
+                    and (converged[c] or forced))  # fmt: skip
         z_var[c] = r[c] / _max(hz[c] * hz[c], 1e-12)
     lone = lone_cells(e, utun[FLOOR2], valid, utun[AGREE2])
     idx = np.flatnonzero(valid)
