@@ -1,16 +1,17 @@
-"""The state stage's and the SOC observer's per-tick work as compiled kernels (issue 12).
+"""The state stage's and the SOC observer's per-tick step as a compiled kernel (issue 12); the
+observer's measurement update is ``observer_update_kernel.py``'s.
 
-The numpy reference is the stages' own code (``state.py``, ``observer.py``,
-``observer_ekf.py``, ``model/ocv.py``), unchanged; ``jit.select`` decides which one a stage
-runs (``state_jit.py`` calls the kernels, the stages fall back to their own code for a tick
-with a cell to start). The kernels here loop over cells with the reference's operations in its
-order, so they agree to rounding (libm's exp/log against numpy's SIMD ones, LAPACK's gesv and
-BLAS's sums against numba's): ``tests/estimate/test_state_kernel.py``.
+The numpy reference is the stages' own code (``state.py``, ``observer.py``, ``model/ocv.py``),
+unchanged; ``jit.select`` decides which one a stage runs (``state_jit.py`` calls the kernels,
+the stages fall back to their own code for a tick with a cell to start). The kernels loop over
+cells with the reference's operations in its order, so they agree to rounding (libm's exp/log
+against numpy's SIMD ones, LAPACK's gesv and BLAS's sums against numba's):
+``tests/estimate/test_state_kernel.py``.
 
-The kernels call a few scalar helpers (numpy's interp, the hysteresis map's hat weights), plain
-Python marked ``@helper`` (``jit_helpers.py``), kept in this file so that numba's cache sees a
-change to them; the OCV curve and its slope are ``ocv_kernel.py``'s, which both kernels name in
-``depends`` for the same reason.
+The kernels call a few scalar helpers (numpy's interp, the hysteresis map's hat weights, the
+pack's agreement test), plain Python marked ``@helper`` (``jit_helpers.py``), kept in this file
+so that numba's cache sees a change to them (the update kernel names it in ``depends``); the
+OCV curve and its slope are ``ocv_kernel.py``'s, which both kernels name for the same reason.
 """
 
 from __future__ import annotations
