@@ -1,5 +1,6 @@
 """The hysteresis state's error in the observer (estimate/hysteresis_error.py) and a rest's
-reading as a measurement of the offset (rest_anchor.draw_update): the covariance algebra."""
+reading as a measurement of the offset (rest_anchor.draw_update): the covariance algebra, and a
+checkpoint from before the error."""
 
 from __future__ import annotations
 
@@ -7,8 +8,11 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bmsid.config.engine import build_bank
 from bmsid.estimate.hysteresis_error import fold, predict, target_variance
 from bmsid.estimate.rest_anchor import draw_update
+from bmsid.samples import SampleBlock
+from bmsid.synthetic import paper_dst_case
 
 
 def _covariance(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -90,3 +94,27 @@ def test_a_rests_reading_pulls_the_offset_by_its_weight(
     np.testing.assert_array_equal(P_new, P_new.T)
     assert np.linalg.eigvalsh(P_new).min() > -1e-12
     assert np.all(np.diag(P_new) <= np.diag(P) + 1e-15)
+
+
+def test_a_checkpoint_from_before_the_hysteresis_error_restores_with_its_prior() -> None:
+    """A bank's checkpoint written before the observer carried the hysteresis error has a
+    covariance one row and column smaller: restored, its SOC, offset and map block are the
+    checkpoint's, the error's row is uncorrelated and its variance what h allows; the bank
+    runs on with finite estimates."""
+    run = paper_dst_case(600)
+    block = SampleBlock.from_arrays(run.t_s, run.current_A, run.voltages_V)
+    bank = build_bank(run.cell, 1, "hy-affrls", soc0=0.98)
+    bank.update_block(block.slice(0, 400))
+    st = bank.state_dict()
+    P = np.asarray(st["state"]["observer"]["P"])
+    st["state"]["observer"]["P"] = P[:-1, :-1]  # the older format
+    del st["state"]["observer"]["lh"]
+    restored = build_bank(run.cell, 1, "hy-affrls", soc0=0.98)
+    restored.load_state_dict(st)
+    Q = restored.state.P  # type: ignore[attr-defined]
+    assert Q.shape == P.shape
+    np.testing.assert_array_equal(Q[:-1, :-1], P[:-1, :-1])
+    np.testing.assert_array_equal(Q[-1, :-1], 0.0)
+    assert Q[-1, -1] == target_variance(np.zeros(1))
+    out = restored.update_block(block.slice(400, 600))
+    assert np.all(np.isfinite(out["soc"])) and np.all(np.isfinite(out["v_model_V"]))
