@@ -12,6 +12,8 @@ Scenarios (``--scenario``, default all):
 
 - ``clean``: no offset, constant parameters, start at rest at 93 %;
 - ``offset-0.3``: current sensor reads 0.3 A more discharge than flows;
+- ``rest-draw``: ``offset-0.3`` with a pack that draws 0.2 A at every rest (a converter left on,
+  within the 0.7 A rest limit): a rest's reading is then 0.5 A, offset and draw together;
 - ``offset-0.7-soc-wrong``: 0.7 A (1 % of 1C) and a start the engine does not know: the config
   says ``[soc_init] policy = "fixed", soc0 = 0.63`` (it does not read the first voltage) while
   the truth starts at 93 %, 30 points higher;
@@ -94,6 +96,7 @@ class Scenario:
 SCENARIOS: tuple[Scenario, ...] = (
     Scenario("clean", MultidayOptions()),
     Scenario("offset-0.3", MultidayOptions(current_offset_A=0.3)),
+    Scenario("rest-draw", MultidayOptions(current_offset_A=0.3, rest_draw_A=0.2)),
     Scenario("offset-0.7-soc-wrong", MultidayOptions(current_offset_A=0.7), -0.30),
     Scenario("start-load", MultidayOptions(start_load_A=0.17)),
     Scenario("temp-ageing", TEMP_AGEING),

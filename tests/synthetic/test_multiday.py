@@ -83,6 +83,20 @@ def test_rests_are_rests_and_the_start_load_is_the_aux_load(quiet: MultidayRecor
     assert tr.current_A[drive].max() == 140.0
 
 
+def test_a_rest_draw_is_the_true_current_at_every_rest_and_the_count_sees_it() -> None:
+    """``rest_draw_A``: the pack draws that current at every rest (a converter left on); the
+    drives and charges are the plan's, the evening charge still fills to its target."""
+    opt = MultidayOptions(n_days=2, rest_draw_A=0.2, i_noise_A=0.0, v_noise_V=0.0)
+    tr = generate(opt).truth
+    rest = tr.phase == Phase.REST
+    np.testing.assert_array_equal(tr.current_A[rest], 0.2)
+    drive = tr.phase == Phase.DRIVE
+    assert drive.sum() == 2 * 2 * PLAN.drive_s
+    night = np.flatnonzero(rest & (tr.t_s > PLAN.charge_start_s) & (tr.t_s < DAY_S))  # night 1
+    dz = tr.soc[night[0]] - tr.soc[night[-1]]
+    assert dz == pytest.approx(0.2 * (night[-1] - night[0]) / 3600.0 / 70.0, rel=0.05)
+
+
 def test_the_evening_charge_fills_to_the_target(quiet: MultidayRecord) -> None:
     tr = quiet.truth
     ch = np.flatnonzero(tr.phase == Phase.CHARGE)

@@ -120,6 +120,9 @@ class MultidayOptions:
     start_load_A: float = 0.0
     """Auxiliary load on the first day until the first drive, A (0: rest). 0.17 A is a typical
     BMS + contactor + telematics draw; it is below the engine's rest threshold (0.01 C)."""
+    rest_draw_A: float = 0.0
+    """A current the pack draws at every rest, A (true; e.g. a DC/DC converter left on): the
+    sensor reads it with its offset, as a rest's reading (0: the pack rests at 0 A)."""
     temp_mean_C: float = 25.0
     """Daily mean temperature and the Arrhenius reference, degC (the truth's R at this T)."""
     temp_swing_C: float = 0.0
@@ -157,8 +160,9 @@ class MultidayOptions:
             raise ValueError("hysteresis_tilt must lie in (-1, 1): M stays positive")
         if self.capacity_fade_per_day * self.n_days >= 0.5:
             raise ValueError("capacity fade above 50 % over the record")
-        if min(self.v_noise_V, self.i_noise_A, self.start_load_A, self.temp_swing_C) < 0:
-            raise ValueError("noise, start load and temperature swing must be >= 0")
+        if min(self.v_noise_V, self.i_noise_A, self.start_load_A, self.temp_swing_C,
+               self.rest_draw_A) < 0:
+            raise ValueError("noise, start load, rest draw and temperature swing must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -248,7 +252,7 @@ def true_current(
     n = options.n_days * DAY_S
     t = np.arange(n, dtype=np.float64)
     q_As = capacity_Ah(t, options, cell.capacity_Ah) * 3600.0
-    i = np.zeros(n)
+    i = np.full(n, options.rest_draw_A)  # the rests' draw; drives and charges overwrite it
     phase = np.full(n, Phase.REST, dtype=np.int8)
     eta = cell.coulombic_efficiency
     if options.start_load_A > 0:
