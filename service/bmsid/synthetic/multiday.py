@@ -160,8 +160,8 @@ class MultidayOptions:
             raise ValueError("hysteresis_tilt must lie in (-1, 1): M stays positive")
         if self.capacity_fade_per_day * self.n_days >= 0.5:
             raise ValueError("capacity fade above 50 % over the record")
-        if min(self.v_noise_V, self.i_noise_A, self.start_load_A, self.temp_swing_C,
-               self.rest_draw_A) < 0:
+        amounts = (self.v_noise_V, self.i_noise_A, self.start_load_A, self.rest_draw_A)
+        if min(*amounts, self.temp_swing_C) < 0:
             raise ValueError("noise, start load, rest draw and temperature swing must be >= 0")
 
 
