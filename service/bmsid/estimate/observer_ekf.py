@@ -43,9 +43,8 @@ def joint_update(
     cell (``observer_kernel.lone_cells``) updates its own SOC only. Where ``teach`` is given,
     the map's corrections (the first ``n_map`` columns of ``G``, all without it) are consider
     states for the cells it leaves out (their ``G`` rows count in S and in P, their gain on d
-    is 0). The
-    covariance is updated in Joseph form, P - K (PH')' - (PH') K' + K S K', true for any gain,
-    symmetrised, its diagonal kept >= 0.
+    is 0). The covariance is updated in Joseph form, P - K (PH')' - (PH') K' + K S K', true for
+    any gain, symmetrised, its diagonal kept >= 0.
     """
     if idx.size == 0:
         return EkfStep(None, None, 0)

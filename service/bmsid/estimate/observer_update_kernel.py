@@ -5,8 +5,8 @@ error's prediction and fold (``hysteresis_error.py``).
 The numpy reference is the stage's own code (``observer.py``, ``observer_ekf.py``,
 ``hysteresis_map.py``); the kernel loops over cells with its operations in its order, so they
 agree to rounding: ``tests/estimate/test_state_kernel.py``. Its scalar helpers are
-``observer_kernel.py``'s, ``ocv_kernel.py``'s, ``rest_anchor.py``'s and
-``hysteresis_error.py``'s, all named in ``depends`` (numba's cache sees a change to them).
+``observer_kernel.py``'s, ``ocv_kernel.py``'s and ``hysteresis_error.py``'s, all named in
+``depends`` (numba's cache sees a change to them).
 
 The filter's state: ``[z_1 .. z_n, b, d_1 .. d_K, dh]`` (SOC per cell, the pack's current
 offset, the hysteresis map's corrections, the pack's hysteresis error).
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from bmsid.estimate import hysteresis_error, jit, observer_kernel, ocv_kernel, rest_anchor
+from bmsid.estimate import hysteresis_error, jit, observer_kernel, ocv_kernel
 from bmsid.estimate.hysteresis_error import fold, target_variance
 from bmsid.estimate.hysteresis_error import predict as predict_h
 from bmsid.estimate.jit_helpers import register
@@ -221,9 +221,7 @@ def _warm_update(kernel: Callable[..., Any]) -> object:
 
 #: The reference in the registry is the kernel source run as plain Python (the stage's numpy
 #: mode runs its own code: the reference the tests compare against).
-_DEPENDS = tuple(
-    str(m.__file__) for m in (observer_kernel, ocv_kernel, rest_anchor, hysteresis_error)
-)
+_DEPENDS = tuple(str(m.__file__) for m in (observer_kernel, ocv_kernel, hysteresis_error))
 UPDATE = jit.Kernel(
     "observer update", _update_source, _update_source, _warm_update, depends=_DEPENDS
 )
