@@ -117,6 +117,7 @@ def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombStat
     """A stage of ``n`` cells in a random state (every cell started)."""
     model = cell_model(paper_cell(), n)
     model = dataclasses.replace(model, ocv=_ocv(cfg["ends"], cfg["table"], int(rng.integers(1e9))))
+    model = dataclasses.replace(model, hysteresis_play=cfg.get("play", False))
     if not cfg["uniform"]:
         model = dataclasses.replace(
             model, capacity_Ah=rng.uniform(1.5, 3.0, n), efficiency=rng.uniform(0.95, 1.0, n),
@@ -228,20 +229,21 @@ def _same(ref: CoulombState, new: CoulombState, cref: TickContext, cnew: TickCon
     uniform=st.booleans(),
     pending=st.booleans(),
     knee=st.sampled_from([math.inf, 3.0]),
+    play=st.booleans(),
 )
 def test_compiled_and_numpy_ticks_agree(
     n: int, seed: int, observer: bool, ends: bool, table: bool, learn_map: bool, uniform: bool,
-    pending: bool, knee: float,
+    pending: bool, knee: float, play: bool,
 ) -> None:  # fmt: skip
     """Random states and ticks (currents at rest and under load, several or no coulomb steps,
     zero dt, gaps, cells without a voltage, SOC beyond the curve, a correction table on the OCV
-    curve, an offset, a learnt map, due
+    curve, an offset, a learnt map, h by Plett's law or as a play operator, due
     updates with anchors, re-anchors and gated innovations): the compiled step and update (and
     their sources run as plain Python, the registry's reference) leave every state, context
     field and counter equal to the stages' own numpy code."""
     rng = np.random.default_rng(seed)
     cfg = {"observer": observer, "ends": ends, "table": table, "map": learn_map,
-           "uniform": uniform, "pending": pending, "knee": knee}  # fmt: skip
+           "uniform": uniform, "pending": pending, "knee": knee, "play": play}  # fmt: skip
     ref = _stage(rng, n, cfg)
     new, src = copy.deepcopy(ref), copy.deepcopy(ref)
     before = jit.MODE

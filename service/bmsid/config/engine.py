@@ -77,6 +77,7 @@ def cell_model(
             soc0=cell.soc_init.soc0,
             rest_current_C=cell.soc_init.rest_current_C,
         ),
+        hysteresis_play=cell.hysteresis_law == "play",
     )
 
 

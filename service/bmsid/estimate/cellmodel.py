@@ -47,6 +47,8 @@ class CellModel:
         capacity_Ah: capacity per cell, Ah, shape (n,).
         efficiency: coulombic efficiency on charge, shape (n,).
         gamma: Plett's dimensionless hysteresis rate, shape (n,) (kappa = eta gamma / Q).
+        hysteresis_play: h moves as a play (backlash) operator instead of Plett's exponential
+            (Eq. 5): ``ecm.hysteresis_step``; one cell type, so one law for the pack.
         initial: start values, shape (n, 5), columns ``INITIAL``.
         lo, hi: bounds, shape (n, 7), columns ``BOUNDED``.
         soc_start: how SOC starts when the caller gives none.
@@ -61,6 +63,7 @@ class CellModel:
     lo: FloatArray
     hi: FloatArray
     soc_start: SocStart = SocStart()
+    hysteresis_play: bool = False
 
     def __post_init__(self) -> None:
         n = self.capacity_Ah.shape[0]
@@ -108,6 +111,7 @@ class CellModel:
         initial: dict[str, float],
         bounds: dict[str, tuple[float, float]],
         soc_start: SocStart = SocStart(),
+        hysteresis_play: bool = False,
     ) -> CellModel:
         """``n_cells`` identical cells from scalars (``initial`` keyed by ``INITIAL``,
         ``bounds`` by ``BOUNDED``)."""
@@ -125,6 +129,7 @@ class CellModel:
             lo=np.tile([float(bounds[k][0]) for k in BOUNDED], (n_cells, 1)),
             hi=np.tile([float(bounds[k][1]) for k in BOUNDED], (n_cells, 1)),
             soc_start=soc_start,
+            hysteresis_play=hysteresis_play,
         )
 
     def take(self, cells: npt.ArrayLike) -> CellModel:
@@ -140,4 +145,5 @@ class CellModel:
             lo=self.lo[idx],
             hi=self.hi[idx],
             soc_start=self.soc_start,
+            hysteresis_play=self.hysteresis_play,
         )

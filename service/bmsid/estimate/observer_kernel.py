@@ -93,8 +93,8 @@ CAP, EFF, KAPPA_D, KAPPA_C, Q_OBS, EFF_OBS, N_CELL_ROWS = 0, 1, 2, 3, 4, 5, 6
 #: Rows of the step's output: SOC, h, clamped SOC, OCV, M, h M, the voltage or OCV.
 N_OUT = 7
 #: Layout of the step's tuning vector ``tun``: the learn range, the observer's rest limit (A),
-#: current gain and SOC walk variances.
-LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, N_TUN = 0, 1, 2, 3, 4, 5
+#: current gain and SOC walk variances, 1 where h moves as a play operator (``ecm``).
+LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, PLAY, N_TUN = 0, 1, 2, 3, 4, 5, 6
 
 
 def _step_source(
@@ -148,10 +148,13 @@ def _step_source(
             zc_ = zc_ + -ce * i * dt / cells[CAP, c]
             if moves and dt > 0:
                 kappa = cells[KAPPA_C, c] if i < 0 else cells[KAPPA_D, c]
-                if kappa != kappa_prev or i != i_prev or dt != dt_prev or c == 0:
-                    decay = math.exp(-abs(kappa * i) * dt)  # a pack of one rate: one exp
-                    kappa_prev, i_prev, dt_prev = kappa, i, dt
-                hc = decay * hc - (1.0 - decay) * _sign(i)
+                if tun[PLAY] > 0.0:
+                    hc = _min(_max(hc - 2.0 * kappa * i * dt, -1.0), 1.0)
+                else:
+                    if kappa != kappa_prev or i != i_prev or dt != dt_prev or c == 0:
+                        decay = math.exp(-abs(kappa * i) * dt)  # a pack of one rate: one exp
+                        kappa_prev, i_prev, dt_prev = kappa, i, dt
+                    hc = decay * hc - (1.0 - decay) * _sign(i)
                 if observer:
                     log_decay[c] = log_decay[c] - abs(kappa * i) * dt
         if observer:

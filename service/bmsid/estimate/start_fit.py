@@ -36,7 +36,8 @@ A rested start's first voltage is OCV(z0) + M(z0) h0 with h0 unknown: -1 after a
 after a charge, which the engine's start (h = 0) reads as 1.5-3 SOC points on the paper cell
 (M 15 mV), and a discharge without a rest then carries that into R2 (R0 + R1 + R2 -27 % from
 45 %). With ``rested`` the extra column is h0 along that voltage's line (z0 follows it,
-``dz0/dh0 = -M / OCV'``; h_k = h_free,k + h0 decay_k, Eq. 5-6 being affine in h): after a
+``dz0/dh0 = -M / OCV'``; h_k = h_free,k + h0 decay_k, Eq. 5-6 being affine in h; the play
+law's h is h0 plus the charge's shifts until it clips): after a
 discharge starts, h goes to -1 whatever h0 was, so the window shows it. Kept only where it
 explains the window clearly better than h = 0 (``H0_GAIN_MIN``): the model's own error (a
 cold cell, a small half-gap) is no hysteresis. Where SOC is given (``--soc0``) h stays 0: an
@@ -159,7 +160,7 @@ def fit_start_soc(
     i_held = np.where(dt > tun.gap_s, 0.0, i[:-1])  # the current held over each step (ZOH)
     charge_As = np.concatenate(([0.0], np.cumsum(i_held * dt)))
     grids: dict[tuple[float, ...], TauGrid] = {}
-    paths: dict[tuple[float, ...], tuple[FloatArray, FloatArray]] = {}
+    paths: dict[tuple[float, ...], _HPath] = {}
     for c in range(n):
         if each_cell is not None and c:
             each_cell()
@@ -180,11 +181,9 @@ def fit_start_soc(
         if np.count_nonzero(ok) < MIN_SAMPLES or np.ptp(charge_As[ok]) / q_As < MIN_SOC_SWING:
             continue  # a dead tap, a cell that came in late, or too little charge moved
         rate = (float(model.gamma[c]), float(model.capacity_As[c]), float(model.efficiency[c]))
-        if rate not in paths:  # h from 0, and what h0 adds: h0 * decay
-            h_free = _hysteresis(i_held, dt, model, c)
-            paths[rate] = h_free, _hysteresis(i_held, dt, model, c, 1.0) - h_free
-        h_free, decay = paths[rate]
-        cell = _CellWindow(v[:, c], ok, i, charge_As / q_As, h_free, decay)
+        if rate not in paths:
+            paths[rate] = _HPath.of(i_held, dt, model, c)
+        cell = _CellWindow(v[:, c], ok, i, charge_As / q_As, paths[rate])
         if rested:
             res = _fit_h0(model, cell, z0, grid)
         else:
@@ -243,22 +242,55 @@ def _shared_history(
 @dataclass(frozen=True)
 class _CellWindow:
     """One cell's window: its voltages (V), the samples fitted, the held current (A), the
-    charge counted from the start (fraction of its capacity), and h from 0 with what h0 adds
-    (``h_free + h0 decay``, Eq. 5-6)."""
+    charge counted from the start (fraction of its capacity), and h as a function of h0."""
 
     v_V: FloatArray
     ok: npt.NDArray[np.bool_]
     current_A: FloatArray
     charge: FloatArray
-    h_free: FloatArray
-    decay: FloatArray
+    h: _HPath
 
     def residual(self, model: CellModel, z0: float, h0: float) -> tuple[FloatArray, ...]:
-        """Eq. 9's left side ``v - OCV(z) - M(z) h`` from (z0, h0), M(z) and OCV'(z)."""
+        """Eq. 9's left side ``v - OCV(z) - M(z) h`` from (z0, h0), M(z), OCV'(z) and
+        dh/dh0."""
         zc, _ = model.ocv.clamp(z0 - self.charge)
         m = model.ocv.hysteresis_M(zc)
-        y = self.v_V - model.ocv.ocv(zc) - m * (self.h_free + h0 * self.decay)
-        return y, m, model.ocv.docv_dz(zc)
+        h, dh = self.h.at(h0)
+        y = self.v_V - model.ocv.ocv(zc) - m * h
+        return y, m, model.ocv.docv_dz(zc), dh
+
+
+@dataclass(frozen=True)
+class _HPath:
+    """h over the window as a function of its start h0 (Eq. 5-6). Plett's law is affine in h0:
+    ``h_free + h0 decay``. The play (``ecm.hysteresis_step``) is not: h0 plus the charge's
+    shifts until the path first clips at a branch, the same path for every h0 from there on
+    (``moves``: the per-interval shifts, -2 kappa i dt)."""
+
+    h_free: FloatArray
+    decay: FloatArray
+    moves: list[float] | None = None
+
+    @classmethod
+    def of(cls, i_held: FloatArray, dt: FloatArray, model: CellModel, c: int) -> _HPath:
+        h_free = _hysteresis(i_held, dt, model, c)
+        if not model.hysteresis_play:
+            return cls(h_free, _hysteresis(i_held, dt, model, c, 1.0) - h_free)
+        kappa = hysteresis_kappa(model.gamma[c], model.capacity_As[c], model.efficiency[c], i_held)
+        return cls(h_free, h_free, (-2.0 * kappa * i_held * dt).tolist())
+
+    def at(self, h0: float) -> tuple[FloatArray, FloatArray]:
+        """(h, dh/dh0) over the window's samples from ``h0``."""
+        if self.moves is None:
+            return self.h_free + h0 * self.decay, self.decay
+        h, dh, hk, free = [h0], [1.0], h0, 1.0  # plain floats: a window is 10^3-10^4 steps
+        for mv in self.moves:
+            x = hk + mv
+            hk = -1.0 if x < -1.0 else 1.0 if x > 1.0 else x
+            free = free if hk == x else 0.0  # clipped once: h0 no longer matters
+            h.append(hk)
+            dh.append(free)
+        return np.array(h), np.array(dh)
 
 
 def _fit_dz(
@@ -268,7 +300,7 @@ def _fit_dz(
     where SOC is known: the branches only)."""
     fit = None
     for _ in range(MAX_ITER):
-        y, _, slope = w.residual(model, z0, 0.0)
+        y, _, slope, _ = w.residual(model, z0, 0.0)
         col = None if soc_known else slope[w.ok]
         fit = best_fit(y[w.ok], -w.current_A[w.ok], col, grid)
         if fit is None or abs(fit[1]) > MAX_DZ:
@@ -291,10 +323,10 @@ def _fit_h0(
     v_rest = float(model.ocv.ocv(np.array([z0]))[0])  # OCV(z0) + M h0 at the first sample
     h0, fit, plain = 0.0, None, None
     for _ in range(MAX_ITER):
-        y, m, slope = w.residual(model, z0, h0)
+        y, m, slope, dh = w.residual(model, z0, h0)
         if not (math.isfinite(slope[0]) and slope[0] != 0.0):
             return None  # a flat point of the curve (a PCHIP table's extremum): no SOC line
-        col = (m * w.decay - slope * m[0] / slope[0])[w.ok]  # dz0/dh0 = -M / OCV'
+        col = (m * dh - slope * m[0] / slope[0])[w.ok]  # dz0/dh0 = -M / OCV'
         fit = refined_fit(y[w.ok], -w.current_A[w.ok], col, grid, w.ok, decays=False)
         if plain is None:  # h = 0 at the first voltage's reading: what h0 must beat
             base = refined_fit(y[w.ok], -w.current_A[w.ok], None, grid, w.ok, decays=False)
@@ -335,5 +367,5 @@ def _hysteresis(
     kappa = hysteresis_kappa(model.gamma[c], model.capacity_As[c], model.efficiency[c], i_held)
     h = np.full(dt.shape[0] + 1, h0)
     for k in range(dt.shape[0]):
-        h[k + 1] = float(hysteresis_step(h[k], i_held[k], dt[k], kappa[k]))
+        h[k + 1] = float(hysteresis_step(h[k], i_held[k], dt[k], kappa[k], model.hysteresis_play))
     return h

@@ -154,7 +154,7 @@ class CoulombState:
             self.z = soc_step(self.z, i, dt, self._capacity_As, self._efficiency)
             if moves and dt > 0:
                 kappa = self._kappa_charge if i < 0 else self._kappa_discharge
-                self.h = hysteresis_step(self.h, i, dt, kappa)
+                self.h = hysteresis_step(self.h, i, dt, kappa, m.hysteresis_play)
                 self._h_decayed(-np.abs(kappa * i) * dt)
         if np.count_nonzero(self._pending):  # after the count: SOC is that of the start sample
             self._start(tick, self._pending)

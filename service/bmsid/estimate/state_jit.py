@@ -68,6 +68,7 @@ class Packed:
         self.knots: FloatArray = getattr(st, "_knots", _EMPTY)
         self.tun = np.zeros(ok_.N_TUN)
         self.tun[[ok_.LEARN_LO, ok_.LEARN_HI]] = st._learn_lo, st._learn_hi
+        self.tun[ok_.PLAY] = float(st.model.hysteresis_play)
         tun = getattr(st, "tun", None)
         if tun is not None:  # the observer
             self.tun[ok_.REST_LIMIT] = st._rest_limit_A  # type: ignore[attr-defined]

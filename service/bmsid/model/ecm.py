@@ -8,7 +8,9 @@ interval dt the current i is held (ZOH), which makes each step exact for any dt:
 * RC branch (Eq. 7-8): ``u+ = a u + g (1 - a) i`` with ``a = exp(-dt / tau)``; ``g`` = R gives the
   branch voltage (V), ``g`` = 1 the unit-gain state x (A) that the estimators use (U = R x);
 * hysteresis (Eq. 5-6, Plett's sign): ``h+ = exp(-|kappa i| dt) h - (1 - exp(-|kappa i| dt))
-  sgn(i)``, kappa = eta gamma / Q in 1/(A s): discharge drives h to -1, charge to +1.
+  sgn(i)``, kappa = eta gamma / Q in 1/(A s): discharge drives h to -1, charge to +1; or, as a
+  play operator (``play``, the cell config's ``hysteresis.law``), ``h+ = clip(h - 2 kappa i dt,
+  -1, 1)``: the same initial rate off a branch, but a short reversal leaves h near its branch.
 
 Positive current = discharge throughout.
 """
@@ -90,7 +92,12 @@ def hysteresis_kappa(gamma: Num, capacity_As: Num, eta: Num, current_A: Num) -> 
     return gamma / capacity_As * charge_efficiency(current_A, eta)  # type: ignore[return-value]
 
 
-def hysteresis_step(h: Num, current_A: Num, dt_s: Num, kappa: Num) -> FloatArray:
-    """Advance the hysteresis state over ``dt_s`` with the current held (Eq. 8, last row)."""
+def hysteresis_step(
+    h: Num, current_A: Num, dt_s: Num, kappa: Num, play: bool = False
+) -> FloatArray:
+    """Advance the hysteresis state over ``dt_s`` (s) with the current (A) held (Eq. 8, last row;
+    ``play``: the play operator of the module docstring)."""
+    if play:
+        return np.clip(h - 2.0 * np.asarray(kappa) * current_A * dt_s, -1.0, 1.0)
     decay = np.exp(-np.abs(np.asarray(kappa) * current_A) * dt_s)
     return decay * h - (1.0 - decay) * np.sign(current_A)

@@ -72,11 +72,13 @@ def simulate(
     soc0: float = 1.0,
     h0: float = 0.0,
     n_sets: int = 1,
+    play: bool = False,
 ) -> SimResult:
     """Simulate ``n_sets`` parameter sets over the current profile (exact ZOH, any time steps).
 
     ``gamma`` is the dimensionless hysteresis rate (kappa = eta gamma / Q); ``M_scale`` multiplies
-    the cell's M(z) table. ``t_s`` need not be uniform. ``capacity_Ah`` (Ah) is a constant or
+    the cell's M(z) table; ``play`` moves h as a play operator (``ecm.hysteresis_step``) instead
+    of Plett's exponential. ``t_s`` need not be uniform. ``capacity_Ah`` (Ah) is a constant or
     shape (n,): the capacity Q_k over step k, for SOC (Eq. 2) and kappa alike.
     """
     t = np.asarray(t_s, dtype=np.float64)
@@ -102,7 +104,7 @@ def simulate(
         u1[:, k], u2[:, k], h[:, k] = u1k, u2k, hk
         u1k = rc_step(u1k, a1[:, k], i[k], gain=r1[:, k])
         u2k = rc_step(u2k, a2[:, k], i[k], gain=r2[:, k])
-        hk = hysteresis_step(hk, i[k], dt[k], kappa[:, k])
+        hk = hysteresis_step(hk, i[k], dt[k], kappa[:, k], play)
     m = _col(M_scale, p, n) * ocv.hysteresis_M(z)[None, :]
     v = ocv.ocv(z)[None, :] + m * h - u1 - u2 - r0 * i[None, :]
     return SimResult(v_V=v, soc=soc, soc_clamped=clamped, h=h, U1_V=u1, U2_V=u2)
