@@ -2,7 +2,7 @@
 config's (issue 11: gamma is a guess in every shipped config; the law, Plett's exponential or a
 play operator, is the config's ``hysteresis.law``). Prints a Markdown table.
 
-    python bench/hysteresis_lfp.py [--jobs 2]
+    python bench/hysteresis_lfp.py [--jobs 2] [--tuning KEY=VALUE ...]
 
 The truth: the shipped A123 config's OCV curve and half-gap M(z), a 2RC model (R0 10, R1 5,
 R2 10 mOhm; tau 20 / 300 s) and hysteresis moving by Plett's law or as a play operator at gamma
@@ -25,9 +25,10 @@ import numpy as np
 
 from bmsid.config.cell import load_cell_config
 from bmsid.config.engine import ocv_model
+from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.simulator import simulate
 from bmsid.offline.identify import IdentifySpec, identify_source
-from bmsid.offline.inputs import LoadedInput
+from bmsid.offline.inputs import LoadedInput, parse_tuning
 from bmsid.profiles import dst_current
 from bmsid.samples import SampleBlock
 
@@ -38,9 +39,9 @@ LAWS = ("plett", "play")
 STARTS = tuple(itertools.product((0.9, 0.6), (-1.0, 0.0, 1.0)))
 
 
-def run(args: tuple[float, float, float, str, str]) -> tuple[float, float]:
+def run(args: tuple[float, float, float, str, str, EstimatorTuning]) -> tuple[float, float]:
     """(RMS SOC error in points, model RMSE in mV) after the first hour."""
-    z0, h0, gamma, truth, law = args
+    z0, h0, gamma, truth, law, tun = args
     cell = load_cell_config(CELL)
     cell = cell.model_copy(update={"hysteresis": cell.hysteresis.model_copy(update={"law": law})})
     t = np.arange(0.0, 12 * H)
@@ -58,7 +59,7 @@ def run(args: tuple[float, float, float, str, str]) -> tuple[float, float]:
         t, i + rng.normal(0.0, 0.01, t.size), sim.v_V.T + rng.normal(0.0, 1e-3, (t.size, 1))
     )
     src = LoadedInput(source="<known truth>", samples=block, cell_names=["cell_01"])
-    out = identify_source(src, IdentifySpec(cell=cell, variant="hy-affrls-lpso"))
+    out = identify_source(src, IdentifySpec(cell=cell, variant="hy-affrls-lpso", tuning=tun))
     tr = out.kept_trace()
     k = np.searchsorted(t, tr.t_s)
     late = tr.t_s >= H
@@ -70,10 +71,13 @@ def run(args: tuple[float, float, float, str, str]) -> tuple[float, float]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--jobs", type=int, default=2, help="parallel runs (default 2)")
+    ap.add_argument("--tuning", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--truth", choices=LAWS, action="append", help="only these truths' laws")
     args = ap.parse_args()
+    tun = parse_tuning(args.tuning)
     cases = [
-        (z0, h0, g, truth, law)
-        for truth in LAWS for g in GAMMAS for law in LAWS for z0, h0 in STARTS
+        (z0, h0, g, truth, law, tun)
+        for truth in args.truth or LAWS for g in GAMMAS for law in LAWS for z0, h0 in STARTS
     ]  # fmt: skip
     with ProcessPoolExecutor(args.jobs) as ex:
         res = list(ex.map(run, cases))
@@ -82,7 +86,7 @@ def main() -> int:
     n = len(STARTS)
     for j in range(0, len(cases), n):
         soc, v = np.array([r[0] for r in res[j : j + n]]), np.array([r[1] for r in res[j : j + n]])
-        g, truth, law = cases[j][2:]
+        g, truth, law = cases[j][2:5]
         print(f"| {truth} | {g:g} | {law} | {soc.mean():.2f} / "
               f"{soc.max():.2f} | {v.mean():.2f} / {v.max():.2f} |")  # fmt: skip
     return 0

@@ -21,14 +21,20 @@ def _covariance(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 @settings(max_examples=100, deadline=None)
-@given(h=st.lists(st.floats(-1.5, 1.5), min_size=1, max_size=8))
-def test_the_target_variance_is_what_a_bounded_state_allows(h: list[float]) -> None:
-    """(1 - h^2) / 3 per cell, h within [-1, 1]: at most 1/3 (h = 0), 0 where h saturates."""
-    v = target_variance(np.asarray(h))
+@given(
+    h=st.lists(st.floats(-1.5, 1.5), min_size=1, max_size=8),
+    floor=st.floats(0.0, 1.0 / 3.0),
+)  # fmt: skip
+def test_the_target_variance_is_what_a_bounded_state_allows(h: list[float], floor: float) -> None:
+    """(1 - h^2) / 3 per cell, h within [-1, 1]: at most 1/3 (h = 0), 0 where h saturates;
+    never below the floor (the play law's)."""
+    v = target_variance(np.asarray(h), 0.0)
     hc = np.clip(h, -1.0, 1.0)
     assert np.isclose(v, np.mean((1.0 - hc**2) / 3.0), rtol=1e-12, atol=0.0)
     assert 0.0 <= v <= 1.0 / 3.0
-    assert target_variance(np.array([1.0, -1.0])) == 0.0
+    assert target_variance(np.array([1.0, -1.0]), 0.0) == 0.0
+    assert target_variance(np.asarray(h), floor) == max(v, floor)
+    assert target_variance(np.array([1.0, -1.0]), floor) == floor
 
 
 @settings(max_examples=100, deadline=None)
@@ -115,6 +121,27 @@ def test_a_checkpoint_from_before_the_hysteresis_error_restores_with_its_prior()
     assert Q.shape == P.shape
     np.testing.assert_array_equal(Q[:-1, :-1], P[:-1, :-1])
     np.testing.assert_array_equal(Q[-1, :-1], 0.0)
-    assert Q[-1, -1] == target_variance(np.zeros(1))
+    assert Q[-1, -1] == target_variance(np.zeros(1), 0.0)  # Plett's law: no floor
     out = restored.update_block(block.slice(400, 600))
     assert np.all(np.isfinite(out["soc"])) and np.all(np.isfinite(out["v_model_V"]))
+
+
+def test_after_a_long_discharge_the_play_s_hysteresis_error_stays_open() -> None:
+    """A one-hour 0.5 C discharge takes h to -1 under either law. Plett's error variance goes
+    to (1 - h^2) / 3, 0 there; the play's to its floor (``play_error_variance``, 1/3): the
+    branch was reached at a rate that is a guess."""
+    run = paper_dst_case(60)
+    t = np.arange(0.0, 3600.0)
+    i = np.full_like(t, 35.0)
+    v = np.full((t.size, 1), 3.6)
+    var = {}
+    for law in ("plett", "play"):
+        cell = run.cell.model_copy(
+            update={"hysteresis": run.cell.hysteresis.model_copy(update={"law": law})}
+        )
+        bank = build_bank(cell, 1, "hy-affrls", soc0=0.9)
+        bank.update_block(SampleBlock.from_arrays(t, i, v))
+        assert float(bank.state.h[0]) < -0.999  # type: ignore[attr-defined]
+        var[law] = float(bank.state.P[-1, -1])  # type: ignore[attr-defined]
+    assert var["plett"] < 1e-6
+    assert var["play"] > 0.3

@@ -33,15 +33,16 @@ from bmsid.estimate.stage import FloatArray
 
 
 @helper
-def target_variance(h: FloatArray) -> float:
+def target_variance(h: FloatArray, floor: float) -> float:
     """The variance of h's error once the current has moved it: the cells' mean of
-    ``(1 - h^2) / 3`` (module docstring)."""
+    ``(1 - h^2) / 3`` (module docstring), at least ``floor`` (the play law's: its h sits at a
+    branch, and how soon it got there depends on the rate, which is not measured)."""
     n = h.shape[0]
     acc = 0.0
     for c in range(n):
         hc = min(max(h[c], -1.0), 1.0)
         acc += (1.0 - hc * hc) / 3.0
-    return acc / n if n else 0.0
+    return max(acc / n if n else 0.0, floor)
 
 
 @helper

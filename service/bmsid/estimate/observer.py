@@ -89,6 +89,7 @@ class ObserverState(CoulombState):
         self.P = np.zeros((n + 2 + self.d.shape[0],) * 2)  # z, b, d, the hysteresis error
         self.P[n, n] = (tuning.offset_prior_C * q_mean_Ah) ** 2
         self.P[n + 1 : -1, n + 1 : -1] = np.diag(m_sd**2)
+        self._h_floor = tuning.play_error_variance if model.hysteresis_play else 0.0
         self.P[-1, -1] = self._h_target()
         self._b_max = tuning.offset_max_C * q_mean_Ah
         self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
@@ -158,7 +159,7 @@ class ObserverState(CoulombState):
 
     def _h_target(self) -> float:
         """The hysteresis error's variance once the current moved h (``hysteresis_error``)."""
-        return target_variance(self.h) if self.tun.hysteresis_error else 0.0
+        return target_variance(self.h, self._h_floor) if self.tun.hysteresis_error else 0.0
 
     def hysteresis_m(self, zc: FloatArray) -> FloatArray:
         """The table's M (V) at ``zc`` plus the learnt correction, never below 0."""

@@ -110,6 +110,11 @@ class ObserverTuning(BaseModel):
     h, 0 where h saturates. The rate gamma is not measured, and under a drive's mixed current
     h settles where its charge balances; taken as exact, its error went into SOC at the rests.
     False: h as exact, as before."""
+    play_error_variance: float = Field(1.0 / 3.0, ge=0.0, le=1.0)
+    """Where h moves as a play (the cell config's ``hysteresis.law``, LFP by default), the
+    variance its error returns to once the current has moved h, at least: the play sits at a
+    branch, where (1 - h^2) / 3 is 0, and how soon it got there depends on gamma, which is not
+    measured. Not used with Plett's law (its h under a drive sits between the branches)."""
     hysteresis_prior_rel: float = Field(0.25, gt=0.0)
     """Prior std of M at each knot, as a fraction of the table's M: the uncertainty the anchors
     assumed of the table before M was learnt (a C/20 test's half-gap against polarisation)."""

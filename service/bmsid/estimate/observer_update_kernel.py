@@ -40,8 +40,8 @@ from bmsid.estimate.stage import BoolArray, FloatArray
 
 #: Layout of the update's tuning vector ``utun``: v_sigma^2, r_dc_rel_sigma, v_sigma_floor^2,
 #: gate_sigmas^2, learn_ocv_sigma, agree_sigmas^2, 1 where the hysteresis error is estimated
-#: (``ObserverTuning``).
-V_SIGMA2, R_DC_REL, FLOOR2, GATE2, LEARN_OCV, AGREE2, H_ERROR, N_UTUN = range(8)
+#: (``ObserverTuning``), its variance's floor (``ObserverState._h_floor``).
+V_SIGMA2, R_DC_REL, FLOOR2, GATE2, LEARN_OCV, AGREE2, H_ERROR, H_FLOOR, N_UTUN = range(9)
 
 
 def _update_source(
@@ -73,7 +73,7 @@ def _update_source(
     P[n, n] = P[n, n] + qb
     for k in range(K):
         P[n + 1 + k, n + 1 + k] = P[n + 1 + k, n + 1 + k] + d_walk[k] * since_s
-    predict_h(P, log_decay, target_variance(h) if utun[H_ERROR] > 0.0 else 0.0)
+    predict_h(P, log_decay, target_variance(h, utun[H_FLOOR]) if utun[H_ERROR] > 0.0 else 0.0)
     hz, hb, e, r = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     z_ocv, z_var = np.full(n, np.nan), np.empty(n)
     G = np.zeros((n, Kt))

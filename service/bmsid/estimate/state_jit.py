@@ -123,7 +123,8 @@ def update_tuning(obs: ObserverState, pk: Packed) -> FloatArray:
         tun = obs.tun
         pk.utun = np.array([tun.v_sigma_V**2, tun.r_dc_rel_sigma, tun.v_sigma_floor_V**2,
                             tun.gate_sigmas**2, tun.learn_ocv_sigma_V,
-                            tun.agree_sigmas**2, float(tun.hysteresis_error)])  # fmt: skip
+                            tun.agree_sigmas**2, float(tun.hysteresis_error),
+                            obs._h_floor])  # fmt: skip
     return pk.utun
 
 
