@@ -15,9 +15,8 @@ Management Systems Vol. II", ch. 3-4):
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
   M per SOC region from the data, the table its prior; the cells that do not teach it take it
   as consider states (in S and P, gain 0: ``hysteresis_map.map_rows``);
-* the error of the hysteresis state h, one for the pack (``hysteresis_error.py``); h moves only
-  with a current beyond the rest limit; what a rest is and what its reading says of the
-  offset: ``rest_anchor.py``;
+* the error of h, one for the pack (``hysteresis_error.py``); h moves only with a current beyond
+  the rest limit; what a rest is and what its reading says of the offset: ``rest_anchor.py``;
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
 while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
