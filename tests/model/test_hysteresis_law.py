@@ -56,3 +56,17 @@ def test_the_shipped_lfp_config_runs_the_play_and_its_simulation_stays_at_the_br
     late = t > 1800
     assert play.h[0, late].min() == -1.0 and play.h[0, late].max() < -0.87
     assert -0.75 < plett.h[0, late].mean() < -0.45
+
+
+def test_an_unlabelled_cell_gets_the_play_where_its_ocv_is_an_lfp_plateau() -> None:
+    """``fit-ocv`` without ``--chemistry`` writes ``unknown``: the A123 curve (0.09 V over SOC
+    20-80 % around 3.30 V) still gets the play; the NMC curves (0.39-0.57 V) and an unlabelled
+    paper cell keep Plett's law; a label other than LFP is taken at its word."""
+    a123 = load_cell_config(A123)
+    assert a123.model_copy(update={"chemistry": "unknown"}).hysteresis_law == "play"
+    assert a123.model_copy(update={"chemistry": ""}).hysteresis_law == "play"
+    assert a123.model_copy(update={"chemistry": "LTO"}).hysteresis_law == "plett"
+    for name in ("calce_inr18650_20r_25C", "dfn_nmc_lgm50_25C"):
+        cell = load_cell_config(A123.parent / f"{name}.toml")
+        assert cell.model_copy(update={"chemistry": "unknown"}).hysteresis_law == "plett"
+    assert paper_cell().model_copy(update={"chemistry": "unknown"}).hysteresis_law == "plett"

@@ -13,10 +13,11 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal, Self
 
+import numpy as np
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bmsid.model.ocv import OcvModel, end_segment
+from bmsid.model.ocv import OcvModel, end_segment, eval_ocv
 
 Coeffs = Annotated[list[float], Field(min_length=6, max_length=6)]
 #: Largest |dU| (V) of an OCV correction table: a table corrects what Eq. 4's six terms miss of
@@ -24,6 +25,11 @@ Coeffs = Annotated[list[float], Field(min_length=6, max_length=6)]
 #: 0.2 V is a tenth of a Li-ion cell's whole OCV span and catches a table in mV or from another
 #: cell.
 MAX_CORRECTION_V = 0.2
+#: An LFP plateau (``CellConfig.hysteresis_law`` of an unlabelled cell): the mean OCV within
+#: this span (V) over SOC 20-80 %, its median in this range (V); as ``offline.plausibility``
+#: reads a record's discharge (LFP: a plateau within 0.15 V, full at rest 3.40-3.65 V).
+LFP_PLATEAU_SPAN_V = 0.15
+LFP_PLATEAU_V = (3.1, 3.5)
 
 
 class _Strict(BaseModel):
@@ -128,7 +134,9 @@ class HysteresisTable(_Strict):
     ``"play"``: a play (backlash) operator, ``h -= 2 kappa i dt`` clipped to [-1, 1] (a full
     swing over 1/gamma of SOC, Plett's initial rate): a reversal smaller than the swing leaves
     h near its branch, the minor loops of a two-phase electrode (LFP). None (default): ``"play"``
-    where ``chemistry`` names LFP (``LFP``, ``LiFePO4``, any case), else ``"plett"``. Measured
+    where ``chemistry`` names LFP (``LFP``, ``LiFePO4``, any case) or, unlabelled (``unknown``,
+    as ``fit-ocv`` writes without ``--chemistry``), the OCV curve is an LFP plateau; else
+    ``"plett"``. Measured
     on the A123 LFP DYN50 record (count SOC, the config's curve and M, its 17 rests of 12-15
     min): the rested voltage's residual 19.3 mV RMS (mean -16.5) with Plett's h, 8.4 mV (mean
     -4.5) with the play.
@@ -242,8 +250,18 @@ class CellConfig(_Strict):
         """``hysteresis.law``, or by chemistry where it is not set (see ``HysteresisTable``)."""
         if self.hysteresis.law is not None:
             return self.hysteresis.law
-        label = self.chemistry.upper()
-        return "play" if "LFP" in label or "LIFEPO4" in label else "plett"
+        label = self.chemistry.strip().upper()
+        if "LFP" in label or "LIFEPO4" in label:
+            return "play"
+        return "play" if label in ("", "UNKNOWN") and self._ocv_looks_lfp() else "plett"
+
+    def _ocv_looks_lfp(self) -> bool:
+        """An unlabelled cell whose mean OCV (Eq. 4) is an LFP plateau: within
+        ``LFP_PLATEAU_SPAN_V`` over SOC 20-80 %, its median in ``LFP_PLATEAU_V`` (the shipped
+        A123 curve: 0.092 V around 3.30 V; the NMC configs span 0.39-0.57 V)."""
+        v = eval_ocv(self.ocv.mean, np.linspace(0.2, 0.8, 13))
+        lo, hi = LFP_PLATEAU_V
+        return bool(np.ptp(v) < LFP_PLATEAU_SPAN_V and lo <= float(np.median(v)) <= hi)
 
     def parameter_bounds(self) -> ParameterBounds:
         """The configured bounds, or the wide defaults (see ``bounds``)."""
