@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from bmsid.config.cell import PAPER_OCV_MEAN, paper_cell
 from bmsid.config.engine import build_bank, cell_model
-from bmsid.estimate import jit, observer_kernel, observer_update_kernel, ocv_kernel
+from bmsid.estimate import jit, observer_kernel, observer_update_kernel, ocv_kernel, rest_anchor
 from bmsid.estimate.jit_helpers import register
 from bmsid.estimate.observer import ObserverState
 from bmsid.estimate.observer_tuning import ObserverTuning
@@ -153,6 +153,13 @@ def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombStat
         stage._learn_gate = rng.random(n) < (0.0 if rng.random() < 0.3 else 0.7)
         stage._i_load_A = rng.uniform(0.0, 3.0, n)
         stage._tau_load_s = rng.uniform(5.0, 300.0, n)
+        # the rests' reading: none yet, or one that a tick near it continues (h moves with the
+        # draw it and the offset leave: rest_anchor.rest_draw)
+        stage._rest_i_A = float(rng.choice([rest_anchor.NO_REST_A, rng.uniform(-1.0, 1.0)]))
+        if rng.random() < 0.3:  # an offset known well (its row and column scaled: P stays PSD)
+            s = float(rng.uniform(0.01, 0.3))
+            stage.P[n, :] *= s
+            stage.P[:, n] *= s
     return stage
 
 
@@ -237,7 +244,7 @@ def test_compiled_and_numpy_ticks_agree(
 ) -> None:  # fmt: skip
     """Random states and ticks (currents at rest and under load, several or no coulomb steps,
     zero dt, gaps, cells without a voltage, SOC beyond the curve, a correction table on the OCV
-    curve, an offset, a learnt map, h by Plett's law or as a play operator, due
+    curve, an offset, a learnt map, h by Plett's law or as a play operator, a draw at rest, due
     updates with anchors, re-anchors and gated innovations): the compiled step and update (and
     their sources run as plain Python, the registry's reference) leave every state, context
     field and counter equal to the stages' own numpy code."""

@@ -67,13 +67,9 @@ class ObserverState(CoulombState):
     """
 
     def __init__(
-        self,
-        model: CellModel,
-        soc0: float | FloatArray | None,
-        knee_slope_factor: float,
-        tuning: ObserverTuning,
-        rest_current_C: float,
-    ) -> None:
+        self, model: CellModel, soc0: float | FloatArray | None, knee_slope_factor: float,
+        tuning: ObserverTuning, rest_current_C: float,
+    ) -> None:  # fmt: skip
         super().__init__(model, soc0, knee_slope_factor)
         n = self.n
         self.tun = tuning
@@ -153,8 +149,11 @@ class ObserverState(CoulombState):
         if gap or self._widen:  # _widen: a checkpoint from before the observer, SOC unchecked
             self._restart(tick)
 
-    def _h_decayed(self, log_decay: FloatArray) -> None:  # (state.py's hook)
+    def _h_decayed(self, log_decay: FloatArray) -> None:  # (state.py's hooks)
         self._lh = self._lh + log_decay
+
+    def _rest_draw_A(self) -> float:
+        return rest.rest_draw(self._rest_i_A, self.b, float(self.P[self.n, self.n]))
 
     def _h_target(self) -> float:
         """The hysteresis error's variance once the current moved h (``hysteresis_error``)."""

@@ -35,7 +35,7 @@ from bmsid.estimate.ocv_kernel import (  # the OCV vector's layout and helpers, 
     docv_dz_at,  # noqa: F401 (re-exported)
     ocv_at,
 )
-from bmsid.estimate.rest_anchor import at_rest_reading
+from bmsid.estimate.rest_anchor import at_rest_reading, rest_draw
 from bmsid.estimate.stage import BoolArray, FloatArray
 
 
@@ -86,6 +86,15 @@ def hat_at(knots: FloatArray, z: float) -> tuple[int, float]:
     return j, (zc - knots[j]) / (knots[j + 1] - knots[j])
 
 
+@helper
+def h_step(h: float, i: float, dt: float, kappa: float, play: bool) -> float:
+    """``ecm.hysteresis_step`` of one cell (Eq. 5-6, or the play law)."""
+    if play:
+        return _min(_max(h - 2.0 * kappa * i * dt, -1.0), 1.0)
+    decay = math.exp(-abs(kappa * i) * dt)
+    return decay * h - (1.0 - decay) * _sign(i)
+
+
 # ------------------------------------------------------------------ the tick's state step
 #: Rows of the per-cell constants ``cells``: the count's capacity (A s) and efficiency, the
 #: hysteresis rates on discharge and charge (Eq. 6), the observer's capacity and efficiency.
@@ -132,6 +141,7 @@ def _step_source(
         span += steps[k, 1]
     held = observer and span > 0 and off_reading / span < tun[REST_LIMIT]
     moves = dt_s > 0 and not held and span > 0 and charge / span >= tun[REST_LIMIT]
+    draw = rest_draw(rest_i, b, p_bb) if held and dt_s > 0 else 0.0  # h at rest: the draw
     for c in range(n):
         zc_ = z[c]
         hc = h[c]
@@ -149,7 +159,7 @@ def _step_source(
             if moves and dt > 0:
                 kappa = cells[KAPPA_C, c] if i < 0 else cells[KAPPA_D, c]
                 if tun[PLAY] > 0.0:
-                    hc = _min(_max(hc - 2.0 * kappa * i * dt, -1.0), 1.0)
+                    hc = h_step(hc, i, dt, kappa, True)
                 else:
                     if kappa != kappa_prev or i != i_prev or dt != dt_prev or c == 0:
                         decay = math.exp(-abs(kappa * i) * dt)  # a pack of one rate: one exp
@@ -157,6 +167,10 @@ def _step_source(
                     hc = decay * hc - (1.0 - decay) * _sign(i)
                 if observer:
                     log_decay[c] = log_decay[c] - abs(kappa * i) * dt
+        if draw != 0.0:
+            kappa = cells[KAPPA_C, c] if draw < 0 else cells[KAPPA_D, c]
+            hc = h_step(hc, draw, dt_s, kappa, tun[PLAY] > 0.0)
+            log_decay[c] = log_decay[c] - abs(kappa * draw) * dt_s
         if observer:
             qz[c] = qz[c] + tun[WALK2] * dt_s / 3600.0
         out[0, c] = zc_
@@ -196,7 +210,7 @@ def _warm_step(kernel: Callable[..., Any]) -> object:
     return kernel(
         one * 0.5, one * 0.0, one * 0, one * 0, one * 0, one * 0, one * 100.0, yes, one * 3.7,
         yes, np.ones((1, 2)), 0.0, 1.0, 1.0, 0.0, np.ones((N_CELL_ROWS, 2)) * 1e4,
-        np.array([0.0, 1.0, 0.1, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
+        np.array([0.0, 1.0, 0.1, 0.0, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
         np.array([0.0, 1.0]), one * 0.0, True, 0.0, one * 0.0,
     )  # fmt: skip
 

@@ -26,6 +26,8 @@ its own tau2, which would keep it from the anchors that measure its capacity.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from bmsid.estimate.jit_helpers import helper
@@ -36,7 +38,7 @@ from bmsid.estimate.stage import BoolArray, FloatArray
 #: constant over rest ticks, s: seconds of light load hardly move it.
 NO_REST_A, REST_MEAN_S = 1e30, 60.0
 
-# The three below are ``@helper``s: the compiled step and fused loop call them too (both name
+# The four below are ``@helper``s: the compiled step and fused loop call them too (both name
 # this file in their ``depends``).
 
 
@@ -57,6 +59,21 @@ def next_rest_reading(reading_A: float, i_meas_A: float, dt_s: float) -> float:
 def offset_within_rest(b_A: float, reading_A: float, limit_A: float) -> float:
     """The offset estimate (A) within the rest limit (A) of the rests' reading (A)."""
     return min(max(b_A, reading_A - limit_A), reading_A + limit_A)
+
+
+@helper
+def rest_draw(reading_A: float, b_A: float, p_bb: float) -> float:
+    """The current the pack draws at rest (A, + = discharge) as far as it is known: the rests'
+    reading less the offset estimate, shrunk by 2 std of the offset (``p_bb``, A^2); 0 within
+    them (what the offset's uncertainty explains moves no h) and without a reading. h moves
+    with it at rest (a converter left on discharges the cell along its hysteresis loop too)."""
+    if reading_A >= NO_REST_A:
+        return 0.0
+    d = reading_A - b_A
+    m = abs(d) - 2.0 * math.sqrt(max(p_bb, 0.0))
+    if m <= 0.0:
+        return 0.0
+    return m if d > 0.0 else -m
 
 
 def draw_update(

@@ -156,6 +156,13 @@ class CoulombState:
                 kappa = self._kappa_charge if i < 0 else self._kappa_discharge
                 self.h = hysteresis_step(self.h, i, dt, kappa, m.hysteresis_play)
                 self._h_decayed(-np.abs(kappa * i) * dt)
+        held = (tick.dt_s > 0 and self._h_hold  # at the rests' reading, over some time
+                and any(dt > 0 for _, dt in tick.coulomb_steps))  # fmt: skip
+        draw = self._rest_draw_A() if held else 0.0
+        if draw:  # at rest h moves with what the pack draws (rest_anchor.rest_draw)
+            kappa = self._kappa_charge if draw < 0 else self._kappa_discharge
+            self.h = hysteresis_step(self.h, draw, tick.dt_s, kappa, m.hysteresis_play)
+            self._h_decayed(-np.abs(kappa * draw) * tick.dt_s)
         if np.count_nonzero(self._pending):  # after the count: SOC is that of the start sample
             self._start(tick, self._pending)
         ocv = m.ocv
@@ -171,6 +178,10 @@ class CoulombState:
             ctx.learn = tick.ok
         else:
             ctx.learn = tick.ok & (zc >= self._learn_lo) & (zc <= self._learn_hi)
+
+    def _rest_draw_A(self) -> float:
+        """Hook: the current the pack draws at rest, A (the observer knows it; a count: 0)."""
+        return 0.0
 
     def _h_decayed(self, log_decay: FloatArray) -> None:
         """Hook: h moved with ``-kappa |i| dt`` of a raw step (the observer keeps its sum)."""
