@@ -22,14 +22,16 @@ from bmsid.synthetic import paper_dst_case
 
 DATA = Path(__file__).parent / "data"
 # The observer couples the cells of a bank only through the pack's current offset, the hysteresis
-# map and the hysteresis state's error they share: all pinned here, so cells compare one by one.
+# map, the hysteresis state's error and the draw at rest they share (the rests' reading and the
+# rest limit are the pack's): all pinned here, so cells compare one by one.
 FAST = EstimatorTuning(window_s=120.0, min_window_s=40.0, swarm_period_s=60.0, n_iter=3,
                        n_iter_first=4, n_particles=4, swarm_min_steps=0,
                        observer=ObserverTuning(offset_prior_C=1e-12,
                                                offset_walk_C_per_sqrt_day=0.0,
                                                hysteresis_prior_rel=1e-12,
                                                hysteresis_prior_floor_V=0.0,
-                                               hysteresis_error=False))  # fmt: skip
+                                               hysteresis_error=False,
+                                               rest_draw=False))  # fmt: skip
 #: The engine of bmsid 0.1 had no observer: its checkpoints continue as it did without one.
 FAST_COULOMB = FAST.model_copy(update={"observer": ObserverTuning(enabled=False)})
 RUN = paper_dst_case(400, r0_spread=np.array([1.0, 1.3]))

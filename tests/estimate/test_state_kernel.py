@@ -128,7 +128,8 @@ def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombStat
         stage = CoulombState(model, None, knee)
     else:
         tun = ObserverTuning(learn_hysteresis=cfg["map"], update_period_s=5.0,
-                             anchor_min_rest_s=30.0, restart_gap_s=50.0)  # fmt: skip
+                             anchor_min_rest_s=30.0, restart_gap_s=50.0,
+                             rest_draw=bool(rng.random() < 0.8))  # fmt: skip
         stage = ObserverState(model, None, knee, tun, 0.05)
     stage.z = rng.uniform(-0.05, 1.05, n)
     stage.h = rng.uniform(-1.0, 1.0, n)

@@ -15,8 +15,8 @@ Management Systems Vol. II", ch. 3-4):
   ``hysteresis_map.py``; ``dv_c/dd_k = s h_c w_k(z_c)`` with s the parameter stage's scale):
   M per SOC region from the data, the table its prior; the cells that do not teach it take it
   as consider states (in S and P, gain 0: ``hysteresis_map.map_rows``);
-* the error of h, one for the pack (``hysteresis_error.py``); h moves only with a current beyond
-  the rest limit; what a rest is and what its reading says of the offset: ``rest_anchor.py``;
+* the error of h, one for the pack (``hysteresis_error.py``); h moves at rest with the pack's
+  draw only; what a rest is and what its reading says of the offset: ``rest_anchor.py``;
 
 Dual estimation, kept apart by time scale and by gates: the parameters learn every tick but only
 while the SOC uncertainty is worth less than ``learn_ocv_sigma_V`` of OCV (an unremoved SOC error
@@ -153,7 +153,8 @@ class ObserverState(CoulombState):
         self._lh = self._lh + log_decay
 
     def _rest_draw_A(self) -> float:
-        return rest.rest_draw(self._rest_i_A, self.b, float(self.P[self.n, self.n]))
+        p_bb = float(self.P[self.n, self.n])
+        return rest.rest_draw(self._rest_i_A, self.b, p_bb) if self.tun.rest_draw else 0.0
 
     def _h_target(self) -> float:
         """The hysteresis error's variance once the current moved h (``hysteresis_error``)."""

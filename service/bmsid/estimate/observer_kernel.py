@@ -102,8 +102,9 @@ CAP, EFF, KAPPA_D, KAPPA_C, Q_OBS, EFF_OBS, N_CELL_ROWS = 0, 1, 2, 3, 4, 5, 6
 #: Rows of the step's output: SOC, h, clamped SOC, OCV, M, h M, the voltage or OCV.
 N_OUT = 7
 #: Layout of the step's tuning vector ``tun``: the learn range, the observer's rest limit (A),
-#: current gain and SOC walk variances, 1 where h moves as a play operator (``ecm``).
-LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, PLAY, N_TUN = 0, 1, 2, 3, 4, 5, 6
+#: current gain and SOC walk variances, 1 where h moves as a play operator (``ecm``), 1 where
+#: h moves at rest with the pack's draw (``ObserverTuning.rest_draw``).
+LEARN_LO, LEARN_HI, REST_LIMIT, GAIN2, WALK2, PLAY, DRAW, N_TUN = 0, 1, 2, 3, 4, 5, 6, 7
 
 
 def _step_source(
@@ -141,7 +142,7 @@ def _step_source(
         span += steps[k, 1]
     held = observer and span > 0 and off_reading / span < tun[REST_LIMIT]
     moves = dt_s > 0 and not held and span > 0 and charge / span >= tun[REST_LIMIT]
-    draw = rest_draw(rest_i, b, p_bb) if held and dt_s > 0 else 0.0  # h at rest: the draw
+    draw = rest_draw(rest_i, b, p_bb) if held and dt_s > 0 and tun[DRAW] > 0.0 else 0.0
     for c in range(n):
         zc_ = z[c]
         hc = h[c]
@@ -210,7 +211,7 @@ def _warm_step(kernel: Callable[..., Any]) -> object:
     return kernel(
         one * 0.5, one * 0.0, one * 0, one * 0, one * 0, one * 0, one * 100.0, yes, one * 3.7,
         yes, np.ones((1, 2)), 0.0, 1.0, 1.0, 0.0, np.ones((N_CELL_ROWS, 2)) * 1e4,
-        np.array([0.0, 1.0, 0.1, 0.0, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
+        np.array([0.0, 1.0, 0.1, 0.0, 0.0, 0.0, 0.0]), p, np.array([0.0, 1.0]), one * 0.01,
         np.array([0.0, 1.0]), one * 0.0, True, 0.0, one * 0.0,
     )  # fmt: skip
 

@@ -110,6 +110,12 @@ class ObserverTuning(BaseModel):
     h, 0 where h saturates. The rate gamma is not measured, and under a drive's mixed current
     h settles where its charge balances; taken as exact, its error went into SOC at the rests.
     False: h as exact, as before."""
+    rest_draw: bool = True
+    """At rest h moves with what the pack draws as far as the filter knows it: the rests'
+    reading less the offset estimate, shrunk by 2 std of the offset (``rest_anchor.rest_draw``;
+    0 for a pack resting at 0 A). Measured on the 3-day ``rest-draw`` record (0.2 A drawn at
+    every rest): day 3 tau1 19.9 -> 11.1 %, offset error -0.053 -> -0.025 A; every other
+    scenario and the measured records the same. False: h holds at rest, as before."""
     play_error_variance: float = Field(1.0 / 3.0, ge=0.0, le=1.0)
     """Where h moves as a play (the cell config's ``hysteresis.law``, LFP by default), the
     variance its error returns to once the current has moved h, at least: the play sits at a

@@ -74,6 +74,7 @@ class Packed:
             self.tun[ok_.REST_LIMIT] = st._rest_limit_A  # type: ignore[attr-defined]
             self.tun[ok_.GAIN2] = tun.current_gain_sigma**2
             self.tun[ok_.WALK2] = tun.soc_walk_per_sqrt_h**2
+            self.tun[ok_.DRAW] = float(tun.rest_draw)
         self.key: tuple[Any, ...] = ()
         self.cells = np.zeros((ok_.N_CELL_ROWS, st.n))
         self.q_key: Any = None
