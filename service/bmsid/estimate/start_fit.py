@@ -265,7 +265,8 @@ class _HPath:
     """h over the window as a function of its start h0 (Eq. 5-6). Plett's law is affine in h0:
     ``h_free + h0 decay``. The play (``ecm.hysteresis_step``) is not: h0 plus the charge's
     shifts until the path first clips at a branch, the same path for every h0 from there on
-    (``moves``: the per-interval shifts, -2 kappa i dt)."""
+    (``moves``: the per-interval shifts, -2 kappa i dt; ``h_free`` and ``decay`` then unused,
+    empty)."""
 
     h_free: FloatArray
     decay: FloatArray
@@ -273,11 +274,13 @@ class _HPath:
 
     @classmethod
     def of(cls, i_held: FloatArray, dt: FloatArray, model: CellModel, c: int) -> _HPath:
+        if model.hysteresis_play:
+            kappa = hysteresis_kappa(
+                model.gamma[c], model.capacity_As[c], model.efficiency[c], i_held
+            )
+            return cls(np.empty(0), np.empty(0), (-2.0 * kappa * i_held * dt).tolist())
         h_free = _hysteresis(i_held, dt, model, c)
-        if not model.hysteresis_play:
-            return cls(h_free, _hysteresis(i_held, dt, model, c, 1.0) - h_free)
-        kappa = hysteresis_kappa(model.gamma[c], model.capacity_As[c], model.efficiency[c], i_held)
-        return cls(h_free, h_free, (-2.0 * kappa * i_held * dt).tolist())
+        return cls(h_free, _hysteresis(i_held, dt, model, c, 1.0) - h_free)
 
     def at(self, h0: float) -> tuple[FloatArray, FloatArray]:
         """(h, dh/dh0) over the window's samples from ``h0``."""
