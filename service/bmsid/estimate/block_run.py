@@ -220,7 +220,8 @@ def _call(
         tun = obs.tun
         so = np.array([obs.b, obs._qb, obs._since_s, obs._rest_s, obs._seen_s, pk.qb_coef,
                        tun.update_period_s, tun.anchor_min_rest_s, obs._b_max,
-                       tun.unconverged_wait_s, obs._rest_i_A])  # fmt: skip
+                       tun.unconverged_wait_s, obs._rest_i_A, obs._noise_A2, obs._i_prev_A,
+                       obs._rest_base_A])  # fmt: skip
         obs_args = (
             True, st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A,
             f64(obs._tau_load_s), obs._learn_gate, obs.P, obs.d, so, obs._anchored, pk.cells,
@@ -261,7 +262,10 @@ def _call(
         obs.b, obs._qb, obs._since_s, obs._rest_s, obs._seen_s = (
             float(x) for x in so[: fk.QB_COEF]
         )
-        obs._rest_i_A = float(so[fk.REST_I])
+        obs._rest_i_A, obs._noise_A2, obs._i_prev_A = (
+            float(x) for x in so[fk.REST_I : fk.REST_BASE]
+        )
+        obs._rest_limit_A = obs._h_rest_A = float(pk.tun[observer_kernel.REST_LIMIT])
         obs.counters["observer_updates"] += int(counts[fk.C_UPD])
         obs.counters["observer_gated"] += int(counts[fk.C_GATED])
     pa.R0, pa.R1, pa.R2 = R0, R1, R2

@@ -1,16 +1,13 @@
-"""The engine's ordinary ticks in one compiled loop (issue 12): ``bank._run_tick`` for a run of
-ticks, compiled.
+"""The engine's ordinary ticks in one compiled loop (issue 12): ``bank._run_tick``, compiled.
 
 ``FUSED_TICKS`` runs ``EstimatorBank._run_tick`` (the state stage with or without the observer,
 the learn gate, the parameter stage, the observer's periodic update, the tail of codes, guard
 and average) over ticks ``k0 ..`` of a block's tick arrays (``tick_block.py``), writing every
 published field into preallocated arrays. The parameter stage is the AFFRLS on the ARX model
 (``non-hy-affrls``, ``hy-affrls``) or the fusion's per-tick AFFRLS and window buffer
-(``hy-affrls-lpso``, while swarms run ahead). It calls the stages' own compiled kernels
-(``observer_kernel.STEP``, ``observer_update_kernel.UPDATE``, ``rls_kernel.ARX_TICK`` or
-``FUSION_TICK``, ``publish_kernel.TAIL``: the same compiled code, the same bits) and does between
-them, in loops, what the Python glue does (``state_jit.step`` and ``update``, ``ObserverState``'s
-rest clock, ``ArxRlsStage.step`` or ``FusionStage.step`` and their ``outputs``, ``publish``).
+(``hy-affrls-lpso``, while swarms run ahead). It calls the stages' own compiled kernels (same
+bits) and does between them, in loops, what the Python glue does (``state_jit``, the observer's
+rest clock and noise, the parameter stage's ``step`` and ``outputs``, ``publish``).
 
 It stops before a tick that needs the stages' Python code (``STOP_TICK``): a new segment (the
 first sample, a gap, a time jump), the first tick with a step (the ARX period is seeded), a
@@ -20,9 +17,8 @@ A fusion's swarm events (one due, or one run ahead ending: ``FusionStage._run_ah
 into its Python at their place in the tick (``swarms.loop_events``, numba's object mode); in
 between, a swarm run ahead only counts its ticks. It stops after a tick whose guard asks for a
 re-initialisation (``STOP_REINIT``: the caller resets those cells). ``lambda_`` is left to the
-caller (``lam`` per tick: numpy's power, as the stages' ``outputs``).
-
-Its cache entry is named after the files whose compiled code it embeds (``jit.Kernel.depends``).
+caller (``lam`` per tick: numpy's power, as the stages' ``outputs``). Its cache entry is named
+after the files whose compiled code it embeds (``jit.Kernel.depends``).
 """
 
 from __future__ import annotations
@@ -56,6 +52,7 @@ from bmsid.estimate.publish_kernel import AVG_ROW, BITS_ROW, SOC_ROW
 from bmsid.estimate.rest_anchor import at_rest_reading, next_rest_reading, offset_within_rest
 from bmsid.estimate.swarms import loop_events
 
+next_noise, rest_limit = rest_anchor.next_noise, rest_anchor.rest_limit  # (import: 400 lines)
 #: Field rows of the output ``o`` (``fields.FIELD_NAMES`` order), literals checked below.
 R0F, R1F, C1F, R2F, C2F, TAU1F, TAU2F, LAMF, HF, SOCF, SOCSTDF = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 CAPF, CAPSTDF, OFFF, VMODF, VMEASF, VERRF, MF, OCVOFFF, ONBF, ARXF = range(11, 21)
@@ -65,8 +62,9 @@ HELD_F = (R0F, R1F, C1F, R2F, C2F, TAU1F, TAU2F, OCVOFFF)
 PUB_F = (R1F, R2F, TAU1F, TAU2F, C1F, C2F)
 #: Per-tick floats of ``per_tick``: forgetting limits, the innovation RMS's gain.
 LAM_LO, LAM_HI, GAIN, N_PT = 0, 1, 2, 3
-#: The observer's scalars ``so`` (in place): b, qb, since_s, rest_s, seen_s, constants, reading.
-B, QB, SINCE, REST, SEEN, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, WAIT, REST_I, N_SO = range(12)
+#: The observer's scalars ``so`` (in place): b, qb, clocks, constants, reading, sensor noise.
+B, QB, SINCE, REST, SEEN, QB_COEF, UPD_PERIOD, MIN_REST, B_MAX, WAIT, REST_I = range(11)
+NOISE, I_PREV, REST_BASE, N_SO = 11, 12, 13, 14
 #: The counters ``counts`` (in place).
 C_REJ, C_UPD, C_GATED, C_DIV, C_HELD, C_CLAMP, N_C = range(7)
 #: Why the loop stopped: the end, a tick for the Python path, a re-initialisation after a tick.
@@ -153,8 +151,11 @@ def _fused_source(
         elif T_arx == 0.0 and dt > 0:  # the ARX period is seeded: the stage's own code
             stop = STOP_TICK
             break
+        if observer:  # ObserverState.step: the rest limit with the sensor's noise (kept below)
+            nv = next_noise(so[NOISE], cur, so[I_PREV], so[REST_BASE], dt)
+            tun[REST_LIMIT] = rest_limit(so[REST_BASE], nv)
         if observer and at_rest_reading(cur, so[REST_I], tun[REST_LIMIT]):
-            so[B] = offset_within_rest(so[B], so[REST_I], tun[REST_LIMIT])
+            so[B] = offset_within_rest(so[B], so[REST_I], so[REST_BASE])  # a draw, not noise
         b, cont = so[B], False
         if observer:
             if b != 0.0:  # _remove_offset (the kernel removes it from the coulomb steps)
@@ -183,6 +184,7 @@ def _fused_source(
             so[QB] += so[QB_COEF] * dt / 86400.0
             so[SINCE] += dt
             so[SEEN] += dt
+            so[NOISE], so[I_PREV] = nv, i_meas  # past the stops: a stopped tick is Python's
         else:
             out, learn, all_ok, resting = _STEP(
                 z, h, empty, empty, empty, empty, empty, ok, v, ok, st, 0.0, cur, dt, 0.0,
@@ -394,7 +396,5 @@ def _reference(*args: Any) -> Any:
 _EMBEDS = (observer_kernel, observer_update_kernel, ocv_kernel, rls_kernel, rls_reference,
            publish_kernel, guard_kernel, publish_average, tick_block, rest_anchor,
            hysteresis_error)  # fmt: skip
-FUSED_TICKS = jit.Kernel(
-    "fused ticks", _reference, _fused_source, _warm,
-    depends=tuple(str(m.__file__) for m in _EMBEDS),
-)  # fmt: skip
+FUSED_TICKS = jit.Kernel("fused ticks", _reference, _fused_source, _warm,
+                         depends=tuple(str(m.__file__) for m in _EMBEDS))  # fmt: skip

@@ -87,8 +87,9 @@ class ObserverState(CoulombState):
         self._h_floor = tuning.play_error_variance if model.hysteresis_play else 0.0
         self.P[-1, -1] = self._h_target()
         self._b_max = tuning.offset_max_C * q_mean_Ah
-        self._rest_limit_A = rest_current_C * float(np.min(model.capacity_Ah))
-        self._h_rest_A = self._rest_limit_A  # a rest's current (noise, offset) moves no h
+        base = self._rest_base_A = rest_current_C * float(np.min(model.capacity_Ah))
+        self._rest_limit_A = self._h_rest_A = base  # a rest's current moves no h
+        self._noise_A2, self._i_prev_A = 0.0, math.nan  # the sensor's (rest.rest_limit)
         self.capacity = CapacityTracker(
             model.capacity_Ah, tuning.capacity_prior_rel, tuning.capacity_min_dsoc,
             tuning.capacity_fade_rel_per_sqrt_day,
@@ -110,13 +111,17 @@ class ObserverState(CoulombState):
 
     # ------------------------------------------------------------------ per tick
     def step(self, ctx: TickContext) -> None:
-        tick, reading, limit = ctx.tick, self._rest_i_A, self._rest_limit_A
+        tick, reading, base = ctx.tick, self._rest_i_A, self._rest_base_A
+        self._noise_A2 = rest.next_noise(
+            self._noise_A2, tick.current_A, self._i_prev_A, base, tick.dt_s)  # fmt: skip
+        self._i_prev_A, limit = tick.current_A, rest.rest_limit(base, self._noise_A2)
+        self._rest_limit_A = self._h_rest_A = limit
         if rest.at_rest_reading(tick.current_A, reading, limit):
-            self.b = rest.offset_within_rest(self.b, reading, limit)
+            self.b = rest.offset_within_rest(self.b, reading, base)  # a draw, not noise
         if state_jit.step(self, ctx, observer=True):  # the compiled kernel (jit.select)
             return
         self._h_hold = mean_abs_current([(i - reading, dt) for i, dt in tick.coulomb_steps]) < limit
-        self._remove_offset(tick)
+        tick.remove_offset(self.b)
         self._accumulate(tick)
         super().step(ctx)
         i_abs = abs(tick.current_A)
@@ -179,17 +184,6 @@ class ObserverState(CoulombState):
         self.capacity.forget_anchors()
         self._reanchor, self._widen = True, False
 
-    def _remove_offset(self, tick: Tick) -> None:
-        """Measured current -> true current (the tick is rebuilt every tick: edited in place)."""
-        b = self.b
-        if b == 0.0:
-            return
-        tick.current_A -= b
-        gap = tick.new_segment and not tick.first  # the pack is assumed at rest over a gap
-        if not gap:
-            tick.i_prev_A -= b
-        tick.coulomb_steps = tuple((i - b, dt) for i, dt in tick.coulomb_steps)
-
     def _accumulate(self, tick: Tick) -> None:
         """dz/db, process noise and charge throughput of this tick's coulomb steps (Eq. 2)."""
         tun = self.tun
@@ -232,7 +226,7 @@ class ObserverState(CoulombState):
         anchor = np.zeros(n, dtype=bool) if anchor is None else anchor
         if any_anchor and not self._anchored.any() and self._rest_i_A < rest.NO_REST_A:
             self._predict()  # the rest's first anchor: its reading measures the offset now
-            dx, self.P = rest.draw_update(self.P, n, self.b, self._rest_i_A, self._rest_limit_A)
+            dx, self.P = rest.draw_update(self.P, n, self.b, self._rest_i_A, self._rest_base_A)
             self._apply(dx)
             ctx.h = self.h
         if state_jit.update(self, ctx, params, converged, anchor):  # compiled (jit.select)

@@ -55,6 +55,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.cellmodel import CellModel
+from bmsid.estimate.rest_anchor import noise_std_A
 from bmsid.estimate.tau_grid import Fit, TauGrid, best_fit, refined_fit
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.ecm import hysteresis_kappa, hysteresis_step
@@ -197,9 +198,12 @@ def fit_start_soc(
 
 
 def first_load_s(t_s: FloatArray, current_A: FloatArray, rest_limit_A: float) -> float | None:
-    """Time (s) of the first sample whose |current| exceeds ``rest_limit_A`` (A; NaN: rest),
-    None if none does."""
-    busy = np.flatnonzero(np.abs(np.nan_to_num(current_A)) > rest_limit_A)
+    """Time (s) of the first sample whose |current| exceeds ``rest_limit_A`` (A; NaN: rest) by
+    more than 3 std of the sensor's noise (``rest_anchor.noise_std_A``: 10 mA of noise on a
+    2 Ah cell put the load at the second sample of a one-hour rest, and the window that shows
+    the start's hysteresis state was missed), None if none does."""
+    limit = rest_limit_A + 3.0 * noise_std_A(current_A, rest_limit_A)
+    busy = np.flatnonzero(np.abs(np.nan_to_num(current_A)) > limit)
     return float(t_s[busy[0]]) if busy.size else None
 
 

@@ -151,6 +151,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
             if not (tick.new_segment and not tick.first):
                 tick.i_prev_A -= b
         offset_walk(obs, pk)
+        pk.tun[ok_.REST_LIMIT] = obs._rest_limit_A  # with the sensor's noise (observer.step)
         tau_load = np.ascontiguousarray(obs._tau_load_s)  # params' tau2: a view would compile
         out, learn, all_ok, resting = ok_.STEP.impl(
             st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A, tau_load,

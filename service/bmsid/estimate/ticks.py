@@ -68,6 +68,16 @@ class Tick:
     first: bool
     new_segment: bool
 
+    def remove_offset(self, b_A: float) -> None:
+        """Measured current -> true current, ``b_A`` the sensor's offset (A); in place (the
+        tick is rebuilt every tick). Over a gap the pack is assumed at rest: ``i_prev_A`` 0."""
+        if b_A == 0.0:
+            return
+        self.current_A -= b_A
+        if not (self.new_segment and not self.first):
+            self.i_prev_A -= b_A
+        self.coulomb_steps = tuple((i - b_A, dt) for i, dt in self.coulomb_steps)
+
 
 class TickAssembler:
     """Bins raw samples into ticks; owns the raw and tick clocks and the excitation measure."""

@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bmsid.estimate.observer_tuning import ObserverTuning
+from bmsid.estimate.rest_anchor import noise_std_A
 from bmsid.estimate.start_relaxation import NOISE_FLOOR_V, slope_from_sums
 from bmsid.estimate.startvalues import median_step_resistance
 from bmsid.gates import GateConfig
@@ -737,7 +738,9 @@ def check_start_relaxation(
     t = np.asarray(t_s, dtype=np.float64)
     v = np.asarray(voltages_V, dtype=np.float64).reshape(t.shape[0], -1)
     rest_limit_A = min(rest_current_C * capacity_Ah, 0.5 * RELAX_MIN_V / max(r0_ohm, 1e-9))
-    busy = np.flatnonzero(~(np.abs(np.asarray(current_A, dtype=np.float64)) <= rest_limit_A))
+    i = np.asarray(current_A, dtype=np.float64)
+    rest_limit_A += 3.0 * noise_std_A(i, rest_limit_A)  # the sensor's noise is no load
+    busy = np.flatnonzero(~(np.abs(i) <= rest_limit_A))
     n_rest = int(busy[0]) if busy.size else t.shape[0]
     if n_rest < 3:
         return []  # no rest at the start: the engine IR-corrects the first voltage instead
