@@ -185,3 +185,19 @@ def test_the_head_after_a_long_rest_spans_the_window_from_the_load() -> None:
     quick = StartHead(rest_limit_A=0.7)  # a load within the first 10 min: the first 20 min
     got = [quick.add(block.slice(a, a + 100)) for a in range(6600, len(block), 100)]
     assert next(g for g in got if g is not None).t_s[-1] == pytest.approx(6600 + WINDOW_S, abs=100)
+
+
+def test_a_noisy_sensor_at_rest_is_no_load_even_a_sample_at_a_time() -> None:
+    """The parked car again, its current sensor's noise 0.3 A std around the 0.1 A draw (the
+    rest limit 0.7 A: one sample in seventy beyond it), fed as the bus does, a sample per
+    block: the noise seen so far (``StartHead.noise_sd_A``) keeps the load at the drive's
+    start, not at the first noisy sample (the head then closed after 20 min of rest)."""
+    t = np.arange(3 * 3600, dtype=np.float64)
+    rng = np.random.default_rng(0)
+    i = np.where(t < 7200.0, 0.1 + rng.normal(0.0, 0.3, t.shape[0]), 30.0)
+    assert np.count_nonzero(np.abs(i[:7200]) > 0.7) > 10
+    block = SampleBlock.from_arrays(t, i, np.full((t.shape[0], 1), 3.7))
+    head = StartHead(rest_limit_A=0.7)
+    done = next(g for g in (head.add(block.slice(a, a + 1)) for a in range(len(block))) if g)
+    assert head.load_s == pytest.approx(7200.0, abs=60.0)
+    assert done.t_s[-1] == pytest.approx(7200.0 - 60.0 + WINDOW_S, abs=100.0)

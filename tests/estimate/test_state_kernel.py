@@ -158,7 +158,7 @@ def _stage(rng: np.random.Generator, n: int, cfg: dict[str, Any]) -> CoulombStat
         # draw it and the offset leave: rest_anchor.rest_draw)
         stage._rest_i_A = float(rng.choice([rest_anchor.NO_REST_A, rng.uniform(-1.0, 1.0)]))
         # the sensor's noise so far and the last tick's current (rest_anchor.next_noise)
-        stage._noise_A2 = float(rng.choice([0.0, rng.uniform(0.0, 4e-4)]))
+        stage._noise_sd_A = float(rng.choice([0.0, rng.uniform(0.0, 0.02)]))
         stage._i_prev_A = float(rng.choice([math.nan, rng.uniform(-0.05, 0.05), 3.0]))
         if rng.random() < 0.3:  # an offset known well (its row and column scaled: P stays PSD)
             s = float(rng.uniform(0.01, 0.3))
@@ -198,7 +198,7 @@ def _params(rng: np.random.Generator, v: np.ndarray) -> dict[str, np.ndarray]:
 
 _CTX = ("soc_clamped", "ocv_V", "m_table_V", "h", "hm_V", "v_safe_V")
 _OBS_ARRAYS = ("P", "_g", "_qz", "_lh", "d", "_i_load_A", "_learn_gate", "_anchored", "_q_As")
-_OBS_SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_reanchor", "soc_init_method", "_noise_A2",
+_OBS_SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_reanchor", "soc_init_method", "_noise_sd_A",
                 "_i_prev_A", "_rest_limit_A", "_h_rest_A")  # fmt: skip
 
 

@@ -21,8 +21,10 @@ the first voltage's start, and says so.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
+from bmsid.estimate.rest_anchor import next_noise
 from bmsid.estimate.start_fit import MAX_HEAD_CELL_SAMPLES, first_load_s, head_end_s
 from bmsid.samples import SampleBlock
 
@@ -43,6 +45,11 @@ class StartHead:
     open: bool = True
     #: when the first load came, s (None: not yet)
     load_s: float | None = None
+    #: the current sensor's noise so far (std A, the last current A): a bus's blocks are
+    #: a few samples each, too few for their own estimate (``rest_anchor.next_noise``)
+    noise_sd_A: float = 0.0
+    i_prev_A: float = math.nan
+    t_prev_s: float = math.nan
 
     def add(self, block: SampleBlock) -> SampleBlock | None:
         """Keep ``block``; the whole head once the kept samples span the window, else None."""
@@ -51,7 +58,14 @@ class StartHead:
         self.blocks.append(block)
         self.cell_samples += len(block) * block.n_cells
         if self.load_s is None:
-            self.load_s = first_load_s(block.t_s, block.current_A, self.rest_limit_A)
+            self.load_s = first_load_s(
+                block.t_s, block.current_A, self.rest_limit_A, self.noise_sd_A
+            )
+            for t, i in zip(block.t_s.tolist(), block.current_A.tolist(), strict=True):
+                self.noise_sd_A = next_noise(
+                    self.noise_sd_A, i, self.i_prev_A, self.rest_limit_A, t - self.t_prev_s
+                )
+                self.i_prev_A, self.t_prev_s = i, t
         first, last = float(self.blocks[0].t_s[0]), float(block.t_s[-1])
         if last >= head_end_s(first, self.load_s, last):
             self.open = False

@@ -220,7 +220,7 @@ def _call(
         tun = obs.tun
         so = np.array([obs.b, obs._qb, obs._since_s, obs._rest_s, obs._seen_s, pk.qb_coef,
                        tun.update_period_s, tun.anchor_min_rest_s, obs._b_max,
-                       tun.unconverged_wait_s, obs._rest_i_A, obs._noise_A2, obs._i_prev_A,
+                       tun.unconverged_wait_s, obs._rest_i_A, obs._noise_sd_A, obs._i_prev_A,
                        obs._rest_base_A])  # fmt: skip
         obs_args = (
             True, st.z, st.h, obs._g, obs._qz, obs.capacity.throughput_Ah, obs._i_load_A,
@@ -262,7 +262,7 @@ def _call(
         obs.b, obs._qb, obs._since_s, obs._rest_s, obs._seen_s = (
             float(x) for x in so[: fk.QB_COEF]
         )
-        obs._rest_i_A, obs._noise_A2, obs._i_prev_A = (
+        obs._rest_i_A, obs._noise_sd_A, obs._i_prev_A = (
             float(x) for x in so[fk.REST_I : fk.REST_BASE]
         )
         obs._rest_limit_A = obs._h_rest_A = float(pk.tun[observer_kernel.REST_LIMIT])

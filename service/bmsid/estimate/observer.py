@@ -89,7 +89,7 @@ class ObserverState(CoulombState):
         self._b_max = tuning.offset_max_C * q_mean_Ah
         base = self._rest_base_A = rest_current_C * float(np.min(model.capacity_Ah))
         self._rest_limit_A = self._h_rest_A = base  # a rest's current moves no h
-        self._noise_A2, self._i_prev_A = 0.0, math.nan  # the sensor's (rest.rest_limit)
+        self._noise_sd_A, self._i_prev_A = 0.0, math.nan  # the sensor's (rest.rest_limit)
         self.capacity = CapacityTracker(
             model.capacity_Ah, tuning.capacity_prior_rel, tuning.capacity_min_dsoc,
             tuning.capacity_fade_rel_per_sqrt_day,
@@ -112,9 +112,9 @@ class ObserverState(CoulombState):
     # ------------------------------------------------------------------ per tick
     def step(self, ctx: TickContext) -> None:
         tick, reading, base = ctx.tick, self._rest_i_A, self._rest_base_A
-        self._noise_A2 = rest.next_noise(
-            self._noise_A2, tick.current_A, self._i_prev_A, base, tick.dt_s)  # fmt: skip
-        self._i_prev_A, limit = tick.current_A, rest.rest_limit(base, self._noise_A2)
+        self._noise_sd_A = rest.next_noise(
+            self._noise_sd_A, tick.current_A, self._i_prev_A, base, tick.dt_s)  # fmt: skip
+        self._i_prev_A, limit = tick.current_A, rest.rest_limit(base, self._noise_sd_A)
         self._rest_limit_A = self._h_rest_A = limit
         if rest.at_rest_reading(tick.current_A, reading, limit):
             self.b = rest.offset_within_rest(self.b, reading, base)  # a draw, not noise

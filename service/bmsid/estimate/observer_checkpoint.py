@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from bmsid.estimate.observer import ObserverState
 
 _ARRAYS = ("P", "_g", "_qz", "_learn_gate", "_q_As", "_i_load_A", "_tau_load_s", "_anchored")
-_SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_rest_i_A", "_noise_A2", "_i_prev_A")
+_SCALARS = ("b", "_qb", "_since_s", "_rest_s", "_rest_i_A", "_noise_sd_A", "_i_prev_A")
 _ARRAYS_MAP = ("d", "_knots")
 
 
@@ -48,10 +48,10 @@ def load(obs: ObserverState, saved: dict[str, Any] | None) -> None:
     if same:
         obs.d = np.asarray(saved["d"], dtype=np.float64).copy()
     load_arrays(obs, renamed, _ARRAYS, "state/observer")
-    absent = {"_rest_i_A": rest.NO_REST_A, "_noise_A2": 0.0, "_i_prev_A": math.nan}  # older
+    absent = {"_rest_i_A": rest.NO_REST_A, "_noise_sd_A": 0.0, "_i_prev_A": math.nan}  # older
     for k in _SCALARS:
         setattr(obs, k, float(saved.get(k.lstrip("_"), absent.get(k, math.nan))))
-    obs._rest_limit_A = obs._h_rest_A = rest.rest_limit(obs._rest_base_A, obs._noise_A2)
+    obs._rest_limit_A = obs._h_rest_A = rest.rest_limit(obs._rest_base_A, obs._noise_sd_A)
     obs._seen_s = float(saved.get("seen_s", obs.tun.unconverged_wait_s))  # older: has run
     obs._lh = np.asarray(saved.get("lh", np.zeros(obs.n)), dtype=np.float64).copy()
     obs._reanchor = bool(saved["reanchor"])

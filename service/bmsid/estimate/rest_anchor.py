@@ -64,37 +64,39 @@ def offset_within_rest(b_A: float, reading_A: float, limit_A: float) -> float:
 
 
 @helper
-def next_noise(var_A2: float, i_A: float, i_prev_A: float, base_A: float, dt_s: float) -> float:
-    """The current sensor's noise variance (A^2) after a tick measuring ``i_A`` (A) after one
-    measuring ``i_prev_A`` (A; NaN: none): half the square of their difference (two draws of
-    the noise; an offset or a steady draw cancels) where both lie near rest (within 3 rest
-    limits ``base_A`` plus 3 std: a load is no noise), capped at (2 base)^2 (a step into a
-    light load), averaged over ``NOISE_MEAN_S``."""
-    near = 3.0 * (base_A + math.sqrt(max(var_A2, 0.0)))
+def next_noise(sd_A: float, i_A: float, i_prev_A: float, base_A: float, dt_s: float) -> float:
+    """The current sensor's noise std (A) after a tick measuring ``i_A`` (A) after one measuring
+    ``i_prev_A`` (A; NaN: none), from the |difference| of the two (two draws of the noise, an
+    offset or a steady draw cancels; its mean is 2 std / sqrt(pi) for Gaussian noise, and the
+    mean of |d| is not carried off by a few larger steps as a mean square is) where both lie
+    at rest (within the rest limit ``base_A`` plus 3 std: a drive's current crossing zero is
+    no noise), at most 2 base (a step into a light load), averaged over ``NOISE_MEAN_S`` (the
+    first such pair taken whole: a start at rest must not wait ten minutes for its noise)."""
+    near = rest_limit(base_A, sd_A)
     if not (dt_s > 0.0 and abs(i_A) < near and abs(i_prev_A) < near):  # (NaN: False)
-        return var_A2
-    d, w = i_A - i_prev_A, min(1.0, dt_s / NOISE_MEAN_S)
-    return var_A2 + w * (min(0.5 * d * d, 4.0 * base_A * base_A) - var_A2)
+        return sd_A
+    w = 1.0 if sd_A <= 0.0 else min(1.0, dt_s / NOISE_MEAN_S)
+    return sd_A + w * (min(0.5 * math.sqrt(math.pi) * abs(i_A - i_prev_A), 2.0 * base_A) - sd_A)
 
 
 def noise_std_A(current_A: FloatArray, base_A: float) -> float:
     """The current sensor's noise std (A) over a stretch of samples (A), as ``next_noise`` sees
     it but robustly, for a record's head: 1.4826 x the median |difference| of successive
-    samples near rest (within 3 rest limits ``base_A``) / sqrt(2); 0 with fewer than 10 such
+    samples at rest (within the rest limit ``base_A``) / sqrt(2); 0 with fewer than 10 such
     pairs (a tester's 0.000 A at rest: 0)."""
     i = np.asarray(current_A, dtype=np.float64)
-    near = np.abs(i) < 3.0 * base_A  # (NaN: False)
+    near = np.abs(i) < base_A  # (NaN: False)
     d = np.diff(i)[near[1:] & near[:-1]]
     return float(1.4826 * np.median(np.abs(d)) / math.sqrt(2.0)) if d.size >= 10 else 0.0
 
 
 @helper
-def rest_limit(base_A: float, var_A2: float) -> float:
+def rest_limit(base_A: float, sd_A: float) -> float:
     """The rest limit (A): the configured one ``base_A`` plus 3 std of the sensor's noise
     (``next_noise``), so that noise alone does not end a rest: 10 mA on a 2 Ah cell, half its
     1 % C limit, ended a rest on one tick in twenty, and a 12-hour known-truth record anchored
     once instead of four times (its SOC 3.9 points RMS off instead of 0.8)."""
-    return base_A + 3.0 * math.sqrt(max(var_A2, 0.0))
+    return base_A + 3.0 * max(sd_A, 0.0)
 
 
 @helper

@@ -197,12 +197,15 @@ def fit_start_soc(
     return StartFit(soc0, rmse, window_s, branch, h_start)
 
 
-def first_load_s(t_s: FloatArray, current_A: FloatArray, rest_limit_A: float) -> float | None:
+def first_load_s(
+    t_s: FloatArray, current_A: FloatArray, rest_limit_A: float, noise_sd_A: float = 0.0
+) -> float | None:
     """Time (s) of the first sample whose |current| exceeds ``rest_limit_A`` (A; NaN: rest) by
-    more than 3 std of the sensor's noise (``rest_anchor.noise_std_A``: 10 mA of noise on a
-    2 Ah cell put the load at the second sample of a one-hour rest, and the window that shows
-    the start's hysteresis state was missed), None if none does."""
-    limit = rest_limit_A + 3.0 * noise_std_A(current_A, rest_limit_A)
+    more than 3 std of the sensor's noise (these samples' ``rest_anchor.noise_std_A``, at least
+    ``noise_sd_A``, A, what earlier samples showed: 10 mA of noise on a 2 Ah cell put the load
+    at the second sample of a one-hour rest, and the window that shows the start's hysteresis
+    state was missed), None if none does."""
+    limit = rest_limit_A + 3.0 * max(noise_std_A(current_A, rest_limit_A), noise_sd_A)
     busy = np.flatnonzero(np.abs(np.nan_to_num(current_A)) > limit)
     return float(t_s[busy[0]]) if busy.size else None
 
