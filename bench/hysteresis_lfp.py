@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bmsid.config.cell import load_cell_config
+from bmsid.config.cell import CellConfig, load_cell_config
 from bmsid.config.engine import ocv_model
 from bmsid.estimate.tuning import EstimatorTuning
 from bmsid.model.simulator import simulate
@@ -44,6 +44,17 @@ def run(args: tuple[float, float, float, str, str, EstimatorTuning]) -> tuple[fl
     z0, h0, gamma, truth, law, tun = args
     cell = load_cell_config(CELL)
     cell = cell.model_copy(update={"hysteresis": cell.hysteresis.model_copy(update={"law": law})})
+    soc_pts, rmse_mV, _ = score(cell, z0, h0, gamma, truth == "play", tun, 0.01)
+    return soc_pts, rmse_mV
+
+
+def score(
+    cell: CellConfig, z0: float, h0: float, gamma: float, play: bool, tun: EstimatorTuning,
+    noise_A: float,
+) -> tuple[float, float, int]:  # fmt: skip
+    """The record of the module docstring with the truth's ``gamma`` and law (``play``) and
+    ``noise_A`` (A) of current noise, identified as ``cell`` without a start SOC: (RMS SOC
+    error in points, model RMSE in mV) after the first hour, and the observer's anchors."""
     t = np.arange(0.0, 12 * H)
     i = np.zeros_like(t)
     for start_h in (1.0, 5.0):
@@ -52,11 +63,11 @@ def run(args: tuple[float, float, float, str, str, EstimatorTuning]) -> tuple[fl
     i[(t >= 9 * H) & (t < 10.5 * H)] = -0.3
     sim = simulate(
         t, i, ocv_model(cell), capacity_Ah=cell.capacity_Ah, R0_ohm=0.01, R1_ohm=0.005,
-        tau1_s=20.0, R2_ohm=0.01, tau2_s=300.0, gamma=gamma, soc0=z0, h0=h0, play=truth == "play",
+        tau1_s=20.0, R2_ohm=0.01, tau2_s=300.0, gamma=gamma, soc0=z0, h0=h0, play=play,
     )  # fmt: skip
     rng = np.random.default_rng(0)
     block = SampleBlock.from_arrays(
-        t, i + rng.normal(0.0, 0.01, t.size), sim.v_V.T + rng.normal(0.0, 1e-3, (t.size, 1))
+        t, i + rng.normal(0.0, noise_A, t.size), sim.v_V.T + rng.normal(0.0, 1e-3, (t.size, 1))
     )
     src = LoadedInput(source="<known truth>", samples=block, cell_names=["cell_01"])
     out = identify_source(src, IdentifySpec(cell=cell, variant="hy-affrls-lpso", tuning=tun))
@@ -65,7 +76,8 @@ def run(args: tuple[float, float, float, str, str, EstimatorTuning]) -> tuple[fl
     late = tr.t_s >= H
     err = (np.asarray(tr["soc"][:, 0]) - np.ravel(sim.soc)[k])[late]
     e = np.asarray(tr["v_error_V"][:, 0])[late]
-    return 100.0 * float(np.sqrt(np.mean(err**2))), 1e3 * float(np.sqrt(np.nanmean(e**2)))
+    soc_pts = 100.0 * float(np.sqrt(np.mean(err**2)))
+    return soc_pts, 1e3 * float(np.sqrt(np.nanmean(e**2))), int(out.counters.get("anchors", 0))
 
 
 def main() -> int:
