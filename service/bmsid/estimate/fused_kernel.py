@@ -158,7 +158,7 @@ def _fused_source(
             so[B] = offset_within_rest(so[B], so[REST_I], so[REST_BASE])  # a draw, not noise
         b, cont = so[B], False
         if observer:
-            if b != 0.0:  # _remove_offset (the kernel removes it from the coulomb steps)
+            if b != 0.0:  # Tick.remove_offset (the kernel removes it from the coulomb steps)
                 cur -= b
                 ip -= b
             any_gate = False

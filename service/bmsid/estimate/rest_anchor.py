@@ -37,11 +37,11 @@ from bmsid.estimate.stage import BoolArray, FloatArray
 #: The rests' reading before any rest, A (finite: checkpoints), and its running mean's time
 #: constant over rest ticks, s: seconds of light load hardly move it.
 NO_REST_A, REST_MEAN_S = 1e30, 60.0
-#: The current sensor's noise: its running variance's time constant over ticks near rest, s.
+#: The current sensor's noise: its running estimate's time constant over ticks at rest, s.
 NOISE_MEAN_S = 600.0
 
-# The six below are ``@helper``s: the compiled step and fused loop call them too (both name
-# this file in their ``depends``).
+# The ``@helper``s below (all but ``noise_std_A``, numpy's, for a record's head): the compiled
+# step and fused loop call them too (both name this file in their ``depends``).
 
 
 @helper

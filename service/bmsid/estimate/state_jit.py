@@ -146,7 +146,7 @@ def step(st: CoulombState, ctx: TickContext, observer: bool) -> bool:
     if observer:
         obs: ObserverState = st  # type: ignore[assignment]
         b = obs.b
-        if b != 0.0:  # _remove_offset, less the coulomb steps: the kernel removes b from those
+        if b != 0.0:  # Tick.remove_offset, less the coulomb steps: the kernel removes b from those
             tick.current_A -= b
             if not (tick.new_segment and not tick.first):
                 tick.i_prev_A -= b
