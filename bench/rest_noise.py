@@ -1,5 +1,5 @@
 """Rests seen through the current sensor's noise (issue 11): a known-truth LFP record whose
-measured current carries 0, 3 or 10 mA of noise (the A123 config's 2.07 Ah cell: its rest
+measured current carries 0, 3, 10 or 20 mA of noise (the A123 config's 2.07 Ah cell: its rest
 limit, 1 % C, is 20.7 mA). Prints a Markdown table.
 
     python bench/rest_noise.py [--jobs 2]
@@ -22,7 +22,7 @@ from bmsid.config.cell import load_cell_config
 from bmsid.estimate.tuning import EstimatorTuning
 from hysteresis_lfp import CELL, score
 
-NOISES_A = (0.0, 0.003, 0.01)
+NOISES_A = (0.0, 0.003, 0.01, 0.02)
 STARTS = ((0.9, -1.0), (0.6, 0.0), (0.6, 1.0))
 
 

@@ -79,6 +79,9 @@ def test_the_noise_estimate_is_the_sensors_and_a_load_is_none(
     assert next_noise(sd, 0.0, 0.0, base, 0.0) == sd
     assert rest_limit(base, sd) == base + 3.0 * sd
     assert noise_std_A(np.zeros(100), base) == 0.0  # a tester's 0.000 A at rest
+    for k in (1.0, 2.0):  # a noise as large as the limit, or twice it: the head finds it too
+        loud = rng.normal(0.0, k * base, 3600)
+        assert math.isclose(noise_std_A(loud, base), k * base, rel_tol=0.15)
     assert noise_std_A(np.full(100, 30.0 * base), base) == 0.0  # a drive: no pair near rest
 
 

@@ -82,12 +82,18 @@ def next_noise(sd_A: float, i_A: float, i_prev_A: float, base_A: float, dt_s: fl
 def noise_std_A(current_A: FloatArray, base_A: float) -> float:
     """The current sensor's noise std (A) over a stretch of samples (A), as ``next_noise`` sees
     it but robustly, for a record's head: 1.4826 x the median |difference| of successive
-    samples at rest (within the rest limit ``base_A``) / sqrt(2); 0 with fewer than 10 such
-    pairs (a tester's 0.000 A at rest: 0)."""
+    samples at rest (within the rest limit ``base_A`` plus 3 of this std, found by iterating
+    from the bare limit: a noise as large as the limit is not truncated to it) / sqrt(2), at
+    most 2 base; 0 with fewer than 10 such pairs (a tester's 0.000 A at rest: 0)."""
     i = np.asarray(current_A, dtype=np.float64)
-    near = np.abs(i) < base_A  # (NaN: False)
-    d = np.diff(i)[near[1:] & near[:-1]]
-    return float(1.4826 * np.median(np.abs(d)) / math.sqrt(2.0)) if d.size >= 10 else 0.0
+    sd = 0.0
+    for _ in range(4):  # 0.02 A of noise on a 0.02 A limit: 0.012, then 0.020 A
+        near = np.abs(i) < rest_limit(base_A, sd)  # (NaN: False)
+        d = np.diff(i)[near[1:] & near[:-1]]
+        if d.size < 10:
+            return sd
+        sd = min(float(1.4826 * np.median(np.abs(d)) / math.sqrt(2.0)), 2.0 * base_A)
+    return sd
 
 
 @helper
