@@ -17,16 +17,23 @@ correct only what the law gets wrong. (Carried only between drives before: on th
 ``temp-ea50`` record of ``bench/multiday.py``, R0 median error under load on days 2/3 4.8/4.9
 -> 1.3/1.4 %, 95th percentile 7.3/7.7 -> 2.5/2.7 %; ``temp-ageing`` 2.1/2.4 -> 0.9/1.2 %.)
 
-B is the cell's activation temperature, identified from its own learnt (ln R0, 1 / T) pairs by a
-scalar Kalman filter on the differences of consecutive pairs (one per ``PAIR_S`` of learning,
-used when the temperature moved at least ``MIN_DT_K`` between them), starting from the prior
-``B_PRIOR_K`` (30 kJ/mol: ohmic and charge-transfer resistances of Li-ion cells near room
-temperature, 15-60 kJ/mol in the literature) with std ``B_PRIOR_STD_K``. A slow daily swing
-moves the temperature a fraction of a kelvin between pairs, so there B stays near its prior
-(keeping a pair's reference until the temperature moved 1 K, weighted by the time between, took
-B from 3,600 to 5,600 K on ``temp-ea50``, truth 6,000, but R0 lags the temperature by the RLS's
-memory and the learnt pairs carry it: measured before that prediction, R0 came out worse,
-6.4/6.8 % there and 3.7/4.4 % on ``temp-ageing``). Without a temperature (NaN) nothing changes,
+A swarm's window fit (30 min) gives R0 at the window's temperature, which lags a moving one:
+at a drive's end, cooling 0.5 K in half an hour at 50 kJ/mol, 3 % low, and the evening's
+constant-current charge kept it. ``window_factor`` takes the fit's R0 to the last tick's
+temperature, from the window's temperature as the fit weighs it (its current steps).
+
+B is the cell's activation temperature, identified from those window fits' (ln R0, 1 / T) pairs
+by a scalar Kalman filter on the differences of consecutive pairs (used when the temperature
+moved at least ``MIN_DT_K`` between them: a drive's first fit against the last one of the drive
+before, hours and kelvins apart), starting from the prior ``B_PRIOR_K`` (30 kJ/mol: ohmic and
+charge-transfer resistances of Li-ion cells near room temperature, 15-60 kJ/mol in the
+literature) with std ``B_PRIOR_STD_K``. A window fit's R0 is the data's alone; R0 learnt tick by
+tick, which fed B before, is the value the law carried (with the B in force) plus the data's
+first corrections, so a pair early in a drive taught B back towards itself: on ``temp-ea50``
+(3 days, truth 6,014 K) B reached 6,135 K but the window fits' temperature lag held R0 4 % low
+under the charges; with the lag corrected, B learnt tick by tick reached 5,600 K (R0 2-3 % low);
+from the window fits 6,105 K, R0 median under load 1.3 / 0.3 / 0.2 % on days 1-3 (6.7 / 4.1 /
+4.0 % before). Without a temperature (NaN) nothing changes,
 and a constant one changes nothing either: records without a varying temperature give what they
 gave before. Only R0 is carried: carrying R1 too (the multi-day truth scales both) was measured
 worse for R0+R1+R2 (3-day `all` scenario, day 2: 15.6 % against 4.3 %), the estimator's R1 being
@@ -51,8 +58,6 @@ KELVIN = 273.15
 B_PRIOR_K = 30_000.0 / 8.314
 #: Its std, K: Ea from 15 to 60 kJ/mol is within 2 sigma.
 B_PRIOR_STD_K = 1800.0
-#: One (ln R0, 1/T) pair per this much learning, s: consecutive ticks carry the same estimate.
-PAIR_S = 300.0
 #: Pairs closer than this in temperature say nothing about B, K.
 MIN_DT_K = 1.0
 #: Relative std of one learnt R0 (its estimate's noise between two pairs).
@@ -63,7 +68,7 @@ class ArrheniusCarry:
     """Per-cell activation temperature B and the last tick's temperature (module docstring)."""
 
     name = "arrhenius"
-    _ARRAYS = ("b_K", "b_var", "t_prev_K", "pair_ln_r0", "pair_inv_t", "pair_s")
+    _ARRAYS = ("b_K", "b_var", "t_prev_K", "pair_ln_r0", "pair_inv_t")
 
     def __init__(self, n_cells: int) -> None:
         self.n = n_cells
@@ -72,64 +77,67 @@ class ArrheniusCarry:
         self.t_prev_K = np.full(n_cells, np.nan)
         self.pair_ln_r0 = np.full(n_cells, np.nan)
         self.pair_inv_t = np.full(n_cells, np.nan)
-        self.pair_s = np.zeros(n_cells)
         self.counters: dict[str, int] = {"arrhenius_pairs": 0, "arrhenius_carried": 0}
 
-    def step(
-        self,
-        temperature_C: float,
-        dt_s: float,
-        learnt: BoolArray,
-        carry: BoolArray,
-        r0_ohm: FloatArray,
-    ) -> FloatArray | None:
-        """One tick. ``learnt``: cells whose R0 (ohm) was identified this tick (it feeds B);
-        ``carry``: cells whose R0 moves by the law's factor from the previous tick's temperature to
-        this one's (every identified cell: a learning one takes it as its prediction). Per-tick
-        factors telescope, so a temperature that comes back brings R0 back exactly, and a constant
-        one changes nothing. Returns the carried R0, or None when nothing is carried."""
+    def step(self, temperature_C: float, carry: BoolArray, r0_ohm: FloatArray) -> FloatArray | None:
+        """One tick. ``carry``: cells whose R0 (ohm) moves by the law's factor from the previous
+        tick's temperature to this one's (every identified cell: a learning one takes it as its
+        prediction). Per-tick factors telescope, so a temperature that comes back brings R0
+        back exactly, and a constant one changes nothing. Returns the carried R0, or None when
+        nothing is carried."""
         if not math.isfinite(temperature_C):
             return None
         t_k = temperature_C + KELVIN
-        inv_t = 1.0 / t_k
-        ok = learnt & (r0_ohm > 0)
-        if ok.any():
-            self._learn_b(ok, inv_t, r0_ohm, dt_s)
         prev = self.t_prev_K
         self.t_prev_K = np.full(self.n, t_k)
         go = carry & np.isfinite(prev) & (prev != t_k)
         if not go.any():
             return None
-        factor = np.exp(self.b_K * (inv_t - 1.0 / np.where(go, prev, t_k)))
+        factor = np.exp(self.b_K * (1.0 / t_k - 1.0 / np.where(go, prev, t_k)))
         self.counters["arrhenius_carried"] += int(go.sum())
         return np.asarray(np.where(go, r0_ohm * factor, r0_ohm), dtype=np.float64)
 
-    def _learn_b(self, ok: BoolArray, inv_t: float, r0_ohm: FloatArray, dt_s: float) -> None:
-        """Every ``PAIR_S`` of learning, a scalar Kalman update of B from the change of ln R0
-        against the change of 1/T since the cell's previous pair."""
-        self.pair_s = np.where(ok, self.pair_s + max(dt_s, 0.0), self.pair_s)
-        due = ok & ((self.pair_s >= PAIR_S) | ~np.isfinite(self.pair_inv_t))
-        if not due.any():
+    def learn_fit(self, c: int, r0_ohm: float) -> None:
+        """Cell ``c``'s R0 (ohm) from a window fit, taken to the last tick's temperature
+        (:meth:`window_factor`), as its next (ln R0, 1 / T) pair: a scalar Kalman update of B
+        from the change of ln R0 against the change of 1 / T since its previous pair, where the
+        temperature moved at least ``MIN_DT_K``. A window fit's R0 is the data's alone (the
+        fit does not start from the carried value); R0 learnt tick by tick is the carried
+        value plus the data's first corrections, and a pair early in a drive after a rest 7 K
+        warmer taught the prior's B back (30 -> 40 kJ/mol on ``temp-ea50``, truth 50)."""
+        inv_t = 1.0 / float(self.t_prev_K[c])
+        if not (math.isfinite(inv_t) and r0_ohm > 0):
             return
-        ln_r0 = np.log(np.where(due, r0_ohm, 1.0))
-        dx = inv_t - self.pair_inv_t
-        dy = ln_r0 - self.pair_ln_r0
-        dt_k = np.abs(dx) * (1.0 / inv_t) ** 2  # |d(1/T)| T^2 ~ |dT|
-        use = due & np.isfinite(dx) & (dt_k >= MIN_DT_K)
-        if use.any():
-            r = 2.0 * LN_R_STD**2  # the difference of two noisy logs
-            s = dx * dx * self.b_var + r
-            gain = np.where(use, self.b_var * dx / np.where(use, s, 1.0), 0.0)
-            self.b_K = np.where(use, self.b_K + gain * (dy - self.b_K * dx), self.b_K)
-            self.b_var = np.where(use, (1.0 - gain * dx) * self.b_var, self.b_var)
-            self.b_K = np.clip(self.b_K, 0.0, 4.0 * B_PRIOR_K)
-            self.counters["arrhenius_pairs"] += int(use.sum())
-        # every candidate becomes the next reference (keeping an old one until the temperature
-        # moved 1 K was tried: day-2 R0 error 4.3 % instead of 3.0 %, ageing and SOC effects
-        # between distant pairs were taught as temperature)
-        self.pair_ln_r0 = np.where(due, ln_r0, self.pair_ln_r0)
-        self.pair_inv_t = np.where(due, inv_t, self.pair_inv_t)
-        self.pair_s = np.where(due, 0.0, self.pair_s)
+        ln_r0 = math.log(r0_ohm)
+        dx, dy = inv_t - float(self.pair_inv_t[c]), ln_r0 - float(self.pair_ln_r0[c])
+        if math.isfinite(dx) and abs(dx) / inv_t**2 >= MIN_DT_K:  # |d(1/T)| T^2 ~ |dT|
+            var, b = float(self.b_var[c]), float(self.b_K[c])
+            gain = var * dx / (dx * dx * var + 2.0 * LN_R_STD**2)  # two noisy logs
+            self.b_K[c] = min(max(b + gain * (dy - b * dx), 0.0), 4.0 * B_PRIOR_K)
+            self.b_var[c] = (1.0 - gain * dx) * var
+            self.counters["arrhenius_pairs"] += 1
+        # every fit becomes the next reference (one kept until the temperature moved 1 K took
+        # ageing and SOC effects between distant pairs for temperature)
+        self.pair_ln_r0[c], self.pair_inv_t[c] = ln_r0, inv_t
+
+    def window_factor(
+        self, c: int, inv_t_K: FloatArray, current_A: FloatArray, weights: FloatArray
+    ) -> float:
+        """The factor that takes cell ``c``'s R0 fitted over a window (a swarm's) to the last
+        tick's temperature. A fit of R0 over a window whose temperature moved is R0 at the
+        window's temperature as the fit weighs it: its current steps (R0 is what a step shows
+        at once; the branches take the rest), ``weights`` x (delta I)^2, by their 1 / T
+        (``inv_t_K``, NaN where unknown). 1 when the window's temperature is the last tick's
+        or unknown. (A 30 min window at a drive's end lags a cooling pack by ~0.5 K: R0 3 %
+        low at 50 kJ/mol, kept through the evening's constant-current charge.)"""
+        inv_now = 1.0 / self.t_prev_K[c]
+        di = np.diff(current_A, prepend=current_A[:1])
+        w = weights * di * di
+        ok = np.isfinite(inv_t_K) & (w > 0)
+        if not math.isfinite(inv_now) or not ok.any() or np.all(inv_t_K[ok] == inv_now):
+            return 1.0
+        inv_fit = float(np.sum(w[ok] * inv_t_K[ok]) / np.sum(w[ok]))
+        return math.exp(float(self.b_K[c]) * (inv_now - inv_fit))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, mask: BoolArray) -> None:
@@ -137,7 +145,6 @@ class ArrheniusCarry:
         m = np.asarray(mask, dtype=bool)
         for k in ("pair_ln_r0", "pair_inv_t"):
             setattr(self, k, np.where(m, np.nan, getattr(self, k)))
-        self.pair_s = np.where(m, 0.0, self.pair_s)
 
     def state_dict(self) -> dict[str, Any]:
         return {k: np.array(getattr(self, k)) for k in self._ARRAYS}

@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from bmsid.estimate import lpso, swarm_kernel
 from bmsid.estimate.affrls import fusion_covariance, reset_covariance, swarm_covariance
-from bmsid.estimate.arrhenius import ArrheniusCarry
+from bmsid.estimate.arrhenius import KELVIN, ArrheniusCarry
 from bmsid.estimate.cellmodel import BOUNDED, CellModel
 from bmsid.estimate.rls_kernel import FUSION_TICK
 from bmsid.estimate.rls_reference import clamp_linear
@@ -162,18 +162,18 @@ class FusionStage:
         self.arx_err, self.v_model, y = out  # rows of an array new every tick
         if n_moved:
             self.counters["clamped"] += n_moved
-        self._carry_temperature(tick.temperature_C, dt, learn)
-        self.buffer.push(i, y, hm, learn)
+        self._carry_temperature(tick.temperature_C)
+        self.buffer.push(i, y, hm, learn, 1.0 / (tick.temperature_C + KELVIN), tick.t_s)
         self._run_swarms(tick.t_s)
         self._publish_linear()
 
-    def _carry_temperature(self, temperature_C: float, dt_s: float, learn: BoolArray) -> None:
+    def _carry_temperature(self, temperature_C: float) -> None:
         """R0 follows the temperature, also while learning (``estimate/arrhenius.py``)."""
         if math.isnan(temperature_C):
             return
         sc, lo, hi = self.scale[:, 0], self._lin_lo[:, 0], self._lin_hi[:, 0]
         th0 = self.theta[:, 0] * sc
-        r0 = self.arrhenius.step(temperature_C, dt_s, learn & self.fused, self.fused, th0)
+        r0 = self.arrhenius.step(temperature_C, self.fused, th0)
         if r0 is not None:
             self.theta[:, 0] = np.clip(r0, lo, hi) / sc
 
@@ -194,7 +194,7 @@ class FusionStage:
 
     # ------------------------------------------------------------------ swarms
     def _run_swarms(self, t: float) -> None:
-        sched = self.schedule
+        sched, self._t_s = self.schedule, t
         due = sched.due(t)
         if due:
             for c in due if self._window_has_steps() else ():
@@ -323,6 +323,8 @@ class FusionStage:
                 return
         self.tau1[c], self.tau2[c] = taus
         th = fit.theta[0].copy()
+        inv_t = self.buffer.inv_temperature(self._period_s, tun.window_s, self._t_s)
+        th[0] *= self.arrhenius.window_factor(c, inv_t, window.current_A, weights)
         # Columns the fit does not estimate come back 0: held, not clamped (the M scale's 0 -> 1
         # flagged every swarm's cell out_of_bounds for a tick: quality and health flickered)
         if not self._fit_scale:
@@ -330,6 +332,8 @@ class FusionStage:
         if not tun.identify_ocv_offset:
             th[4] = 0.0
         self.theta[c] = self._clamp_linear((th / sc)[None, :], rows=slice(c, c + 1))[0]
+        if math.isfinite(inv_t[-1]):  # the last tick's temperature known: a pair for B
+            self.arrhenius.learn_fit(c, float(self.theta[c, 0] * sc[0]))
         restart, keep_r0 = self._no_hysteresis or tun.swarm_rls_restart, not self._no_hysteresis
         P = swarm_covariance(fit.cov[0], tun, self._fit_scale, restart=restart, keep_r0=keep_r0)
         self.P[c] = fusion_covariance(P)

@@ -116,7 +116,10 @@ class RunningSwarms:
 
 @dataclass
 class WindowBuffer:
-    """Ring buffer of identification ticks (shared current A; per-cell V - OCV, h M, valid)."""
+    """Ring buffer of identification ticks (shared current A; per-cell V - OCV, h M, valid;
+    the pack's 1 / temperature, 1/K, and the tick's time, s, written by ticks with a
+    temperature only: the compiled loop pushes only ticks without one and leaves both as they
+    were, a slot's time then tells that they are a tick's ``size`` pushes older)."""
 
     size: int
     n_cells: int
@@ -124,6 +127,8 @@ class WindowBuffer:
     y_V: FloatArray = field(init=False)
     hm_V: FloatArray = field(init=False)
     valid: BoolArray = field(init=False)
+    inv_T_K: FloatArray = field(init=False)
+    t_s: FloatArray = field(init=False)
     head: int = 0
     count: int = 0
 
@@ -132,15 +137,31 @@ class WindowBuffer:
         self.y_V = np.zeros((self.n_cells, self.size))
         self.hm_V = np.zeros((self.n_cells, self.size))
         self.valid = np.zeros((self.n_cells, self.size), dtype=bool)
+        self.inv_T_K = np.full(self.size, math.nan)
+        self.t_s = np.full(self.size, math.nan)
 
-    def push(self, i: float, y: FloatArray, hm: FloatArray, valid: BoolArray) -> None:
+    def push(
+        self, i: float, y: FloatArray, hm: FloatArray, valid: BoolArray,
+        inv_T_K: float = math.nan, t_s: float = math.nan,
+    ) -> None:  # fmt: skip
         j = self.head
         self.current_A[j] = i
         self.y_V[:, j] = y
         self.hm_V[:, j] = hm
         self.valid[:, j] = valid
+        if not math.isnan(inv_T_K):  # as the compiled loop: a tick without one writes none
+            self.inv_T_K[j], self.t_s[j] = inv_T_K, t_s
         self.head = (j + 1) % self.size
         self.count = min(self.count + 1, self.size)
+
+    def inv_temperature(self, dt_s: float, window_s: float, t_now_s: float) -> FloatArray:
+        """1 / temperature (1/K) of the ticks of :meth:`window`, NaN where unknown: a slot's
+        temperature counts where its time is its place's (a slot the compiled loop refilled
+        kept the time of a tick at least ``size`` pushes older)."""
+        idx = self.order()[-(int(window_s / dt_s) + 1) :]
+        age = (idx.shape[0] - 1 - np.arange(idx.shape[0])) * dt_s
+        fresh = self.t_s[idx] > t_now_s - age - 0.5 * self.size * dt_s
+        return np.where(fresh, self.inv_T_K[idx], math.nan)
 
     def order(self) -> npt.NDArray[np.intp]:
         """Indices of the buffered ticks, oldest first."""
@@ -183,6 +204,7 @@ class WindowBuffer:
         return {
             "current_A": self.current_A.copy(), "y_V": self.y_V.copy(), "hm_V": self.hm_V.copy(),
             "valid": self.valid.copy(), "head": self.head, "count": self.count,
+            "inv_T_K": self.inv_T_K.copy(), "t_s": self.t_s.copy(),
         }  # fmt: skip
 
     def load_state_dict(self, st: dict[str, Any]) -> bool:
@@ -194,6 +216,8 @@ class WindowBuffer:
         self.y_V[:] = st["y_V"]
         self.hm_V[:] = st["hm_V"]
         self.valid[:] = st["valid"]
+        self.inv_T_K[:] = st.get("inv_T_K", math.nan)  # (checkpoints before: unknown)
+        self.t_s[:] = st.get("t_s", math.nan)
         self.head = int(st["head"])
         self.count = int(st["count"])
         return True
