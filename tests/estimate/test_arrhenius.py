@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bmsid.estimate.arrhenius import B_PRIOR_K, KELVIN, ArrheniusCarry
+from bmsid.estimate.arrhenius import B_MAX_K, B_MIN_K, B_PRIOR_K, KELVIN, ArrheniusCarry
 
 YES, NO = np.ones(2, dtype=bool), np.zeros(2, dtype=bool)
 R0 = np.array([1e-3, 2e-3])
@@ -69,14 +69,43 @@ def test_the_activation_temperature_is_learnt_from_fits_kelvins_apart(
         t_c = 25.0 + (4.0 if k % 2 else -4.0) + rng.uniform(-1.0, 1.0)
         r0 = 1e-3 * np.exp(b_true * (1 / (t_c + KELVIN) - 1 / (25 + KELVIN)))
         a.step(t_c, np.zeros(1, dtype=bool), np.array([r0]))
-        a.learn_fit(0, float(r0 * (1 + 0.01 * rng.standard_normal())))
+        a.learn_fit(0, float(r0 * (1 + 0.01 * rng.standard_normal())), 0.5 + 0.02 * (k % 3))
     assert abs(a.b_K[0] / b_true - 1) < 0.10
     b = ArrheniusCarry(1)
     for k in range(60):
         t_c = 25.0 + 0.4 * np.sin(k)
         b.step(t_c, np.zeros(1, dtype=bool), np.array([1e-3]))
-        b.learn_fit(0, 1e-3 * (1 + 0.01 * rng.standard_normal()))
+        b.learn_fit(0, 1e-3 * (1 + 0.01 * rng.standard_normal()), 0.5)
     assert b.b_K[0] == B_PRIOR_K and b.counters["arrhenius_pairs"] == 0
+
+
+def test_fits_far_apart_in_soc_teach_nothing() -> None:
+    """R0 depends on SOC as well: a fit at 80 % and one at 30 % 5 K apart are no pair (a DFN
+    cell's R0 rose 16 -> 26 mOhm over a discharge while it warmed, and such a pair took B to
+    0); the same two fits at one SOC are."""
+    a, b = ArrheniusCarry(1), ArrheniusCarry(1)
+    for carry, socs in ((a, (0.8, 0.3)), (b, (0.5, 0.52))):
+        for t_c, r0, z in ((20.0, 1.0e-3, socs[0]), (25.0, 1.3e-3, socs[1])):
+            carry.step(t_c, np.zeros(1, dtype=bool), np.array([r0]))
+            carry.learn_fit(0, r0, z)
+    assert a.b_K[0] == B_PRIOR_K and a.counters["arrhenius_pairs"] == 0
+    assert b.b_K[0] == B_MIN_K and b.counters["arrhenius_pairs"] == 1  # R0 up as it warmed
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    temps=st.lists(st.floats(-20.0, 60.0), min_size=2, max_size=20),
+    r0s=st.lists(st.floats(1e-5, 1.0), min_size=20, max_size=20),
+)
+def test_the_activation_temperature_stays_physical_whatever_the_fits_say(
+    temps: list[float], r0s: list[float]
+) -> None:
+    """Any fits at any temperatures: B stays within 10-90 kJ/mol, finite, its variance > 0."""
+    a = ArrheniusCarry(1)
+    for t_c, r0 in zip(temps, r0s, strict=False):
+        a.step(t_c, np.zeros(1, dtype=bool), np.array([r0]))
+        a.learn_fit(0, r0, 0.5)
+        assert B_MIN_K <= a.b_K[0] <= B_MAX_K and a.b_var[0] > 0
 
 
 @settings(max_examples=50, deadline=None)

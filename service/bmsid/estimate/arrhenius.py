@@ -60,15 +60,22 @@ B_PRIOR_K = 30_000.0 / 8.314
 B_PRIOR_STD_K = 1800.0
 #: Pairs closer than this in temperature say nothing about B, K.
 MIN_DT_K = 1.0
-#: Relative std of one learnt R0 (its estimate's noise between two pairs).
-LN_R_STD = 0.01
+#: Std of a fit's ln R0 beyond the temperature's share: the fit's noise, the SOC moving within
+#: and between windows, ageing between pairs (each pair takes the difference of two).
+LN_R_STD = 0.03
+#: Pairs further apart in SOC than this (fraction) are not used: R0 depends on SOC as well (a
+#: DFN cell's R0 16 -> 26 mOhm over one discharge while it warmed).
+MAX_PAIR_DSOC = 0.1
+#: B's bounds, K: activation energies 10-90 kJ/mol (reported ones for Li-ion resistances lie in
+#: 15-60); never 0, a resistance with no temperature dependence.
+B_MIN_K, B_MAX_K = 10_000.0 / 8.314, 90_000.0 / 8.314
 
 
 class ArrheniusCarry:
     """Per-cell activation temperature B and the last tick's temperature (module docstring)."""
 
     name = "arrhenius"
-    _ARRAYS = ("b_K", "b_var", "t_prev_K", "pair_ln_r0", "pair_inv_t")
+    _ARRAYS = ("b_K", "b_var", "t_prev_K", "pair_ln_r0", "pair_inv_t", "pair_soc")
 
     def __init__(self, n_cells: int) -> None:
         self.n = n_cells
@@ -77,6 +84,7 @@ class ArrheniusCarry:
         self.t_prev_K = np.full(n_cells, np.nan)
         self.pair_ln_r0 = np.full(n_cells, np.nan)
         self.pair_inv_t = np.full(n_cells, np.nan)
+        self.pair_soc = np.full(n_cells, np.nan)
         self.counters: dict[str, int] = {"arrhenius_pairs": 0, "arrhenius_carried": 0}
 
     def step(self, temperature_C: float, carry: BoolArray, r0_ohm: FloatArray) -> FloatArray | None:
@@ -97,28 +105,31 @@ class ArrheniusCarry:
         self.counters["arrhenius_carried"] += int(go.sum())
         return np.asarray(np.where(go, r0_ohm * factor, r0_ohm), dtype=np.float64)
 
-    def learn_fit(self, c: int, r0_ohm: float) -> None:
+    def learn_fit(self, c: int, r0_ohm: float, soc: float) -> None:
         """Cell ``c``'s R0 (ohm) from a window fit, taken to the last tick's temperature
-        (:meth:`window_factor`), as its next (ln R0, 1 / T) pair: a scalar Kalman update of B
-        from the change of ln R0 against the change of 1 / T since its previous pair, where the
-        temperature moved at least ``MIN_DT_K``. A window fit's R0 is the data's alone (the
-        fit does not start from the carried value); R0 learnt tick by tick is the carried
-        value plus the data's first corrections, and a pair early in a drive after a rest 7 K
-        warmer taught the prior's B back (30 -> 40 kJ/mol on ``temp-ea50``, truth 50)."""
+        (:meth:`window_factor`), at SOC ``soc`` (fraction), as its next (ln R0, 1 / T) pair: a
+        scalar Kalman update of B from the change of ln R0 against the change of 1 / T since
+        its previous pair, where the temperature moved at least ``MIN_DT_K`` and SOC at most
+        ``MAX_PAIR_DSOC`` (a drive's first fit and the last of the drive before, a rest
+        between). A window fit's R0 is the data's alone (the fit does not start from the
+        carried value); R0 learnt tick by tick is the carried value plus the data's first
+        corrections, and a pair early in a drive after a rest 7 K warmer taught the prior's B
+        back (30 -> 40 kJ/mol on ``temp-ea50``, truth 50)."""
         inv_t = 1.0 / float(self.t_prev_K[c])
-        if not (math.isfinite(inv_t) and r0_ohm > 0):
+        if not (math.isfinite(inv_t) and r0_ohm > 0 and math.isfinite(soc)):
             return
         ln_r0 = math.log(r0_ohm)
         dx, dy = inv_t - float(self.pair_inv_t[c]), ln_r0 - float(self.pair_ln_r0[c])
-        if math.isfinite(dx) and abs(dx) / inv_t**2 >= MIN_DT_K:  # |d(1/T)| T^2 ~ |dT|
+        near = abs(soc - float(self.pair_soc[c])) <= MAX_PAIR_DSOC  # False against NaN
+        if near and abs(dx) / inv_t**2 >= MIN_DT_K:  # |d(1/T)| T^2 ~ |dT|
             var, b = float(self.b_var[c]), float(self.b_K[c])
             gain = var * dx / (dx * dx * var + 2.0 * LN_R_STD**2)  # two noisy logs
-            self.b_K[c] = min(max(b + gain * (dy - b * dx), 0.0), 4.0 * B_PRIOR_K)
+            self.b_K[c] = min(max(b + gain * (dy - b * dx), B_MIN_K), B_MAX_K)
             self.b_var[c] = (1.0 - gain * dx) * var
             self.counters["arrhenius_pairs"] += 1
         # every fit becomes the next reference (one kept until the temperature moved 1 K took
         # ageing and SOC effects between distant pairs for temperature)
-        self.pair_ln_r0[c], self.pair_inv_t[c] = ln_r0, inv_t
+        self.pair_ln_r0[c], self.pair_inv_t[c], self.pair_soc[c] = ln_r0, inv_t, soc
 
     def window_factor(
         self, c: int, inv_t_K: FloatArray, current_A: FloatArray, weights: FloatArray
@@ -143,11 +154,12 @@ class ArrheniusCarry:
     def reset(self, mask: BoolArray) -> None:
         """The masked cells forget their pairs (B, a property of the cell, is kept)."""
         m = np.asarray(mask, dtype=bool)
-        for k in ("pair_ln_r0", "pair_inv_t"):
+        for k in ("pair_ln_r0", "pair_inv_t", "pair_soc"):
             setattr(self, k, np.where(m, np.nan, getattr(self, k)))
 
     def state_dict(self) -> dict[str, Any]:
         return {k: np.array(getattr(self, k)) for k in self._ARRAYS}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
+        st = {"pair_soc": np.full(self.n, np.nan), **st}  # (checkpoints before: no SOC)
         load_arrays(self, st, self._ARRAYS, self.name)

@@ -149,7 +149,7 @@ class FusionStage:
         self.lam_exp = forget.per_second_exp
         self._period_s = tick.period_s
         self._excited = is_excited(tick, self._excitation_limit_A)  # one bool for a uniform pack
-        self._m_table = ctx.m_table_V
+        self._m_table, self._soc = ctx.m_table_V, ctx.soc_clamped
         hm, learn = ctx.hm_V, ctx.learn
         # the AFFRLS and the bounds: one call of the kernel (compiled, or the numpy reference
         # rls_reference.fusion_tick_numpy); x1, x2, theta, P, lambda and sig_e move in place
@@ -333,7 +333,7 @@ class FusionStage:
             th[4] = 0.0
         self.theta[c] = self._clamp_linear((th / sc)[None, :], rows=slice(c, c + 1))[0]
         if math.isfinite(inv_t[-1]):  # the last tick's temperature known: a pair for B
-            self.arrhenius.learn_fit(c, float(self.theta[c, 0] * sc[0]))
+            self.arrhenius.learn_fit(c, float(self.theta[c, 0] * sc[0]), float(self._soc[c]))
         restart, keep_r0 = self._no_hysteresis or tun.swarm_rls_restart, not self._no_hysteresis
         P = swarm_covariance(fit.cov[0], tun, self._fit_scale, restart=restart, keep_r0=keep_r0)
         self.P[c] = fusion_covariance(P)
