@@ -11,8 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from bmsid.config.cell import save_cell_config
-from bmsid.offline.identify import IdentifySpec, identify_file
+from bmsid.offline.identify import IdentifySpec, identify_file, run_arrays
 from bmsid.offline.inputs import load_config
+from bmsid.offline.outputs import temperature_law_text
+from bmsid.offline.scoring import EvalWindow, metrics_document
+from bmsid.synthetic import paper_dst_case
 from bmsid.synthetic.multiday import (
     MultidayOptions,
     Phase,
@@ -37,7 +40,8 @@ def test_r0_under_the_evening_charge_follows_a_temperature_law_learnt_from_the_d
     cell = reference_cell().model_copy(update={"initial": None, "bounds": None})
     save_cell_config(cell, tmp_path / "cell.toml")
     spec = IdentifySpec(cell=load_config(tmp_path / "cell.toml"), variant="hy-affrls-lpso")
-    trace = identify_file(tmp_path / "record.csv.gz", spec).kept_trace()
+    res = identify_file(tmp_path / "record.csv.gz", spec)
+    trace = res.kept_trace()
     tr = rec.truth
     k = np.clip(np.searchsorted(tr.t_s, trace.t_s, side="right") - 1, 0, tr.t_s.shape[0] - 1)
     err = np.abs(np.asarray(trace["R0_ohm"][:, 0]) / tr.R0_ohm[k] - 1.0)
@@ -46,3 +50,17 @@ def test_r0_under_the_evening_charge_follows_a_temperature_law_learnt_from_the_d
     assert charge.sum() > 3000 and drive.sum() > 3000
     assert np.median(err[charge]) < 0.05
     assert np.median(err[drive]) < 0.01
+    # the law's activation energy, reported (metrics.json, the console): 50.4 kJ/mol, one pair
+    assert res.activation_energy_J_mol is not None and res.counters["arrhenius_pairs"] >= 1
+    assert abs(res.activation_energy_J_mol[0] / 50_000.0 - 1.0) < 0.1
+    assert temperature_law_text(res) is not None
+    doc = metrics_document(res, EvalWindow())
+    assert doc["activation_energy_J_mol"] == [float(res.activation_energy_J_mol[0])]
+
+
+def test_without_a_moving_temperature_no_law_is_reported() -> None:
+    """The paper's DST case has no temperature column: no activation energy in the results."""
+    run = paper_dst_case(1500)
+    res = run_arrays(run.t_s, run.current_A, run.voltages_V, run.cell, "hy-affrls-lpso", soc0=0.98)
+    assert res.activation_energy_J_mol is None and temperature_law_text(res) is None
+    assert metrics_document(res, EvalWindow())["activation_energy_J_mol"] is None

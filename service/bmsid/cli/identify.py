@@ -79,6 +79,7 @@ from bmsid.offline.outputs import (
     soc_init_text,
     start_warnings,
     summary_line,
+    temperature_law_text,
 )
 from bmsid.offline.record_checks import check_record
 from bmsid.offline.scoring import metrics_document
@@ -303,5 +304,7 @@ def run(args: argparse.Namespace) -> int:
         print(line)
     if (obs := observer_text(result)) is not None:
         print(obs)
+    if (law := temperature_law_text(result)) is not None:
+        print(law)
     print(f"wrote {out}/params.{args.format}, metrics.json and plots")
     return 0

@@ -54,8 +54,10 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 KELVIN = 273.15
-#: Prior activation temperature Ea / R_gas, K (30 kJ/mol / 8.314 J/(mol K)).
-B_PRIOR_K = 30_000.0 / 8.314
+#: The gas constant, J/(mol K).
+R_GAS = 8.314
+#: Prior activation temperature Ea / R_gas, K (30 kJ/mol).
+B_PRIOR_K = 30_000.0 / R_GAS
 #: Its std, K: Ea from 15 to 60 kJ/mol is within 2 sigma.
 B_PRIOR_STD_K = 1800.0
 #: Pairs closer than this in temperature say nothing about B, K.
@@ -68,7 +70,7 @@ LN_R_STD = 0.03
 MAX_PAIR_DSOC = 0.1
 #: B's bounds, K: activation energies 10-90 kJ/mol (reported ones for Li-ion resistances lie in
 #: 15-60); never 0, a resistance with no temperature dependence.
-B_MIN_K, B_MAX_K = 10_000.0 / 8.314, 90_000.0 / 8.314
+B_MIN_K, B_MAX_K = 10_000.0 / R_GAS, 90_000.0 / R_GAS
 
 
 class ArrheniusCarry:
@@ -149,6 +151,10 @@ class ArrheniusCarry:
             return 1.0
         inv_fit = float(np.sum(w[ok] * inv_t_K[ok]) / np.sum(w[ok]))
         return math.exp(float(self.b_K[c]) * (inv_now - inv_fit))
+
+    def activation_energy_J_mol(self) -> FloatArray:
+        """Per cell, the law's activation energy Ea = B R_gas, J/mol (the prior until a pair)."""
+        return np.asarray(self.b_K * R_GAS, dtype=np.float64)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, mask: BoolArray) -> None:

@@ -159,6 +159,15 @@ class EstimatorBank:
         }  # fmt: skip
 
     @property
+    def activation_energy_J_mol(self) -> FloatArray | None:
+        """Per cell, the temperature law's activation energy, J/mol (``estimate/arrhenius.py``:
+        learnt from window fits, else its prior), where a moving temperature put the law to
+        use; None otherwise (no temperature, a constant one, a variant without the law)."""
+        if not isinstance(self.params, FusionStage) or not self.counters["arrhenius_carried"]:
+            return None
+        return self.params.arrhenius.activation_energy_J_mol()
+
+    @property
     def soc_init_method(self) -> str:
         """How SOC started: ``given``, ``ocv_at_rest``, ``ocv_ir_corrected``, ``config``, or
         ``pending`` while no cell had a valid voltage (cells start at their own first one)."""

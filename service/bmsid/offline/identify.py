@@ -245,6 +245,7 @@ def run_blocks(
         summary=scorer,
         start_branch_V=bank.start_branch_V,
         start_h=bank.start_h,
+        activation_energy_J_mol=bank.activation_energy_J_mol,
     )
 
 

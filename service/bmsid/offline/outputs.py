@@ -319,6 +319,19 @@ def observer_text(result: IdentifyResult) -> str | None:
     )
 
 
+def temperature_law_text(result: IdentifyResult) -> str | None:
+    """One line: the temperature law's activation energy (None where the temperature did not
+    move): learnt from pairs of window fits, or the prior where none was 1 K apart at one SOC."""
+    ea = result.activation_energy_J_mol
+    if ea is None:
+        return None
+    pairs = result.counters.get("arrhenius_pairs", 0)
+    how = (f"learnt from {pairs} pair(s) of window fits" if pairs else
+           "the prior: no two window fits 1 K apart within 10 SOC points")  # fmt: skip
+    vals = ", ".join(f"{x / 1e3:.1f}" for x in ea[:4]) + (" ..." if ea.size > 4 else "")
+    return f"temperature law (R0): activation energy {vals} kJ/mol, {how} (prior 30)"
+
+
 def ocv_range_warning(result: IdentifyResult, cell: CellConfig) -> str | None:
     """A warning when SOC was read off the OCV curve at one of its ends: the first voltage lies
     outside the curve's range, so SOC is clamped and the OCV model is off by the difference."""

@@ -413,6 +413,10 @@ class IdentifyResult:
     start_h : ndarray or None
         Per cell, the hysteresis state the bank started at, fitted where the record opened at
         rest after a charge or discharge (-1 after a discharge); None: 0, the engine's start.
+    activation_energy_J_mol : ndarray or None
+        Per cell, the temperature law's activation energy at the end, J/mol, and how many
+        pairs of window fits taught it (``counters["arrhenius_pairs"]``; 0: the prior); None:
+        the record's temperature did not move (or the variant has no such law).
     """
 
     variant: Variant
@@ -428,6 +432,7 @@ class IdentifyResult:
     start_branch_V: FloatArray | None = None
     start_fit_rmse_V: FloatArray | None = None
     start_h: FloatArray | None = None
+    activation_energy_J_mol: FloatArray | None = None
 
     @property
     def n_ticks(self) -> int:
@@ -635,7 +640,8 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
     (non-empty 10 % SOC bands), ``evaluation_window`` and ``scoring_soc`` (the SOC that decided
     the window and bands); the same per cell under ``cells``; ``start_branch_V`` per cell (V,
     null for empty branches); ``start_fit_rmse_V`` per cell (V) where the start was fitted;
-    ``start_h`` per cell (null: 0, the engine's start).
+    ``start_h`` per cell (null: 0, the engine's start); ``activation_energy_J_mol`` per cell
+    (J/mol; null where the record's temperature did not move).
     """
     scorer = result.scorer(window)
     s = scorer.scores()
@@ -670,6 +676,7 @@ def metrics_document(result: IdentifyResult, window: EvalWindow) -> dict[str, An
         "start_branch_V": None if b is None else [float(x) for x in b],
         "start_fit_rmse_V": _finite_list(result.start_fit_rmse_V),
         "start_h": _finite_list(result.start_h),
+        "activation_energy_J_mol": _finite_list(result.activation_energy_J_mol),
         "counters": result.counters,
         "cells": cells,
     }
