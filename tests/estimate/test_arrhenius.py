@@ -168,6 +168,10 @@ def test_a_buffer_slot_the_compiled_loop_refilled_has_no_temperature() -> None:
     assert np.isnan(back.inv_temperature(1.0, 10.0, 18.0)).all()  # a checkpoint from before
     back.load_state_dict(st_)
     np.testing.assert_array_equal(back.inv_temperature(1.0, 10.0, 18.0), inv)
+    buf.clear()  # the clock jumped back 1000 s (a new segment): the slots keep later times
+    for k in range(11):
+        buf.push(1.0, one, one, yes, t_s=float(k) - 1000.0)  # no temperature
+    assert np.isnan(buf.inv_temperature(1.0, 10.0, -990.0)).all()
 
 
 def test_the_pack_temperature_reaches_the_ticks_as_the_mean_of_its_sensors() -> None:

@@ -24,16 +24,18 @@ temperature, from the window's temperature as the fit weighs it (its current ste
 
 B is the cell's activation temperature, identified from those window fits' (ln R0, 1 / T) pairs
 by a scalar Kalman filter on the differences of consecutive pairs (used when the temperature
-moved at least ``MIN_DT_K`` between them: a drive's first fit against the last one of the drive
-before, hours and kelvins apart), starting from the prior ``B_PRIOR_K`` (30 kJ/mol: ohmic and
-charge-transfer resistances of Li-ion cells near room temperature, 15-60 kJ/mol in the
-literature) with std ``B_PRIOR_STD_K``. A window fit's R0 is the data's alone; R0 learnt tick by
-tick, which fed B before, is the value the law carried (with the B in force) plus the data's
-first corrections, so a pair early in a drive taught B back towards itself: on ``temp-ea50``
-(3 days, truth 6,014 K) B reached 6,135 K but the window fits' temperature lag held R0 4 % low
-under the charges; with the lag corrected, B learnt tick by tick reached 5,600 K (R0 2-3 % low);
-from the window fits 6,105 K, R0 median under load 1.3 / 0.3 / 0.2 % on days 1-3 (6.7 / 4.1 /
-4.0 % before). Without a temperature (NaN) nothing changes,
+moved at least ``MIN_DT_K`` and SOC at most ``MAX_PAIR_DSOC`` between them: a drive's first fit
+against the last one of the drive before, a rest between; R0 depends on SOC as well), starting
+from the prior ``B_PRIOR_K`` (30 kJ/mol: ohmic and charge-transfer resistances of Li-ion cells
+near room temperature, 15-60 kJ/mol in the literature) with std ``B_PRIOR_STD_K``, within
+``B_MIN_K``-``B_MAX_K``. A window fit's R0 is the data's alone; R0 learnt tick by tick, which
+fed B before, is the value the law carried (with the B in force) plus the data's first
+corrections, so a pair early in a drive taught B back towards itself: on ``temp-ea50`` (3 days,
+truth 6,014 K) B reached 6,135 K but the window fits' temperature lag held R0 4 % low under the
+charges; with the lag corrected, B learnt tick by tick reached 5,600 K (R0 2-3 % low); from the
+window fits 5,956 K, R0 median under load 0.2 / 0.2 / 0.4 % on days 1-3 (6.7 / 4.1 / 4.0 %
+before). Without the SOC condition a DFN cell's fits 2 K and many SOC points apart took B to 0.
+Without a temperature (NaN) nothing changes,
 and a constant one changes nothing either: records without a varying temperature give what they
 gave before. Only R0 is carried: carrying R1 too (the multi-day truth scales both) was measured
 worse for R0+R1+R2 (3-day `all` scenario, day 2: 15.6 % against 4.3 %), the estimator's R1 being

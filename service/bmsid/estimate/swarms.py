@@ -156,11 +156,12 @@ class WindowBuffer:
 
     def inv_temperature(self, dt_s: float, window_s: float, t_now_s: float) -> FloatArray:
         """1 / temperature (1/K) of the ticks of :meth:`window`, NaN where unknown: a slot's
-        temperature counts where its time is its place's (a slot the compiled loop refilled
-        kept the time of a tick at least ``size`` pushes older)."""
+        temperature counts where its time is its place's (a slot refilled by a tick without
+        one kept the time of a tick at least ``size`` pushes older, or of one before a jump of
+        the clock)."""
         idx = self.order()[-(int(window_s / dt_s) + 1) :]
         age = (idx.shape[0] - 1 - np.arange(idx.shape[0])) * dt_s
-        fresh = self.t_s[idx] > t_now_s - age - 0.5 * self.size * dt_s
+        fresh = np.abs(self.t_s[idx] - (t_now_s - age)) < 0.5 * self.size * dt_s
         return np.where(fresh, self.inv_T_K[idx], math.nan)
 
     def order(self) -> npt.NDArray[np.intp]:
