@@ -331,9 +331,9 @@ class FusionStage:
             th[3] = 1.0
         if not tun.identify_ocv_offset:
             th[4] = 0.0
+        if math.isfinite(inv_t[-1]) and self._lin_lo[c, 0] < th[0] < self._lin_hi[c, 0]:
+            self.arrhenius.learn_fit(c, float(th[0]), float(self._soc[c]))  # (not on a bound)
         self.theta[c] = self._clamp_linear((th / sc)[None, :], rows=slice(c, c + 1))[0]
-        if math.isfinite(inv_t[-1]):  # the last tick's temperature known: a pair for B
-            self.arrhenius.learn_fit(c, float(self.theta[c, 0] * sc[0]), float(self._soc[c]))
         restart, keep_r0 = self._no_hysteresis or tun.swarm_rls_restart, not self._no_hysteresis
         P = swarm_covariance(fit.cov[0], tun, self._fit_scale, restart=restart, keep_r0=keep_r0)
         self.P[c] = fusion_covariance(P)
