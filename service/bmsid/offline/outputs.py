@@ -22,6 +22,7 @@ import numpy.typing as npt
 from bmsid.config.cell import CellConfig
 from bmsid.config.engine import ocv_model
 from bmsid.errors import UserError
+from bmsid.estimate.arrhenius import B_PRIOR_K, MAX_PAIR_DSOC, MIN_DT_K, R_GAS
 from bmsid.estimate.start_fit import WINDOW_S as START_WINDOW_S
 from bmsid.model.ocv import OcvModel
 from bmsid.offline.accumulate import PLOT_SERIES
@@ -327,9 +328,11 @@ def temperature_law_text(result: IdentifyResult) -> str | None:
         return None
     pairs = result.counters.get("arrhenius_pairs", 0)
     how = (f"learnt from {pairs} pair(s) of window fits" if pairs else
-           "the prior: no two window fits 1 K apart within 10 SOC points")  # fmt: skip
+           f"the prior: no two window fits {MIN_DT_K:g} K apart within "
+           f"{100 * MAX_PAIR_DSOC:g} SOC points")  # fmt: skip
     vals = ", ".join(f"{x / 1e3:.1f}" for x in ea[:4]) + (" ..." if ea.size > 4 else "")
-    return f"temperature law (R0): activation energy {vals} kJ/mol, {how} (prior 30)"
+    prior = B_PRIOR_K * R_GAS / 1e3
+    return f"temperature law (R0): activation energy {vals} kJ/mol, {how} (prior {prior:g})"
 
 
 def ocv_range_warning(result: IdentifyResult, cell: CellConfig) -> str | None:
